@@ -1,0 +1,220 @@
+"""The ``rlsac`` command line. Each command parses options and calls one library function.
+
+A user error (``RlsacError``) is printed as ``error: <message>`` on one line of stderr with exit
+code 2 and no traceback; click's own usage errors keep click's message and exit code 2.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+import click
+
+from rlsac.errors import RlsacError
+
+
+class _UserError(click.ClickException):
+    exit_code = 2
+
+    def show(self, file=None) -> None:
+        click.echo(f"error: {self.format_message()}", err=True)
+
+
+class _Group(click.Group):
+    """Turns RlsacError raised by any command into a one-line error with exit code 2."""
+
+    def invoke(self, ctx):
+        try:
+            return super().invoke(ctx)
+        except RlsacError as e:
+            raise _UserError(" ".join(str(e).split()) or e.__class__.__name__) from None
+
+
+def tracking_option(f):
+    return click.option("--tracking/--no-tracking", default=True, show_default=True,
+                        help="Log an MLflow run (MLFLOW_TRACKING_URI, default sqlite:///mlflow.db).")(f)
+
+
+def device_option(f):
+    return click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), default="auto", show_default=True,
+                        help="auto = cuda if available, else cpu.")(f)
+
+
+@click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(package_name="rlsac")
+def cli() -> None:
+    """RLSAC reproduction workbench: data, training, evaluation, ablations and figures."""
+    # MLflow configures its logger at import time from this variable; its INFO lines are noise here.
+    os.environ.setdefault("MLFLOW_LOGGING_LEVEL", "WARNING")
+
+
+@cli.command("synth-lines")
+@click.option("--outlier", "outlier_rate", type=float, help="Outlier rate rho in [0, 1). [default: 0.5]")
+@click.option("--n-instances", type=int, help="Number of instances. [default: 1000]")
+@click.option("--n-points", type=int, help="Points per instance N. [default: 100]")
+@click.option("--picture-size", type=float, help="Side of the square picture. [default: 10]")
+@click.option("--band", type=float, help="Inlier half-width around the line. [default: calibrated]")
+@click.option("--line", type=click.Choice(["two_points", "point_angle", "angle_offset"]),
+              help="How the ground-truth line is drawn.")
+@click.option("--inlier-count", type=click.Choice(["fixed", "binomial"]), help="Inliers per instance.")
+@click.option("--extent", type=click.Choice(["chord", "segment"]), help="Where inliers lie along the line.")
+@click.option("--seed", type=int, help="Generator seed. [default: 0]")
+@click.option("--out", type=click.Path(dir_okay=False),
+              help="Output h5 [default: data/lines/lines_o{rate}_s{seed}.h5].")
+@click.option("--params", "params_path", default="params.yaml", show_default=True,
+              help="params.yaml whose lines_data section overrides the generator defaults.")
+@tracking_option
+def synth_lines(tracking: bool, params_path: str, **options) -> None:
+    """Generate a synthetic 2D-line data set (paper Sec. 4.2)."""
+    from rlsac.commands import synth_lines as run
+
+    s = run(options, track=tracking, params_path=params_path)
+    click.echo(f"wrote {s['path']}: {s['n_instances']} instances x {s['n_points']} points, "
+               f"outlier rate {s['conf']['outlier_rate']:g}, inlier fraction {s['inlier_fraction']:.3f}, "
+               f"seed {s['conf']['seed']}")
+
+
+@cli.command("import-scenes")
+@click.option("--src", type=click.Path(file_okay=False),
+              help="Source scenes (Strecha layout). [default: ../shared/data/strecha]")
+@click.option("--out", type=click.Path(file_okay=False),
+              help="Output tutorial-layout root. [default: data/raw/strecha]")
+@click.option("--split", help="Split folder written under --out. [default: all]")
+@click.option("--scenes", help="Comma-separated scene names. [default: every scene]")
+@click.option("--max-features", type=int, help="SIFT keypoints per image. [default: 8000]")
+@click.option("--rootsift/--no-rootsift", default=None, help="RootSIFT descriptors. [default: on]")
+@click.option("--min-matches", type=int, help="Drop pairs with fewer good matches. [default: 30]")
+@click.option("--set", "sets", multiple=True, metavar="KEY=VALUE", help="Other ImportConf field; repeatable.")
+@tracking_option
+def import_scenes(tracking: bool, sets: tuple[str, ...], **options) -> None:
+    """Import real scenes offline into the CVPR 2020 tutorial layout (rlsac.data.scenes)."""
+    from rlsac.commands import import_scenes as run
+    from rlsac.commands import parse_sets
+
+    _echo_result(run({**options, **parse_sets(sets)}, track=tracking))
+
+
+@cli.command("prepare-cvpr2020")
+@click.option("--root", type=click.Path(file_okay=False),
+              help="Tutorial-layout root (CVPR 2020 RANSAC tutorial or import-scenes output). "
+                   "[default: data/raw/strecha]")
+@click.option("--split", help="Split folder under --root. [default: all]")
+@click.option("--scenes", help="Comma-separated scene names. [default: every scene]")
+@click.option("--n-points", type=int, help="Correspondences kept per pair. [default: 150]")
+@click.option("--max-pairs-per-scene", type=int, help="Cap on pairs per scene, 0 = all. [default: 0]")
+@click.option("--out", type=click.Path(dir_okay=False), help="Output h5. [default: data/fundamental/val.h5]")
+@click.option("--set", "sets", multiple=True, metavar="KEY=VALUE", help="Other PrepareConf field; repeatable.")
+@tracking_option
+def prepare_cvpr2020(tracking: bool, sets: tuple[str, ...], **options) -> None:
+    """Prepare fundamental-matrix pairs from the CVPR 2020 tutorial layout (rlsac.data.tutorial)."""
+    from rlsac.commands import parse_sets
+    from rlsac.commands import prepare_cvpr2020 as run
+
+    _echo_result(run({**options, **parse_sets(sets)}, track=tracking))
+
+
+@cli.command()
+@click.option("--task", type=click.Choice(["line", "fundamental"]), required=True)
+@click.option("--data", type=click.Path(dir_okay=False), help="Training h5.")
+@click.option("--val-data", type=click.Path(dir_okay=False), help="Validation h5.")
+@click.option("--out", type=click.Path(dir_okay=False), help="Checkpoint path, e.g. checkpoints/NAME.pt.")
+@click.option("--resume", is_flag=True, default=None, help="Resume from --out if it exists.")
+@click.option("--seed", type=int)
+@click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), help="auto = cuda if available.")
+@click.option("--params", "params_path", default="params.yaml", show_default=True,
+              help="params.yaml; its train.<task> section gives the defaults.")
+@click.option("--set", "sets", multiple=True, metavar="KEY=VALUE", help="Override, e.g. --set optim.lr=1e-4.")
+@tracking_option
+def train(task: str, tracking: bool, params_path: str, sets: tuple[str, ...], **flags) -> None:
+    """Train an RLSAC policy (rlsac.train)."""
+    from rlsac.commands import train as run
+    from rlsac.commands import train_options
+
+    _echo_result(run(train_options(task, flags, sets, params_path), track=tracking))
+
+
+@cli.command()
+@click.option("--task", type=click.Choice(["line", "fundamental"]), required=True)
+@click.option("--method", type=click.Choice(["ransac", "rlsac", "usac", "usac_accurate", "magsac", "opencv_ransac"]),
+              required=True)
+@click.option("--data", type=click.Path(dir_okay=False), required=True, help="Test h5.")
+@click.option("--checkpoint", type=click.Path(dir_okay=False), help="RLSAC checkpoint (method rlsac).")
+@click.option("--iterations", type=int, help="Hypotheses per instance [default: params.yaml evaluate.<task>].")
+@click.option("--steps-per-episode", type=int, help="RLSAC episode length [default: checkpoint's, else 15].")
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--batch-size", type=int, default=256, show_default=True)
+@click.option("--out-dir", type=click.Path(file_okay=False), help="[default: reports/eval/<name>]")
+@click.option("--params", "params_path", default="params.yaml", show_default=True,
+              help="params.yaml; its evaluate.<task> section gives the defaults.")
+@device_option
+@tracking_option
+def evaluate(tracking: bool, params_path: str, **options) -> None:
+    """Evaluate a method on a data file: errors CSV + summary JSON + MLflow run."""
+    from rlsac.commands import _params, _section
+    from rlsac.evaluate import evaluate as run
+    from rlsac.evaluate import format_summary
+
+    defaults = _section(_params(params_path), "evaluate", options["task"])
+    options = {**defaults, **{k: v for k, v in options.items() if v is not None}}
+    click.echo(format_summary(run(options, track=tracking)))
+
+
+@cli.command()
+@click.option("--what", type=click.Choice(["descriptors", "sampling", "points", "generalisation"]), required=True)
+@click.option("--set", "sets", multiple=True, metavar="KEY=VALUE", help="Extra option; repeatable.")
+@device_option
+@tracking_option
+def ablate(what: str, device: str, tracking: bool, sets: tuple[str, ...]) -> None:
+    """Run one ablation study (rlsac.ablate)."""
+    from rlsac.commands import ablate as run
+    from rlsac.commands import parse_sets
+
+    _echo_result(run({"what": what, "device": device, **parse_sets(sets)}, track=tracking))
+
+
+@cli.command()
+@click.option("--set", "sets", multiple=True, metavar="KEY=VALUE", help="Option; repeatable.")
+@tracking_option
+def plot(tracking: bool, sets: tuple[str, ...]) -> None:
+    """Draw the report figures (rlsac.reports.figures)."""
+    from rlsac.commands import parse_sets
+    from rlsac.commands import plot as run
+
+    _echo_result(run(parse_sets(sets), track=tracking))
+
+
+@cli.command("calibrate-lines")
+@click.option("--n-instances", type=int, default=1000, show_default=True)
+@click.option("--seed", type=int, default=123, show_default=True)
+@click.option("--iterations", type=int, default=150, show_default=True)
+@click.option("--out", default="reports/calibration_lines", show_default=True, help="Output stem (.md and .csv).")
+@click.option("--params", "params_path", default="params.yaml", show_default=True,
+              help="params.yaml whose lines_data section overrides the generator defaults.")
+@device_option
+@tracking_option
+def calibrate_lines(tracking: bool, params_path: str, **options) -> None:
+    """Our 150-iteration RANSAC on the default line sets vs the paper's RANSAC row (Table 1)."""
+    from rlsac.commands import calibrate_lines as run
+
+    s = run(options, track=tracking, params_path=params_path)
+    click.echo(s["table"].to_string(index=False, float_format=lambda v: f"{v:.3f}"))
+    click.echo(f"wrote {s['md']} and {s['csv']}")
+
+
+def _echo_result(result) -> None:
+    if result is None:
+        return
+    if isinstance(result, dict):
+        click.echo(", ".join(f"{k}={v}" for k, v in result.items() if not isinstance(v, (dict, list))))
+    else:
+        click.echo(str(result))
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Console entry point (``rlsac``)."""
+    cli.main(args=argv, prog_name="rlsac")
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,183 @@
+"""The sample-consensus environment of RLSAC (paper Sec. 3.2-3.5), batched on one torch device.
+
+Rows are laid out instance-major: B instances x E parallel episodes = R = B E rows. Every episode
+starts from a uniformly random minimal set; each later minimal set comes from the policy. The state
+of a row is the instance's data features (N x c) concatenated with three memory features:
+
+* action: +1 for the points of the last minimal set, -1 otherwise;
+* residual: distance to the last hypothesis divided by the inlier threshold, clipped at
+  ``residual_clip`` and scaled to [0, 1] (inliers span [0, 1/clip]; far outliers saturate at 1);
+* history: how many times the point has been in a minimal set of this episode.
+
+Reward = inlier ratio of the hypothesis. A minimal set already used for this instance (by any of its
+episodes) is never used again: the next candidate drawn from the policy's probabilities is taken.
+The output is the best hypothesis (most inliers) over all episodes, refined on its inliers.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from rlsac.baselines import finalize
+from rlsac.sampling import gather_points, set_keys, uniform_minimal_sets
+from rlsac.tasks import Task
+
+MEMORY_DIM = 3
+
+
+@dataclass
+class EnvConf:
+    steps_per_episode: int = 15  # psi: hypotheses per episode, the random initial one included (paper)
+    kappa: int = 2  # training: stop when the inlier count is unchanged for kappa steps (paper)
+    varsigma: int = 3  # training: stop when the episode best is not exceeded for varsigma steps (paper)
+    residual_clip: float = 5.0  # residual feature = min(r / eps, clip) / clip; 5 eps separates near-inliers
+    candidates: int = 16  # candidate minimal sets drawn per row and step for de-duplication
+
+
+class SampleConsensusEnv:
+    """Batched environment. Call ``reset`` with a batch, then alternate ``choose`` and ``step``."""
+
+    def __init__(self, task: Task, conf: EnvConf, training: bool):
+        self.task, self.conf, self.training = task, conf, training
+
+    # ---------------------------------------------------------------- setup
+    def reset(self, batch: dict, features: torch.Tensor, episodes: int = 1, budget: int | None = None,
+              generator: torch.Generator | None = None) -> torch.Tensor:
+        """Start ``episodes`` episodes per instance; returns the first state (R, N, c + 3).
+
+        batch: coords (B, N, d), mask (B, N); features (B, N, c) network data features.
+        budget: total hypotheses per instance (test time); rows past it stay inactive.
+        """
+        coords, mask = batch["coords"], batch["mask"]
+        B, N, _ = coords.shape
+        E, psi, dev = episodes, self.conf.steps_per_episode, coords.device
+        self.B, self.E, self.N = B, E, N
+        self.gen = generator
+        self.coords = coords.repeat_interleave(E, 0)
+        self.mask = mask.repeat_interleave(E, 0)
+        self.data = features.repeat_interleave(E, 0)
+        self.n_valid = self.mask.sum(-1).clamp_min(1)
+        self.budget = budget if budget is not None else E * psi
+        R = B * E
+        self.t = 0
+        self.used = torch.full((B, E * psi), -1, dtype=torch.int64, device=dev)
+        self.history = torch.zeros((R, N), device=dev)
+        self.action = torch.full((R, N), -1.0, device=dev)
+        self.residual = torch.ones((R, N), device=dev)
+        self.done = torch.zeros(R, dtype=torch.bool, device=dev)
+        self.count = torch.full((R,), -1, dtype=torch.long, device=dev)
+        self.same_count = torch.zeros(R, dtype=torch.long, device=dev)
+        self.ep_best = torch.full((R,), -1, dtype=torch.long, device=dev)
+        self.no_better = torch.zeros(R, dtype=torch.long, device=dev)
+        self.best_count = torch.full((B,), -1, dtype=torch.long, device=dev)
+        self.best_hyp: torch.Tensor | None = None
+        self.hypotheses = 0
+        keys = torch.rand((R, N), generator=generator, device=dev)
+        self.step(self.select(keys, random=True))
+        return self.state()
+
+    def state(self) -> torch.Tensor:
+        return torch.cat([self.data, self.memory()], dim=-1)
+
+    def memory(self) -> torch.Tensor:
+        """(R, N, 3): action, residual, history."""
+        return torch.stack([self.action, self.residual, self.history], dim=-1)
+
+    @property
+    def active(self) -> torch.Tensor:
+        """(R,) rows that still produce hypotheses: episode running and within the budget."""
+        e = torch.arange(self.B * self.E, device=self.done.device) % self.E
+        return ~self.done & (e * self.conf.steps_per_episode + self.t < self.budget)
+
+    # ---------------------------------------------------------------- acting
+    def select(self, logits: torch.Tensor, sample: bool = False, random: bool = False) -> torch.Tensor:
+        """Pick an unused minimal set per row from per-point scores. logits (R, N) -> idx (R, m).
+
+        Candidate 0 is the top-m (max sampling) or a draw without replacement from softmax(logits)
+        (probabilistic sampling, Gumbel top-m); further candidates are always draws from the policy's
+        probabilities, as the paper prescribes for a duplicate. ``random`` = uniform sets.
+        """
+        m, K = self.task.sample_size, self.conf.candidates
+        R, N = logits.shape
+        logits = logits.masked_fill(~self.mask, float("-inf"))
+        if random:
+            cand = uniform_minimal_sets(self.mask, m, K, self.gen)
+        else:
+            u = torch.rand((R, K, N), generator=self.gen, device=logits.device).clamp_(1e-12, 1 - 1e-12)
+            gumbel = logits[:, None, :] - torch.log(-torch.log(u))
+            cand = gumbel.topk(m, dim=-1).indices
+            if not sample:
+                cand[:, 0] = logits.topk(m, dim=-1).indices
+        keys = set_keys(cand, N)  # (R, K)
+        inst = torch.arange(R, device=logits.device) // self.E
+        taken = (keys[:, :, None] == self.used[inst][:, None, :]).any(-1)  # (R, K)
+        rows = torch.arange(R, device=logits.device)
+        earlier = torch.ones(self.E, self.E, dtype=torch.bool, device=logits.device).tril(-1)
+        act = self.active.view(self.B, self.E)
+        for _ in range(K):
+            # each row's first candidate not used before (the last one if all were: a rare repeat)
+            free = ~taken
+            ptr = torch.where(free.any(-1), free.float().argmax(-1), torch.full_like(rows, K - 1))
+            chosen = keys[rows, ptr].view(self.B, self.E)
+            same = (chosen[:, :, None] == chosen[:, None, :]) & act[:, :, None] & act[:, None, :]
+            dup = (same & earlier).any(-1).flatten() & free.any(-1)
+            if not dup.any():
+                break
+            taken[rows[dup], ptr[dup]] = True  # an earlier episode of the instance took it this step
+        return cand[rows, ptr]
+
+    def step(self, idx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Apply minimal sets idx (R, m). Returns reward (R,), done (R,), active-before-step (R,)."""
+        task, conf, psi = self.task, self.conf, self.conf.steps_per_episode
+        act = self.active
+        hyps, valid = task.solve(gather_points(self.coords, idx))
+        res = task.residuals(hyps, self.coords)
+        res = torch.where(valid[:, None] & self.mask, res, torch.full_like(res, float("inf")))
+        inl = (res <= task.threshold) & self.mask
+        count = inl.sum(-1).masked_fill(~valid, 0)
+        reward = count.float() / self.n_valid
+
+        # memory features of the next state (only rows that acted change)
+        onehot = torch.zeros_like(self.action, dtype=torch.bool).scatter_(1, idx, True)
+        a = act[:, None]
+        self.action = torch.where(a, onehot.float() * 2 - 1, self.action)
+        r_feat = (res / task.threshold).clamp(max=conf.residual_clip) / conf.residual_clip
+        self.residual = torch.where(a, r_feat.masked_fill(~self.mask, 1.0), self.residual)
+        self.history = self.history + (onehot & a).float()
+
+        # de-duplication memory, then the best hypothesis of each instance over all episodes
+        keys = set_keys(idx, self.N).masked_fill(~act, -1).view(self.B, self.E)
+        self.used[:, self.t * self.E : (self.t + 1) * self.E] = keys
+        c = count.masked_fill(~act, -1).view(self.B, self.E)
+        cmax, e = c.max(1)
+        h = hyps.view(self.B, self.E, *hyps.shape[1:])[torch.arange(self.B), e]
+        better = cmax > self.best_count
+        if self.best_hyp is None:
+            self.best_hyp = h.clone()
+        self.best_hyp = torch.where(better.view(-1, *[1] * (h.dim() - 1)), h, self.best_hyp)
+        self.best_count = torch.where(better, cmax, self.best_count)
+        self.hypotheses += int(act.sum())
+        self.last_hyps, self.last_inliers = hyps, inl
+
+        # termination: psi always; kappa and varsigma only while training
+        self.same_count = torch.where(count == self.count, self.same_count + 1, torch.zeros_like(count))
+        improved = count > self.ep_best
+        self.no_better = torch.where(improved, torch.zeros_like(count), self.no_better + 1)
+        self.ep_best = torch.maximum(self.ep_best, count)
+        self.count = torch.where(act, count, self.count)
+        self.t += 1
+        done = torch.full_like(act, self.t >= psi)
+        if self.training:
+            done = done | (self.same_count >= conf.kappa) | (self.no_better >= conf.varsigma)
+        newly = act & done
+        self.done = self.done | done
+        return reward * act, newly, act
+
+    # ---------------------------------------------------------------- output
+    def result(self) -> dict[str, torch.Tensor]:
+        """Best hypothesis per instance over all episodes, refined on its inliers."""
+        coords = self.coords.view(self.B, self.E, *self.coords.shape[1:])[:, 0]
+        mask = self.mask.view(self.B, self.E, -1)[:, 0]
+        return finalize(self.task, coords, mask, self.best_hyp, self.best_count >= self.task.sample_size)

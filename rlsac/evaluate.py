@@ -1,0 +1,273 @@
+"""Evaluate one method on one data file: per-instance errors CSV, summary JSON, one MLflow run.
+
+``evaluate(options)`` is what ``rlsac evaluate`` calls. Options (all but ``task``/``method``/``data``
+have defaults):
+
+    task        "line" | "fundamental"
+    method      "ransac" (our batched RANSAC, any task), "rlsac" (needs ``checkpoint``), or one of
+                OpenCV's "opencv_ransac" | "usac" | "usac_accurate" | "magsac" (fundamental only)
+    data        h5 file written by ``rlsac synth-lines`` / ``rlsac prepare-cvpr2020``
+    checkpoint  RLSAC checkpoint (.pt), method "rlsac" only
+    iterations  hypotheses per instance (default 150 for lines, 1000 for fundamental)
+    steps_per_episode  RLSAC only; default: the checkpoint's value, else 15
+    seed, device ("auto" | "cpu" | "cuda"), batch_size, out_dir (default reports/eval/<name>)
+
+The random stream is one seeded ``torch.Generator`` consumed batch after batch, so results are
+reproducible for a given (seed, batch_size, device).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import pandas as pd
+import torch
+from tqdm import tqdm
+
+from rlsac.errors import RlsacError
+from rlsac.io import atomic_path, write_json
+from rlsac.tasks import TASK_NAMES, Task, get_task
+from rlsac.tracking import start_run
+
+OPENCV_METHODS = ("opencv_ransac", "usac", "usac_accurate", "magsac")
+OPENCV_FLAG = {"opencv_ransac": "ransac", "usac": "usac", "usac_accurate": "usac_accurate", "magsac": "magsac"}
+METHODS = ("ransac", "rlsac") + OPENCV_METHODS
+DEFAULT_ITERATIONS = {"line": 150, "fundamental": 1000}
+EXPERIMENT = {"line": "lines", "fundamental": "fundamental"}
+DEFAULTS: dict[str, Any] = {
+    "checkpoint": None,
+    "iterations": None,
+    "steps_per_episode": None,
+    "seed": 0,
+    "device": "auto",
+    "batch_size": 256,
+    "out_dir": None,
+}
+
+
+def resolve_device(device: str | None) -> str:
+    """"auto" (or None) -> "cuda" if available else "cpu"; "cuda" without a GPU is a user error."""
+    from rlsac.devices import resolve_device as _resolve
+
+    return str(_resolve((device or "auto").lower()))
+
+
+def task_from(name: str, options: dict[str, Any] | None = None) -> Task:
+    """Build task ``name`` with ``options`` (e.g. the ``task`` section stored in a checkpoint)."""
+    options = dict(options or {})
+    stored = options.pop("name", None)
+    if stored is not None and stored != name:
+        raise RlsacError(f"checkpoint was trained for task '{stored}', not '{name}'")
+    try:
+        return get_task(name, **options)
+    except TypeError as e:
+        raise RlsacError(f"bad options for task '{name}': {e}") from None
+
+
+def checkpoint_task_options(ckpt_conf: dict[str, Any]) -> dict[str, Any]:
+    """Task options stored in a checkpoint conf: ``task`` as a dict of options (with an optional
+    ``name``), or ``task`` as the task name beside a ``task_options`` dict (rlsac.train.TrainConf)."""
+    stored = ckpt_conf.get("task")
+    if isinstance(stored, dict):
+        return dict(stored)
+    options = dict(ckpt_conf.get("task_options") or {})
+    if isinstance(stored, str):
+        options["name"] = stored
+    return options
+
+
+def data_module(task: str):
+    """The data module (``read``/``to_batch``) of a task."""
+    if task == "line":
+        from rlsac.data import lines
+
+        return lines
+    if task == "fundamental":
+        from rlsac.data import fundamental
+
+        return fundamental
+    raise RlsacError(f"unknown task '{task}' (known: {', '.join(TASK_NAMES)})")
+
+
+def check_options(options: dict[str, Any]) -> dict[str, Any]:
+    """Fill defaults and validate; -> a new, complete options dict."""
+    missing = [k for k in ("task", "method", "data") if not options.get(k)]
+    if missing:
+        raise RlsacError(f"evaluate needs {', '.join(missing)}")
+    unknown = sorted(set(options) - set(DEFAULTS) - {"task", "method", "data"})
+    if unknown:
+        raise RlsacError(f"unknown evaluate option(s) {unknown}")
+    o = {**DEFAULTS, **{k: v for k, v in options.items() if v is not None}}
+    if o["task"] not in TASK_NAMES:
+        raise RlsacError(f"unknown task '{o['task']}' (known: {', '.join(TASK_NAMES)})")
+    if o["method"] not in METHODS:
+        raise RlsacError(f"unknown method '{o['method']}' (known: {', '.join(METHODS)})")
+    if o["method"] in OPENCV_METHODS and o["task"] != "fundamental":
+        raise RlsacError(f"method '{o['method']}' is OpenCV's fundamental-matrix estimator: use --task fundamental")
+    if o["method"] == "rlsac" and not o["checkpoint"]:
+        raise RlsacError("method 'rlsac' needs --checkpoint")
+    if o["checkpoint"] and not Path(o["checkpoint"]).is_file():
+        raise RlsacError(f"{o['checkpoint']}: no such checkpoint file")
+    if o["iterations"] is None:
+        o["iterations"] = DEFAULT_ITERATIONS[o["task"]]
+    for key in ("iterations", "batch_size"):
+        if int(o[key]) <= 0:
+            raise RlsacError(f"{key} must be positive, got {o[key]}")
+        o[key] = int(o[key])
+    if o["steps_per_episode"] is not None and int(o["steps_per_episode"]) <= 0:
+        raise RlsacError(f"steps_per_episode must be positive, got {o['steps_per_episode']}")
+    if not Path(o["data"]).is_file():
+        raise RlsacError(f"{o['data']}: no such file")
+    if o["out_dir"] is None:
+        o["out_dir"] = str(Path("reports") / "eval" / run_name(o))
+    return o
+
+
+def run_name(o: dict[str, Any]) -> str:
+    return f"{o['task']}_{o['method']}_{Path(o['data']).stem}_i{o['iterations']}_s{o['seed']}"
+
+
+def _ckpt_value(conf: dict, key: str):
+    """``key`` at the top level of a checkpoint conf, else in one of its sections."""
+    if key in conf:
+        return conf[key]
+    for v in conf.values():
+        if isinstance(v, dict) and key in v:
+            return v[key]
+    return None
+
+
+def make_estimator(o: dict[str, Any], device: str) -> tuple[Task, Callable[[dict, torch.Generator], dict], dict]:
+    """-> (task, estimate(batch, generator) -> {hyp, valid, inliers} torch tensors, extra run params)."""
+    method, iterations = o["method"], o["iterations"]
+    if method == "ransac":
+        from rlsac.baselines import ransac
+
+        task = task_from(o["task"])
+        return task, lambda batch, g: ransac(task, batch, iterations, g), {}
+    if method in OPENCV_METHODS:
+        try:
+            from rlsac.baselines import opencv_fundamental
+        except ImportError:
+            raise RlsacError("OpenCV baselines are not implemented yet (rlsac.baselines.opencv_fundamental)") from None
+        task = task_from(o["task"])
+
+        def estimate(batch, g):
+            seed = int(torch.randint(0, 2**31 - 1, (1,), generator=g, device=g.device).item())
+            return opencv_fundamental(batch, OPENCV_FLAG[method], iterations, seed=seed)
+
+        return task, estimate, {}
+    # method == "rlsac"
+    try:
+        from rlsac.rollout import load_actor, rlsac_estimate
+    except ModuleNotFoundError as e:
+        if e.name and e.name.startswith("rlsac"):
+            raise RlsacError("RLSAC inference is not implemented yet (rlsac.rollout)") from None
+        raise
+    actor, ckpt_conf = load_actor(o["checkpoint"], device)
+    ckpt_conf = dict(ckpt_conf or {})
+    task = task_from(o["task"], checkpoint_task_options(ckpt_conf))
+    steps = o["steps_per_episode"] or _ckpt_value(ckpt_conf, "steps_per_episode") or 15
+    steps = int(steps)
+
+    def estimate(batch, g):
+        return rlsac_estimate(task, batch, actor, iterations=iterations, steps_per_episode=steps,
+                              sampling="max", generator=g)
+
+    return task, estimate, {"steps_per_episode": steps}
+
+
+def run_method(task: Task, estimate: Callable, data: dict, to_batch: Callable, n: int, seed: int,
+               device: str, batch_size: int, desc: str = "evaluate") -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """Run ``estimate`` over ``n`` instances in batches -> (per-instance errors, inlier counts)."""
+    g = torch.Generator(device=device)
+    g.manual_seed(int(seed))
+    errs: dict[str, list[np.ndarray]] = {}
+    counts: list[np.ndarray] = []
+    with tqdm(total=n, desc=desc, unit="inst", disable=None, leave=False) as bar:
+        for start in range(0, n, batch_size):
+            idx = slice(start, min(start + batch_size, n))
+            batch = to_batch(data, idx, device=device)
+            out = estimate(batch, g)
+            hyp, valid, inliers = _np(out["hyp"]), _np(out["valid"]).astype(bool), _np(out["inliers"]).astype(bool)
+            np_batch = {k: _np(v) for k, v in batch.items()}
+            for k, v in task.errors(hyp, valid, inliers, np_batch).items():
+                errs.setdefault(k, []).append(np.asarray(v, dtype=np.float64))
+            counts.append(inliers.sum(-1))
+            bar.update(idx.stop - idx.start)
+    return {k: np.concatenate(v) for k, v in errs.items()}, np.concatenate(counts)
+
+
+def _n_instances(data: dict) -> int:
+    for v in data.values():
+        if hasattr(v, "shape") and len(v.shape) > 0:
+            return int(v.shape[0])
+    raise RlsacError("data file holds no instances")
+
+
+def evaluate(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
+    """Evaluate ``options['method']`` on ``options['data']``; write CSV + JSON; -> the summary dict."""
+    o = check_options(options)
+    device = resolve_device(o["device"])
+    mod = data_module(o["task"])
+    data, attrs = mod.read(o["data"])
+    n = _n_instances(data)
+    if n == 0:
+        raise RlsacError(f"{o['data']}: no instances")
+    task, estimate, extra = make_estimator(o, device)
+    out_dir = Path(o["out_dir"])
+    name = run_name(o)
+    params = {**o, "device": device, "n_instances": n, **extra,
+              "data_attrs": {k: _plain(v) for k, v in attrs.items()}}
+    with start_run(EXPERIMENT[o["task"]], f"evaluate {name}", params=params,
+                   tags={"command": "evaluate", "method": o["method"]}, enabled=track) as run:
+        t0 = time.perf_counter()
+        errors, counts = run_method(task, estimate, data, mod.to_batch, n, o["seed"], device, o["batch_size"],
+                                    desc=f"{o['method']} {Path(o['data']).name}")
+        seconds = time.perf_counter() - t0
+        summary = {k: _plain(v) for k, v in task.summarize(errors).items()}
+        summary.update(task=o["task"], method=o["method"], iterations=o["iterations"], data=str(o["data"]),
+                       checkpoint=o["checkpoint"], seed=o["seed"], device=device, n_instances=n,
+                       seconds=seconds, seconds_per_instance=seconds / n, **extra)
+        ids = {k: data[k] for k in ("scene", "pair") if k in data and len(data[k]) == n}  # fundamental pairs
+        frame = pd.DataFrame({"instance": np.arange(n), **ids, **errors, "n_inliers": counts})
+        csv_path, json_path = out_dir / "errors.csv", out_dir / "summary.json"
+        with atomic_path(csv_path) as tmp:
+            frame.to_csv(tmp, index=False, float_format="%.6g")
+        write_json(json_path, summary)
+        summary["out_dir"] = str(out_dir)
+        run.metrics({k: v for k, v in summary.items() if isinstance(v, (int, float)) and not isinstance(v, bool)
+                     and k not in ("iterations", "seed", "steps_per_episode")})
+        run.artifact(csv_path)
+        run.artifact(json_path)
+        summary["run_id"] = run.run_id
+    return summary
+
+
+def format_summary(summary: dict[str, Any]) -> str:
+    """One line: method, data and the task's metrics."""
+    skip = {"task", "method", "iterations", "data", "checkpoint", "seed", "device", "n_instances", "seconds",
+            "seconds_per_instance", "out_dir", "run_id", "steps_per_episode", "n"}
+    metrics = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
+                        for k, v in summary.items() if k not in skip)
+    return (f"{summary['method']} on {summary['data']} ({summary['n_instances']} instances, "
+            f"{summary['iterations']} it): {metrics}; {summary['seconds_per_instance'] * 1e3:.2f} ms/instance "
+            f"-> {summary['out_dir']}")
+
+
+def _np(v):
+    """torch tensor (any device) or array -> numpy."""
+    return v.detach().cpu().numpy() if torch.is_tensor(v) else np.asarray(v) if isinstance(v, np.ndarray) else v
+
+
+def _plain(v):
+    if isinstance(v, np.generic):
+        return v.item()
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    if isinstance(v, bytes):
+        return v.decode("utf-8", "replace")
+    return v

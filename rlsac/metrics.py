@@ -1,0 +1,59 @@
+"""Angular errors and mean Average Accuracy (mAA).
+
+mAA(errors, limit, n) = mean over the n thresholds limit/n, 2 limit/n, ..., limit of the fraction of
+errors at or below each threshold (Barath et al. 2022; the CVPR 2020 RANSAC tutorial). Failed
+estimates carry an infinite (or maximal) error and so count as misses at every threshold.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def thresholds(limit: float, n: int = 10) -> np.ndarray:
+    return limit * np.arange(1, n + 1) / n
+
+
+def mAA(errors: np.ndarray, limit: float, n: int = 10) -> float:
+    errors = np.asarray(errors, dtype=np.float64).ravel()
+    if errors.size == 0:
+        return float("nan")
+    errors = np.where(np.isnan(errors), np.inf, errors)
+    acc = (errors[None, :] <= thresholds(limit, n)[:, None]).mean(axis=1)
+    return float(acc.mean())
+
+
+def median(errors: np.ndarray) -> float:
+    errors = np.asarray(errors, dtype=np.float64).ravel()
+    if errors.size == 0:
+        return float("nan")
+    return float(np.median(np.where(np.isnan(errors), np.inf, errors)))
+
+
+def line_angle_deg(n_est: np.ndarray, n_gt: np.ndarray) -> np.ndarray:
+    """Angle between undirected lines given by their normals (..., 2) -> degrees in [0, 90]."""
+    a = n_est / np.linalg.norm(n_est, axis=-1, keepdims=True)
+    b = n_gt / np.linalg.norm(n_gt, axis=-1, keepdims=True)
+    cos = np.clip(np.abs((a * b).sum(-1)), 0.0, 1.0)
+    return np.degrees(np.arccos(cos))
+
+
+def rotation_error_deg(R_est: np.ndarray, R_gt: np.ndarray) -> np.ndarray:
+    """Angle of R_est R_gt^T. (..., 3, 3) -> (...) degrees in [0, 180]."""
+    tr = np.einsum("...ij,...ij->...", R_est, R_gt)  # trace(R_est @ R_gt.T)
+    return np.degrees(np.arccos(np.clip((tr - 1.0) / 2.0, -1.0, 1.0)))
+
+
+def translation_error_deg(t_est: np.ndarray, t_gt: np.ndarray) -> np.ndarray:
+    """Angle between translation directions ignoring sign. (..., 3) -> (...) degrees in [0, 90]."""
+    t_est, t_gt = _as_vec3(t_est), _as_vec3(t_gt)
+    na = np.linalg.norm(t_est, axis=-1)
+    nb = np.linalg.norm(t_gt, axis=-1)
+    cos = np.abs((t_est * t_gt).sum(-1)) / np.maximum(na * nb, 1e-15)
+    return np.degrees(np.arccos(np.clip(cos, 0.0, 1.0)))
+
+
+def _as_vec3(t) -> np.ndarray:
+    """(..., 3) or column vectors (..., 3, 1) -> (..., 3) float64."""
+    t = np.asarray(t, dtype=np.float64)
+    return t[..., 0] if t.ndim >= 2 and t.shape[-2:] == (3, 1) else t

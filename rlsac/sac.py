@@ -1,0 +1,207 @@
+"""SAC-Discrete (Christodoulou 2019) for choosing minimal sets, in the spirit of cleanrl's single file.
+
+The action is a set of m points drawn from one softmax over the N points. We treat it as m draws of
+a per-point policy pi(i | s):
+  * critic: per-point values q_i(s); Q(s, a) = mean of q_i over the m points of a, so the twin
+    critics regress the reward of a set and stay comparable across m;
+  * soft value: V(s) = sum_i pi_i (min(q1_i, q2_i) - alpha log pi_i), the expectation of Q under one
+    draw, with the per-point entropy standing in for the set's entropy (which is about m times it;
+    the factor is absorbed into alpha);
+  * actor: minimise sum_i pi_i (alpha log pi_i - min q_i); temperature: alpha is tuned so that the
+    per-point entropy tracks ``target_entropy_scale * log(N_valid)``.
+Transitions store only the instance index and the 3 memory channels: the data features are looked
+up again when a batch is drawn, so a 100k buffer of 150 x 264 states fits in a few hundred MB.
+"""
+
+from __future__ import annotations
+
+import copy
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from tqdm import tqdm
+
+from rlsac.env import MEMORY_DIM, EnvConf, SampleConsensusEnv
+from rlsac.policy import Actor, Critic, PolicyConf
+
+
+@dataclass
+class SACConf:
+    total_steps: int = 3000  # vector-env steps (each steps ``num_envs`` episodes at once)
+    num_envs: int = 64  # instances rolled out in parallel, one episode each (paper: one per pair)
+    buffer_size: int = 100_000  # transitions kept
+    batch_size: int = 128  # transitions per gradient update
+    learning_starts: int = 2000  # transitions collected before the first update
+    updates_per_step: int = 1  # gradient updates per vector-env step
+    gamma: float = 0.9  # episodes last <= 15 steps; an effective horizon of ~10 matches that
+    tau: float = 0.01  # polyak averaging of the target critics
+    actor_lr: float = 3e-4  # Adam defaults of SAC
+    critic_lr: float = 3e-4
+    alpha_lr: float = 1e-3  # the temperature must move within a few thousand updates
+    init_alpha: float = 0.01  # rewards are inlier ratios in [0, 1]: alpha = 1 would drown them in entropy
+    target_entropy_scale: float = 0.5  # per-point entropy target = 0.5 log N: ~sqrt(N) plausible points
+    train_sampling: str = "prob"  # probabilistic sampling while training (paper); "max" for the ablation
+
+
+class ReplayBuffer:
+    def __init__(self, size: int, n: int, m: int, device: torch.device):
+        self.size, self.ptr, self.full = size, 0, False
+        self.inst = torch.zeros(size, dtype=torch.long, device=device)
+        self.mem = torch.zeros((size, n, MEMORY_DIM), dtype=torch.float16, device=device)
+        self.mem2 = torch.zeros((size, n, MEMORY_DIM), dtype=torch.float16, device=device)
+        self.action = torch.zeros((size, m), dtype=torch.long, device=device)
+        self.reward = torch.zeros(size, device=device)
+        self.done = torch.zeros(size, device=device)
+
+    def __len__(self) -> int:
+        return self.size if self.full else self.ptr
+
+    def add(self, inst, mem, mem2, action, reward, done) -> None:
+        k = inst.shape[0]
+        idx = (self.ptr + torch.arange(k, device=inst.device)) % self.size
+        self.inst[idx], self.mem[idx], self.mem2[idx] = inst, mem.half(), mem2.half()
+        self.action[idx], self.reward[idx], self.done[idx] = action, reward, done.float()
+        self.full = self.full or self.ptr + k >= self.size
+        self.ptr = (self.ptr + k) % self.size
+
+    def sample(self, k: int, generator: torch.Generator):
+        idx = torch.randint(len(self), (k,), generator=generator, device=generator.device).to(self.inst.device)
+        return (self.inst[idx], self.mem[idx].float(), self.mem2[idx].float(), self.action[idx],
+                self.reward[idx], self.done[idx])
+
+
+def masked_policy(logits: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """-> probabilities and log-probabilities (R, N), both exactly 0 on masked points."""
+    logp = torch.log_softmax(logits, dim=-1).masked_fill(~mask, 0.0)
+    return logp.exp() * mask, logp
+
+
+class SACAgent(torch.nn.Module):
+    def __init__(self, in_channels: int, pconf: PolicyConf, conf: SACConf):
+        super().__init__()
+        self.conf = conf
+        self.actor = Actor(in_channels, pconf)
+        self.qf1, self.qf2 = Critic(in_channels, pconf), Critic(in_channels, pconf)
+        self.qf1_target, self.qf2_target = copy.deepcopy(self.qf1), copy.deepcopy(self.qf2)
+        for p in [*self.qf1_target.parameters(), *self.qf2_target.parameters()]:
+            p.requires_grad_(False)
+        self.log_alpha = torch.nn.Parameter(torch.tensor(float(np.log(conf.init_alpha))))
+        self.q_opt = torch.optim.Adam([*self.qf1.parameters(), *self.qf2.parameters()], lr=conf.critic_lr)
+        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=conf.actor_lr)
+        self.alpha_opt = torch.optim.Adam([self.log_alpha], lr=conf.alpha_lr)
+
+    def update(self, s, s2, mask, graph, action, reward, done) -> dict[str, float]:
+        """One gradient step of critics, actor and temperature on a batch of transitions.
+
+        s, s2 (b, N, C) states; mask (b, N); graph (b, N, k) their shared kNN graph; action (b, m).
+        """
+        c, alpha = self.conf, self.log_alpha.exp().detach()
+        # --- critics: soft Bellman target from the next state's policy and the target critics
+        with torch.no_grad():
+            p2, logp2 = masked_policy(self.actor(s2, mask, graph), mask)
+            q2 = torch.minimum(self.qf1_target(s2, mask, graph), self.qf2_target(s2, mask, graph)).masked_fill(~mask, 0.0)
+            v2 = (p2 * (q2 - alpha * logp2)).sum(-1)
+            target = reward + c.gamma * (1.0 - done) * v2
+        q1_all, q2_all = self.qf1(s, mask, graph), self.qf2(s, mask, graph)
+        q1_a = q1_all.gather(1, action).mean(-1)
+        q2_a = q2_all.gather(1, action).mean(-1)
+        qf_loss = F.mse_loss(q1_a, target) + F.mse_loss(q2_a, target)
+        self.q_opt.zero_grad()
+        qf_loss.backward()
+        self.q_opt.step()
+
+        # --- actor: expected soft advantage under the current per-point policy
+        p, logp = masked_policy(self.actor(s, mask, graph), mask)
+        qmin = torch.minimum(q1_all, q2_all).detach().masked_fill(~mask, 0.0)
+        actor_loss = (p * (alpha * logp - qmin)).sum(-1).mean()
+        self.actor_opt.zero_grad()
+        actor_loss.backward()
+        self.actor_opt.step()
+
+        # --- temperature: keep the per-point entropy near its target
+        entropy = -(p * logp).sum(-1).detach()
+        target_h = c.target_entropy_scale * torch.log(mask.sum(-1).float())
+        alpha_loss = (self.log_alpha.exp() * (entropy - target_h)).mean()
+        self.alpha_opt.zero_grad()
+        alpha_loss.backward()
+        self.alpha_opt.step()
+
+        with torch.no_grad():
+            for net, tgt in ((self.qf1, self.qf1_target), (self.qf2, self.qf2_target)):
+                for p_, tp in zip(net.parameters(), tgt.parameters()):
+                    tp.lerp_(p_, c.tau)
+        return {
+            "losses/qf1": F.mse_loss(q1_a, target).item(), "losses/qf2": F.mse_loss(q2_a, target).item(),
+            "losses/qf1_values": q1_a.mean().item(), "losses/actor": actor_loss.item(),
+            "losses/alpha": alpha_loss.item(), "charts/alpha": alpha.item(), "charts/entropy": entropy.mean().item(),
+        }
+
+
+def train_loop(agent: SACAgent, task, data: dict, env_conf: EnvConf, start_step: int, generator: torch.Generator,
+               log, validate=None, val_every: int = 500, checkpoint=None, ckpt_every: int = 500,
+               buffer: ReplayBuffer | None = None) -> ReplayBuffer:
+    """Collect episodes with the actor and update the agent; ``data`` = coords, mask, features (I, ...).
+
+    ``log(metrics, step)``, ``validate(step) -> metrics`` and ``checkpoint(step)`` are callbacks.
+    """
+    c = agent.conf
+    feats_all, mask_all, coords_all = data["features"], data["mask"], data["coords"]
+    graph_all = agent.actor.graph(feats_all, mask_all)  # data features never change: one graph per instance
+    I, N = mask_all.shape
+    device = feats_all.device
+    if buffer is None:
+        buffer = ReplayBuffer(c.buffer_size, N, task.sample_size, device)
+    env = SampleConsensusEnv(task, env_conf, training=True)
+    running, t0, n_trans, n_upd = False, time.time(), 0, 0
+    ep_return = torch.zeros(c.num_envs, device=device)
+    bar = tqdm(range(start_step, c.total_steps), desc="train", unit="step", dynamic_ncols=True,
+               initial=start_step, total=c.total_steps)
+    for step in bar:
+        if not running:
+            inst = torch.randint(I, (c.num_envs,), generator=generator, device=generator.device).to(device)
+            batch = {"coords": coords_all[inst], "mask": mask_all[inst]}
+            state = env.reset(batch, feats_all[inst], episodes=1, generator=generator)
+            ep_return.zero_()
+            running = True
+        with torch.no_grad():
+            logits = agent.actor(state, env.mask, graph_all[inst])
+        idx = env.select(logits, sample=c.train_sampling == "prob")
+        mem = env.memory()
+        reward, done, act = env.step(idx)
+        state = env.state()
+        buffer.add(inst[act], mem[act], env.memory()[act], idx[act], reward[act], done[act])
+        n_trans += int(act.sum())
+        ep_return += reward
+        if not env.active.any():
+            running = False
+            log({"charts/episode_return": ep_return.mean().item(),
+                 "charts/episode_length": env.t - 1,
+                 "charts/inlier_ratio": (env.best_count.float() / mask_all[inst].sum(-1)).mean().item()}, step)
+        if len(buffer) >= c.learning_starts:
+            for _ in range(c.updates_per_step):
+                b_inst, b_mem, b_mem2, b_a, b_r, b_d = buffer.sample(c.batch_size, generator)
+                x = feats_all[b_inst]
+                m = mask_all[b_inst]
+                metrics = agent.update(torch.cat([x, b_mem], -1), torch.cat([x, b_mem2], -1), m,
+                                       graph_all[b_inst], b_a, b_r, b_d)
+                n_upd += 1
+            if step % 50 == 0:
+                el = max(time.time() - t0, 1e-9)
+                metrics.update({"charts/transitions_per_s": n_trans / el, "charts/updates_per_s": n_upd / el})
+                log(metrics, step)
+                bar.set_postfix(alpha=f"{metrics['charts/alpha']:.3f}", H=f"{metrics['charts/entropy']:.2f}")
+        if validate is not None and (step + 1) % val_every == 0:
+            log(validate(step + 1), step)
+        if checkpoint is not None and (step + 1) % ckpt_every == 0:
+            checkpoint(step + 1, buffer)
+    bar.close()
+    return buffer
+
+
+def seed_everything(seed: int) -> torch.Generator:
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+    return torch.Generator().manual_seed(seed)

@@ -1,0 +1,69 @@
+"""2D line fitting (paper Sec. 4.2): m = 2, point-to-line residuals, total-least-squares refinement.
+
+A line is stored as (a, b, c) with a^2 + b^2 = 1 and a x + b y + c = 0, so the residual of a point
+is its Euclidean distance to the line.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from rlsac import metrics
+
+EPS = 1e-9
+
+
+@dataclass
+class LineTask:
+    threshold: float = 0.1  # the paper's inlier threshold: inliers are disturbed within 0.1 of the line
+    picture_size: float = 10.0  # points live in [0, picture_size]^2; features are divided by it
+    maa_limit_deg: float = 0.5  # Table 1 reports mAA@0.5 deg
+
+    name: str = "line"
+    sample_size: int = 2
+    coord_dim: int = 2
+    feature_dim: int = 2
+
+    def solve(self, pts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """pts (B, 2, 2) -> lines (B, 3), valid (B,): the line through two distinct points."""
+        d = pts[:, 1] - pts[:, 0]
+        length = d.norm(dim=-1)
+        valid = length > 1e-6
+        normal = torch.stack([-d[:, 1], d[:, 0]], dim=-1) / length.clamp_min(EPS)[:, None]
+        c = -(normal * pts[:, 0]).sum(-1)
+        return torch.cat([normal, c[:, None]], dim=-1), valid
+
+    def residuals(self, hyps: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
+        """hyps (B, 3), coords (B, N, 2) -> distances (B, N)."""
+        return (coords @ hyps[:, :2, None]).squeeze(-1).add(hyps[:, 2:3]).abs()
+
+    def refine(self, coords: torch.Tensor, inliers: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Total least squares on the inliers: the normal is the smallest principal direction.
+
+        coords (B, N, 2), inliers (B, N) bool -> lines (B, 3), valid (B,) (False with < 2 inliers).
+        """
+        w = inliers.to(coords.dtype)
+        count = w.sum(-1)
+        mean = (coords * w[..., None]).sum(1) / count.clamp_min(1)[:, None]
+        centred = (coords - mean[:, None]) * w[..., None]
+        cov = centred.transpose(1, 2) @ centred
+        _, vecs = torch.linalg.eigh(cov.double())
+        normal = vecs[..., 0].to(coords.dtype)
+        c = -(normal * mean).sum(-1)
+        return torch.cat([normal, c[:, None]], dim=-1), count >= 2
+
+    def features(self, batch: dict) -> torch.Tensor:
+        """Network input: coordinates scaled to [0, 1]. (B, N, 2)"""
+        return batch["coords"] / self.picture_size
+
+    def errors(self, hyps, valid, inliers, batch) -> dict[str, np.ndarray]:
+        """Angle to the ground-truth line in degrees; an invalid estimate counts as 90 deg."""
+        err = metrics.line_angle_deg(np.asarray(hyps)[:, :2], np.asarray(batch["line"])[:, :2])
+        return {"err_deg": np.where(np.asarray(valid), err, 90.0)}
+
+    def summarize(self, errors: dict[str, np.ndarray]) -> dict[str, float]:
+        e = errors["err_deg"]
+        return {"mAA": metrics.mAA(e, self.maa_limit_deg), "median_deg": metrics.median(e), "n": int(e.size)}

@@ -1,0 +1,80 @@
+import math
+
+import numpy as np
+import pytest
+
+from rlsac import metrics
+
+
+def test_thresholds():
+    assert np.allclose(metrics.thresholds(0.5), np.arange(1, 11) * 0.05)
+
+
+def test_maa_hand_computed():
+    # thresholds 0.05, 0.10, ..., 0.50: 0.02 passes all 10, 0.12 passes 8 (0.15..0.5), 0.55 none.
+    # accuracy per threshold: 1/3, 1/3, then 2/3 eight times -> (2/3 + 16/3) / 10 = 0.6
+    assert metrics.mAA([0.02, 0.12, 0.55], 0.5) == pytest.approx(0.6)
+    assert metrics.mAA([0.0, 0.0], 0.5) == pytest.approx(1.0)
+    assert metrics.mAA([1.0, 2.0], 0.5) == pytest.approx(0.0)
+    # a single error of 0.25 passes 6 of 10 thresholds (0.25, 0.30, ..., 0.50)
+    assert metrics.mAA([0.25], 0.5) == pytest.approx(0.6)
+    # 10 deg limit, 5 thresholds: an error of 4 passes 4, 6, 8, 10 -> 0.8
+    assert metrics.mAA([4.0], 10.0, n=5) == pytest.approx(0.8)
+
+
+def test_maa_failures_and_empty():
+    assert metrics.mAA([0.02, np.nan], 0.5) == pytest.approx(0.5)
+    assert metrics.mAA([0.02, np.inf], 0.5) == pytest.approx(0.5)
+    assert math.isnan(metrics.mAA([], 0.5))
+
+
+def test_median():
+    assert metrics.median([3.0, 1.0, 2.0]) == 2.0
+    assert metrics.median([1.0, 2.0, 3.0, 4.0]) == 2.5
+    assert metrics.median([1.0, np.nan, 3.0]) == 3.0  # NaN counts as an infinite error
+    assert math.isnan(metrics.median([]))
+
+
+def _unit(deg):
+    r = np.radians(deg)
+    return np.array([np.cos(r), np.sin(r)])
+
+
+def test_line_angle_known_values_and_symmetry():
+    a = np.array([1.0, 0.0])
+    assert metrics.line_angle_deg(a, np.array([0.0, 1.0])) == pytest.approx(90.0)
+    assert metrics.line_angle_deg(a, a) == pytest.approx(0.0, abs=1e-6)
+    assert metrics.line_angle_deg(a, _unit(30)) == pytest.approx(30.0)
+    assert metrics.line_angle_deg(_unit(30), a) == pytest.approx(30.0)
+    # undirected: a flipped normal is the same line, 150 deg between normals is 30 deg between lines
+    assert metrics.line_angle_deg(a, -a) == pytest.approx(0.0, abs=1e-6)
+    assert metrics.line_angle_deg(a, _unit(150)) == pytest.approx(30.0)
+    # scale does not matter, and it broadcasts over rows
+    out = metrics.line_angle_deg(np.stack([3 * a, -2 * _unit(45)]), np.stack([_unit(10), a]))
+    assert out == pytest.approx([10.0, 45.0])
+
+
+def _rot_z(deg):
+    r = np.radians(deg)
+    c, s = np.cos(r), np.sin(r)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+
+
+def test_rotation_error():
+    assert metrics.rotation_error_deg(np.eye(3), np.eye(3)) == pytest.approx(0.0, abs=1e-6)
+    assert metrics.rotation_error_deg(_rot_z(10), np.eye(3)) == pytest.approx(10.0)
+    assert metrics.rotation_error_deg(np.eye(3), _rot_z(-25)) == pytest.approx(25.0)
+    assert metrics.rotation_error_deg(_rot_z(40), _rot_z(10)) == pytest.approx(30.0)
+    assert metrics.rotation_error_deg(_rot_z(180), np.eye(3)) == pytest.approx(180.0)
+    batch = metrics.rotation_error_deg(np.stack([_rot_z(5), _rot_z(90)]), np.stack([np.eye(3), np.eye(3)]))
+    assert batch == pytest.approx([5.0, 90.0])
+
+
+def test_translation_error_ignores_sign_and_scale():
+    x = np.array([1.0, 0.0, 0.0])
+    assert metrics.translation_error_deg(x, -2 * x) == pytest.approx(0.0, abs=1e-6)
+    assert metrics.translation_error_deg(x, np.array([1.0, 1.0, 0.0])) == pytest.approx(45.0)
+    assert metrics.translation_error_deg(x, np.array([-1.0, 1.0, 0.0])) == pytest.approx(45.0)
+    assert metrics.translation_error_deg(x, np.array([0.0, 0.0, 3.0])) == pytest.approx(90.0)
+    # column vectors (3, 1) are accepted
+    assert metrics.translation_error_deg(x[:, None], np.array([[1.0], [1.0], [0.0]])) == pytest.approx(45.0)

@@ -1,0 +1,150 @@
+"""import_scenes on the real Strecha data (one scene), the ground-truth check, and the importer's errors."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import torch
+
+from rlsac.data import fundamental
+from rlsac.data.scenes import ImportConf, gt_check, import_scenes, mutual_nn, read_camera
+from rlsac.data.tutorial import PrepareConf, prepare
+from rlsac.errors import RlsacError
+
+# tests/ sits in the repository root; CI clones the repository with shared/ beside it.
+STRECHA = Path(__file__).resolve().parents[2] / "shared" / "data" / "strecha"
+
+
+def _strecha() -> Path:
+    assert (STRECHA / "fountain-P11" / "images" / "0001.jpg").is_file(), (
+        f"Strecha data missing at {STRECHA}: the repository must be checked out with shared/data/strecha beside it"
+    )
+    return STRECHA
+
+
+@pytest.fixture(scope="module")
+def fountain(tmp_path_factory):
+    """fountain-P11 imported once for the module (about 5 s on 2 cores)."""
+    out = tmp_path_factory.mktemp("imported")
+    summary = import_scenes(ImportConf(src=str(_strecha()), out=str(out), scenes="fountain-P11"),
+                            track=False, progress=False)
+    return out, summary
+
+
+def test_import_layout(fountain):
+    out, summary = fountain
+    assert summary["images"] == 11 and summary["pairs"] == 55 and summary["kept"] + summary["dropped"] == 55
+    assert summary["kept"] >= 30  # the fountain views overlap widely
+    d = out / "all" / "fountain-P11"
+    assert sorted(p.name for p in (d / "images").iterdir()) == [f"{i:04d}.jpg" for i in range(11)]
+    assert (d / "images" / "0003.jpg").read_bytes() == (STRECHA / "fountain-P11" / "images" / "0003.jpg").read_bytes()
+    assert not [p for p in (out / "all").iterdir() if p.name.startswith(".")]  # no staging folder left
+    cam = read_camera(STRECHA / "fountain-P11" / "cameras" / "0004.jpg.camera")
+    with h5py.File(d / "R.h5") as fr, h5py.File(d / "T.h5") as ft:
+        np.testing.assert_allclose(fr["0004"][()], cam["R"].T)
+        assert ft["0004"].shape == (3, 1)
+        np.testing.assert_allclose(ft["0004"][()].ravel(), -cam["R"].T @ cam["C"])
+    with h5py.File(d / "matches.h5") as fm, h5py.File(d / "match_conf.h5") as fc, h5py.File(d / "K1_K2.h5") as fk:
+        keys = sorted(fm.keys())
+        assert "0001-0005" in keys and sorted(fc.keys()) == keys == sorted(fk.keys())
+        m, c = fm["0001-0005"][()], fc["0001-0005"][()]
+        assert m.shape[1] == 4 and c.shape == (len(m), 1) and (c >= 0).all() and (c <= 1).all()
+        assert fk["0001-0005"].shape == (1, 2, 3, 3)
+        np.testing.assert_allclose(fk["0001-0005"][0, 0], read_camera(STRECHA / "fountain-P11" / "cameras" /
+                                                                      "0001.jpg.camera")["K"])
+        assert len(np.unique(m, axis=0)) == len(m)  # duplicate-orientation keypoints deduplicated
+
+
+def test_ground_truth_agrees_with_magsac(fountain):
+    out, _ = fountain
+    r = gt_check(out, "all", "fountain-P11", "0001-0005")
+    assert r["magsac_inliers"] >= 100
+    assert r["median_sampson_inliers"] < 1.0, r
+
+
+def test_import_then_prepare(fountain, tmp_path):
+    out, summary = fountain
+    dst = tmp_path / "test.h5"
+    s = prepare(PrepareConf(root=str(out), split="all", scenes="fountain-P11", n_points=150, out=str(dst)),
+                track=False, progress=False)
+    assert s["pairs"] == summary["kept"] and s["skipped"] == 0
+    data, attrs = fundamental.read(dst)
+    assert data["features"].shape == (s["pairs"], 150, 261) and attrs["root"] == str(out)
+    assert (data["size1"] == [1024, 683]).all()
+    i = list(data["pair"]).index("0001-0005")
+    inl = fundamental.gt_inliers(data, 2.0)
+    assert inl[i].mean() > 0.8  # the 150 best ratios of a wide-overlap pair are mostly correct
+    assert s["mean_gt_inlier_ratio_sampson_2px"] > 0.3
+
+
+def test_mutual_nn():
+    rng = np.random.default_rng(0)
+    d1 = rng.normal(size=(50, 128))
+    d1 /= np.linalg.norm(d1, axis=1, keepdims=True)
+    perm = rng.permutation(50)
+    d2 = d1[perm] + 0.01 * rng.normal(size=(50, 128))
+    d2 /= np.linalg.norm(d2, axis=1, keepdims=True)
+    i1, i2, snn = mutual_nn(torch.tensor(d1, dtype=torch.float32), torch.tensor(d2, dtype=torch.float32))
+    assert len(i1) == 50 and (perm[i2] == i1).all() and (snn < 0.2).all()
+
+
+def _mini_source(tmp_path, n=2) -> Path:
+    src = tmp_path / "src" / "mini"
+    (src / "images").mkdir(parents=True)
+    (src / "cameras").mkdir()
+    for i in range(n):
+        name = f"{i + 1:04d}"
+        shutil.copyfile(STRECHA / "fountain-P11" / "images" / f"{name}.jpg", src / "images" / f"{name}.jpg")
+        shutil.copyfile(STRECHA / "fountain-P11" / "cameras" / f"{name}.jpg.camera",
+                        src / "cameras" / f"{name}.jpg.camera")
+    return src
+
+
+def _corrupt_camera(src):
+    p = src / "cameras" / "0002.jpg.camera"
+    p.write_text("\n".join(p.read_text().splitlines()[:-1]))
+
+
+def _nan_camera(src):
+    p = src / "cameras" / "0002.jpg.camera"
+    p.write_text(p.read_text().replace("0 0 0", "nan 0 0", 1))
+
+
+@pytest.mark.parametrize("breaker, message", [
+    (lambda s: (s / "cameras" / "0002.jpg.camera").unlink(), r"0002\.jpg\.camera: no such camera file"),
+    (_corrupt_camera, r"0002\.jpg\.camera: camera file has 24 numbers"),
+    (_nan_camera, r"0002\.jpg\.camera: camera file contains NaN"),
+    (lambda s: (s / "images" / "0002.jpg").write_bytes(b"junk"), r"0002\.jpg: unreadable image"),
+    (lambda s: (s / "images" / "0002.jpg").unlink(), r"images: fewer than 2 \.jpg images"),
+])
+def test_import_errors_leave_nothing(tmp_path, breaker, message):
+    _strecha()
+    src = _mini_source(tmp_path)
+    breaker(src)
+    out = tmp_path / "out"
+    with pytest.raises(RlsacError, match=message):
+        import_scenes(ImportConf(src=str(src.parent), out=str(out)), track=False, progress=False)
+    assert not (out / "all").exists() or not any((out / "all").iterdir())
+
+
+def test_import_missing_source(tmp_path):
+    with pytest.raises(RlsacError, match="no such source folder"):
+        import_scenes(ImportConf(src=str(tmp_path / "none"), out=str(tmp_path / "out")), track=False)
+    src = _mini_source(tmp_path)
+    with pytest.raises(RlsacError, match=r"nope: no such scene folder"):
+        import_scenes(ImportConf(src=str(src.parent), out=str(tmp_path / "out"), scenes="mini,nope"), track=False)
+
+
+def test_import_replaces_existing_scene(tmp_path):
+    _strecha()
+    src = _mini_source(tmp_path)
+    out = tmp_path / "out"
+    (out / "all" / "mini").mkdir(parents=True)
+    (out / "all" / "mini" / "stale.txt").write_text("old")
+    s = import_scenes(ImportConf(src=str(src.parent), out=str(out), min_matches=0), track=False, progress=False)
+    assert s["kept"] == 1 and not (out / "all" / "mini" / "stale.txt").exists()
+    assert sorted(p.name for p in (out / "all").iterdir()) == ["import_summary.json", "mini"]
