@@ -142,6 +142,7 @@ def train(task: str, tracking: bool, params_path: str, sets: tuple[str, ...], **
 @click.option("--checkpoint", type=click.Path(dir_okay=False), help="RLSAC checkpoint (method rlsac).")
 @click.option("--iterations", type=int, help="Hypotheses per instance [default: params.yaml evaluate.<task>].")
 @click.option("--steps-per-episode", type=int, help="RLSAC episode length [default: checkpoint's, else 15].")
+@click.option("--sampling", type=click.Choice(["max", "prob"]), help="RLSAC test-time sampling [default: max].")
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--batch-size", type=int, default=256, show_default=True)
 @click.option("--out-dir", type=click.Path(file_okay=False), help="[default: reports/eval/<name>]")

@@ -26,7 +26,8 @@ def build(cls: type[T], overrides: dict[str, Any] | None = None, where: str = ""
         raise RlsacError(f"unknown config key(s) {unknown} in {where or cls.__name__}; known: {sorted(fields)}")
     kwargs = {}
     for name, value in overrides.items():
-        default = fields[name].default_factory() if fields[name].default_factory is not dataclasses.MISSING else fields[name].default
+        f = fields[name]
+        default = f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
         if dataclasses.is_dataclass(default) and isinstance(value, dict):
             value = build(type(default), value, f"{where}.{name}" if where else name)
         kwargs[name] = value

@@ -45,6 +45,7 @@ DEFAULTS: dict[str, Any] = {
     "device": "auto",
     "batch_size": 256,
     "out_dir": None,
+    "sampling": "max",  # RLSAC test-time sampling: max (paper) or prob (ablation)
 }
 
 
@@ -127,7 +128,8 @@ def check_options(options: dict[str, Any]) -> dict[str, Any]:
 
 
 def run_name(o: dict[str, Any]) -> str:
-    return f"{o['task']}_{o['method']}_{Path(o['data']).stem}_i{o['iterations']}_s{o['seed']}"
+    model = f"_{Path(o['checkpoint']).stem}" if o.get("checkpoint") else ""
+    return f"{o['task']}_{o['method']}{model}_{Path(o['data']).stem}_i{o['iterations']}_s{o['seed']}"
 
 
 def _ckpt_value(conf: dict, key: str):
@@ -175,7 +177,7 @@ def make_estimator(o: dict[str, Any], device: str) -> tuple[Task, Callable[[dict
 
     def estimate(batch, g):
         return rlsac_estimate(task, batch, actor, iterations=iterations, steps_per_episode=steps,
-                              sampling="max", generator=g)
+                              sampling=o["sampling"], generator=g)
 
     return task, estimate, {"steps_per_episode": steps}
 

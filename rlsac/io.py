@@ -27,6 +27,9 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     os.close(fd)
     tmp = Path(tmp)
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; outputs get the usual permissions
     try:
         yield tmp
         os.replace(tmp, path)
@@ -72,7 +75,7 @@ def read_array(f: h5py.File, key: str, shape: tuple | None = None, finite: bool 
         raise RlsacError(f"{f.filename}: missing key '{key}'")
     arr = np.asarray(f[key][()])
     if shape is not None:
-        ok = arr.ndim == len(shape) and all(s is None or s == a for s, a in zip(shape, arr.shape))
+        ok = arr.ndim == len(shape) and all(s is None or s == a for s, a in zip(shape, arr.shape, strict=True))
         if not ok:
             want = "(" + ",".join("N" if s is None else str(s) for s in shape) + ")"
             raise RlsacError(f"{f.filename}: key '{key}' has shape {arr.shape}, expected {want}")

@@ -62,7 +62,7 @@ class PointNet(nn.Module):
         super().__init__()
         self.conf = conf
         dims = [c_in, *conf.widths]
-        self.convs = nn.ModuleList(EdgeConv(a, b) for a, b in zip(dims[:-1], dims[1:]))
+        self.convs = nn.ModuleList(EdgeConv(a, b) for a, b in zip(dims[:-1], dims[1:], strict=True))
         local = sum(conf.widths)
         self.glob = nn.Sequential(nn.Linear(local, conf.global_width), nn.LeakyReLU(0.2))
         self.head = nn.Sequential(

@@ -102,7 +102,8 @@ class SACAgent(torch.nn.Module):
         # --- critics: soft Bellman target from the next state's policy and the target critics
         with torch.no_grad():
             p2, logp2 = masked_policy(self.actor(s2, mask, graph), mask)
-            q2 = torch.minimum(self.qf1_target(s2, mask, graph), self.qf2_target(s2, mask, graph)).masked_fill(~mask, 0.0)
+            q2 = torch.minimum(self.qf1_target(s2, mask, graph), self.qf2_target(s2, mask, graph))
+            q2 = q2.masked_fill(~mask, 0.0)
             v2 = (p2 * (q2 - alpha * logp2)).sum(-1)
             target = reward + c.gamma * (1.0 - done) * v2
         q1_all, q2_all = self.qf1(s, mask, graph), self.qf2(s, mask, graph)
@@ -131,7 +132,7 @@ class SACAgent(torch.nn.Module):
 
         with torch.no_grad():
             for net, tgt in ((self.qf1, self.qf1_target), (self.qf2, self.qf2_target)):
-                for p_, tp in zip(net.parameters(), tgt.parameters()):
+                for p_, tp in zip(net.parameters(), tgt.parameters(), strict=True):
                     tp.lerp_(p_, c.tau)
         return {
             "losses/qf1": F.mse_loss(q1_a, target).item(), "losses/qf2": F.mse_loss(q2_a, target).item(),

@@ -28,7 +28,7 @@ def read(path: str | Path) -> tuple[dict[str, np.ndarray], dict]:
     with open_h5(path) as f:
         kind = f.attrs.get("kind")
         if kind != KIND:
-            raise RlsacError(f"{path}: attribute 'kind' is {kind!r}, expected {KIND!r} (not a prepared file)")
+            raise RlsacError(f"{path}: attribute 'kind' is {kind!r}, expected {KIND!r}: not a prepared file")
         coords = read_array(f, "coords", (None, None, 4))
         P, N = coords.shape[:2]
         out = {
