@@ -175,6 +175,23 @@ def ablate(what: str, device: str, tracking: bool, sets: tuple[str, ...]) -> Non
 
 
 @cli.command()
+@click.option("--which", type=click.Choice(["1", "2", "3", "iterations", "all"]), default="all", show_default=True,
+              help="Table 1 (lines), 2 (fundamental), 3 (ablations), the iterations CSV, or all.")
+@click.option("--eval-root", default="reports/eval", show_default=True, type=click.Path(file_okay=False),
+              help="Root of the evaluation summaries (lines/, fundamental/, ablation/).")
+@click.option("--out-dir", default="reports", show_default=True, type=click.Path(file_okay=False))
+@tracking_option
+def table(tracking: bool, **options) -> None:
+    """Build the paper's tables from evaluation summaries, beside the paper's numbers (rlsac.reports.tables)."""
+    from rlsac.reports.tables import build
+
+    s = build(options, track=tracking)
+    click.echo(f"wrote {s['files']}")
+    if s["n_missing"]:
+        click.echo(f"{s['n_missing']} result file(s) missing (shown as –)")
+
+
+@cli.command()
 @click.option("--set", "sets", multiple=True, metavar="KEY=VALUE", help="Option; repeatable.")
 @tracking_option
 def plot(tracking: bool, sets: tuple[str, ...]) -> None:

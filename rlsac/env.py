@@ -44,11 +44,12 @@ class SampleConsensusEnv:
 
     # ---------------------------------------------------------------- setup
     def reset(self, batch: dict, features: torch.Tensor, episodes: int = 1, budget: int | None = None,
-              generator: torch.Generator | None = None) -> torch.Tensor:
+              generator: torch.Generator | None = None, first: torch.Tensor | None = None) -> torch.Tensor:
         """Start ``episodes`` episodes per instance; returns the first state (R, N, c + 3).
 
         batch: coords (B, N, d), mask (B, N); features (B, N, c) network data features.
         budget: total hypotheses per instance (test time); rows past it stay inactive.
+        first: (R, m) initial minimal sets instead of uniformly random ones (tests, figures).
         """
         coords, mask = batch["coords"], batch["mask"]
         B, N, _ = coords.shape
@@ -74,8 +75,7 @@ class SampleConsensusEnv:
         self.best_count = torch.full((B,), -1, dtype=torch.long, device=dev)
         self.best_hyp: torch.Tensor | None = None
         self.hypotheses = 0
-        keys = torch.rand((R, N), generator=generator, device=dev)
-        self.step(self.select(keys, random=True))
+        self.step(first if first is not None else self.select(self.action, random=True))
         return self.state()
 
     def state(self) -> torch.Tensor:
@@ -97,19 +97,24 @@ class SampleConsensusEnv:
 
         Candidate 0 is the top-m (max sampling) or a draw without replacement from softmax(logits)
         (probabilistic sampling, Gumbel top-m); further candidates are always draws from the policy's
-        probabilities, as the paper prescribes for a duplicate. ``random`` = uniform sets.
+        probabilities, as the paper prescribes for a duplicate, then uniform sets in case the policy
+        is too peaked to offer an unused one. ``random`` = uniform sets only.
         """
         m, K = self.task.sample_size, self.conf.candidates
         R, N = logits.shape
         logits = logits.masked_fill(~self.mask, float("-inf"))
+        uniform = uniform_minimal_sets(self.mask, m, K, self.gen)
         if random:
-            cand = uniform_minimal_sets(self.mask, m, K, self.gen)
+            cand = uniform
         else:
             u = torch.rand((R, K, N), generator=self.gen, device=logits.device).clamp_(1e-12, 1 - 1e-12)
             gumbel = logits[:, None, :] - torch.log(-torch.log(u))
             cand = gumbel.topk(m, dim=-1).indices
             if not sample:
                 cand[:, 0] = logits.topk(m, dim=-1).indices
+            # a peaked policy may keep drawing used sets: uniform sets come last as the fallback
+            cand = torch.cat([cand, uniform], dim=1)
+        K = cand.shape[1]
         keys = set_keys(cand, N)  # (R, K)
         inst = torch.arange(R, device=logits.device) // self.E
         taken = (keys[:, :, None] == self.used[inst][:, None, :]).any(-1)  # (R, K)
