@@ -75,6 +75,21 @@ def synth_lines(tracking: bool, params_path: str, **options) -> None:
                f"seed {s['conf']['seed']}")
 
 
+@cli.command("lines-data")
+@click.option("--rate", type=float, required=True, help="Outlier rate.")
+@click.option("--splits", default="train,val,test", show_default=True, help="Comma-separated splits.")
+@click.option("--out-dir", default="data/lines", show_default=True, type=click.Path(file_okay=False))
+@click.option("--params", "params_path", default="params.yaml", show_default=True,
+              help="params.yaml: the lines protocol (n_<split>, seed_<split>) and lines_data.")
+@tracking_option
+def lines_data(tracking: bool, params_path: str, **options) -> None:
+    """The line experiment's train/val/test files for one outlier rate (seed_<split> + round(10 rate))."""
+    from rlsac.commands import lines_protocol_data as run
+
+    s = run(options, track=tracking, params_path=params_path)
+    click.echo(f"wrote {', '.join(s['files'])} (seeds {s['seeds']})")
+
+
 @cli.command("import-scenes")
 @click.option("--src", type=click.Path(file_okay=False),
               help="Source scenes (Strecha layout). [default: ../shared/data/strecha]")
@@ -162,16 +177,26 @@ def evaluate(tracking: bool, params_path: str, **options) -> None:
 
 
 @cli.command()
-@click.option("--what", type=click.Choice(["descriptors", "sampling", "points", "generalisation"]), required=True)
-@click.option("--set", "sets", multiple=True, metavar="KEY=VALUE", help="Extra option; repeatable.")
+@click.option("--what", type=click.Choice(["descriptors", "sampling", "points", "all", "generalisation"]),
+              required=True, help="Table 3 (a) descriptors, (b) sampling, (c) points, all three, or Ours-0.5.")
+@click.option("--stage", type=click.Choice(["all", "train", "evaluate"]), default="all", show_default=True,
+              help="train missing models, evaluate, rebuild Table 3 (all); or only one of the two.")
+@click.option("--variants", help="Comma-separated variants of the study [default: all of them].")
+@click.option("--force", is_flag=True, default=None, help="Retrain models whose checkpoint exists.")
+@click.option("--train-steps", type=int, help="Override sac.total_steps of every model trained.")
+@click.option("--params", "params", default="params.yaml", show_default=True,
+              help="params.yaml: train.fundamental, ablation and lines sections.")
+@click.option("--set", "sets", multiple=True, metavar="KEY=VALUE",
+              help="Other option (threads, models, data_dir, ckpt_dir, eval_dir, table); repeatable.")
 @device_option
 @tracking_option
-def ablate(what: str, device: str, tracking: bool, sets: tuple[str, ...]) -> None:
-    """Run one ablation study (rlsac.ablate)."""
+def ablate(tracking: bool, sets: tuple[str, ...], **options) -> None:
+    """Run one ablation study: train its models (unless present) and evaluate them (rlsac.ablate)."""
+    from rlsac.ablate import format_summary
     from rlsac.commands import ablate as run
     from rlsac.commands import parse_sets
 
-    _echo_result(run({"what": what, "device": device, **parse_sets(sets)}, track=tracking))
+    click.echo(format_summary(run({**options, **parse_sets(sets)}, track=tracking)))
 
 
 @cli.command()

@@ -82,6 +82,34 @@ def synth_lines(options: dict[str, Any], track: bool = True, params_path: str | 
             "inlier_fraction": frac, "run_id": run.run_id}
 
 
+def lines_protocol_data(options: dict[str, Any], track: bool = True,
+                        params_path: str | Path | None = "params.yaml") -> dict:
+    """The line experiment's files for one outlier rate (params.yaml ``lines``, used by dvc.yaml).
+
+    options: rate (required), splits ("train,val,test"), out_dir ("data/lines"). Split s gets
+    ``lines.n_<s>`` instances and seed ``lines.seed_<s> + round(10 * rate)``, in ``<out_dir>/<s>_o<rate>.h5``.
+    -> {"files": [...], "seeds": {split: seed}}
+    """
+    if options.get("rate") is None:
+        raise RlsacError("lines-data needs --rate")
+    rate = float(options["rate"])
+    proto = _section(_params(params_path), "lines")
+    splits = options.get("splits") or "train,val,test"
+    splits = [x.strip() for x in splits.split(",") if x.strip()] if isinstance(splits, str) else list(splits)
+    defaults = {"n_train": 4000, "n_val": 200, "n_test": 1000, "seed_train": 1000, "seed_val": 2000, "seed_test": 3000}
+    files, seeds = [], {}
+    for split in splits:
+        if f"n_{split}" not in {**defaults, **proto} or f"seed_{split}" not in {**defaults, **proto}:
+            raise RlsacError(f"unknown split {split!r}: params.yaml lines has no n_{split}/seed_{split}")
+        n = int(proto.get(f"n_{split}", defaults.get(f"n_{split}")))
+        seed = int(proto.get(f"seed_{split}", defaults.get(f"seed_{split}"))) + round(10 * rate)
+        out = Path(options.get("out_dir") or "data/lines") / f"{split}_o{rate:g}.h5"
+        s = synth_lines({"outlier_rate": rate, "n_instances": n, "seed": seed, "out": str(out)}, track, params_path)
+        files.append(s["path"])
+        seeds[split] = seed
+    return {"files": files, "seeds": seeds}
+
+
 def calibration_table(ours: dict[float, tuple[float, float]],
                       paper: dict[float, tuple[float, float]] = PAPER_RANSAC_LINES) -> pd.DataFrame:
     """Side by side: ours vs the paper's (mAA, median) per outlier rate, with the differences (ours - paper)."""

@@ -11,6 +11,7 @@ have defaults):
     iterations  hypotheses per instance (default 150 for lines, 1000 for fundamental)
     steps_per_episode  RLSAC only; default: the checkpoint's value, else 15
     seed, device ("auto" | "cpu" | "cuda"), batch_size, out_dir (default reports/eval/<name>)
+    sampling    RLSAC test-time sampling, "max" (paper) or "prob"; tags: extra MLflow run tags (dict)
 
 The random stream is one seeded ``torch.Generator`` consumed batch after batch, so results are
 reproducible for a given (seed, batch_size, device).
@@ -46,6 +47,7 @@ DEFAULTS: dict[str, Any] = {
     "batch_size": 256,
     "out_dir": None,
     "sampling": "max",  # RLSAC test-time sampling: max (paper) or prob (ablation)
+    "tags": None,  # extra MLflow run tags, e.g. {"ablation": "sampling", "variant": "full"} (rlsac.ablate)
 }
 
 
@@ -222,10 +224,10 @@ def evaluate(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
     task, estimate, extra = make_estimator(o, device)
     out_dir = Path(o["out_dir"])
     name = run_name(o)
-    params = {**o, "device": device, "n_instances": n, **extra,
+    params = {**{k: v for k, v in o.items() if k != "tags"}, "device": device, "n_instances": n, **extra,
               "data_attrs": {k: _plain(v) for k, v in attrs.items()}}
-    with start_run(EXPERIMENT[o["task"]], f"evaluate {name}", params=params,
-                   tags={"command": "evaluate", "method": o["method"]}, enabled=track) as run:
+    tags = {"command": "evaluate", "method": o["method"], **{k: str(v) for k, v in (o["tags"] or {}).items()}}
+    with start_run(EXPERIMENT[o["task"]], f"evaluate {name}", params=params, tags=tags, enabled=track) as run:
         t0 = time.perf_counter()
         errors, counts = run_method(task, estimate, data, mod.to_batch, n, o["seed"], device, o["batch_size"],
                                     desc=f"{o['method']} {Path(o['data']).name}")

@@ -146,7 +146,7 @@ def table1(eval_root: str | Path = "reports/eval", out_dir: str | Path = "report
     """Table 1: mAA@0.5 deg and median angular error (deg) per outlier rate, ours beside the paper."""
     root = Path(eval_root) / "lines"
     missing: list[str] = []
-    rows, text_rows, found = [], [], []
+    rows, found = [], []
     for d, label in LINE_METHODS.items():
         ours: dict[str, Any] = {"method": label, "source": "ours"}
         pap: dict[str, Any] = {"method": label, "source": "paper"}

@@ -1,0 +1,311 @@
+"""``rlsac ablate``: the ablation studies of the paper (Sec. 5): Table 3 and Table 1's Ours-0.5.
+
+Studies (``what``):
+
+    descriptors     (a) no_descriptors vs full
+    sampling        (b) train_max-test_max, train_max-test_prob, train_prob-test_prob vs full
+    points          (c) n100, n200, n300 vs full
+    all             (a) + (b) + (c): every Table 3 row
+    generalisation  Ours-0.5 of Table 1: checkpoints/line_o0.5.pt on every outlier rate
+
+Table 3 is built from two lists in params.yaml ``ablation`` (the code defaults below are the same):
+
+* ``models``: checkpoints ``<ckpt_dir>/ablation/<name>.pt``, each trained with ``train.fundamental``
+  <- ``ablation.train`` (the budget shared by every ablation model) <- the model's ``train`` overrides,
+  on ``<data_dir>/{train,val}<suffix>.h5``;
+* ``variants``: rows of the table, ``reports/eval/ablation/<name>/``: a model (``full`` =
+  ``checkpoints/fundamental.pt``, the paper's model) evaluated at ``ablation.iterations`` on
+  ``<data_dir>/test<suffix>.h5`` with test-time ``sampling`` max or prob.
+
+For each selected variant, its model is trained unless the checkpoint exists (``force`` retrains),
+then it is evaluated; every MLflow run is tagged ``{"ablation": what, "variant": name}`` so the UI can
+put them side by side. Finally Table 3 is rebuilt when ``rlsac.reports.tables`` is available.
+
+Options (all optional but ``what``):
+
+    what        descriptors | sampling | points | all | generalisation
+    stage       "all" (train missing models, evaluate, rebuild the table), "train", or "evaluate"
+    variants    names (list or comma string) restricting the variants; default: the whole study
+    models      names restricting the models trained in stage "train"; default: those of the variants
+    force       retrain a model even if its checkpoint exists (False)
+    train_steps override sac.total_steps of every model trained here
+    threads     torch CPU threads for training and evaluation (0 = torch's default)
+    device      auto | cpu | cuda
+    params      params.yaml path ("params.yaml")
+    data_dir, lines_dir, ckpt_dir, eval_dir   default data/fundamental, data/lines, checkpoints, reports/eval
+    table       rebuild the table at the end of stage "all" (True)
+"""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+from typing import Any
+
+from rlsac.errors import RlsacError
+
+STUDIES = ("descriptors", "sampling", "points")
+WHATS = STUDIES + ("all", "generalisation")
+STAGES = ("all", "train", "evaluate")
+FULL = "full"  # the paper's model, checkpoints/fundamental.pt: the reference row of every study
+
+# Same as params.yaml ``ablation`` (which overrides each top-level key as a whole).
+DEFAULTS: dict[str, Any] = {
+    "iterations": 1000,
+    "seed": 0,
+    "train": {},
+    "n_points": [100, 200, 300],
+    "generalisation": {"train_rate": 0.5},
+    "models": {
+        "no_descriptors": {"study": "descriptors", "suffix": "", "train": {"task_options": {"use_descriptors": False}}},
+        "train_max": {"study": "sampling", "suffix": "", "train": {"sac": {"train_sampling": "max"}}},
+        "n100": {"study": "points", "suffix": "_n100", "train": {}},
+        "n200": {"study": "points", "suffix": "_n200", "train": {}},
+        "n300": {"study": "points", "suffix": "_n300", "train": {}},
+    },
+    "variants": {
+        "no_descriptors": {"study": "descriptors", "model": "no_descriptors", "sampling": "max", "suffix": ""},
+        "full": {"study": "all", "model": FULL, "sampling": "max", "suffix": ""},
+        "train_max-test_max": {"study": "sampling", "model": "train_max", "sampling": "max", "suffix": ""},
+        "train_max-test_prob": {"study": "sampling", "model": "train_max", "sampling": "prob", "suffix": ""},
+        "train_prob-test_prob": {"study": "sampling", "model": FULL, "sampling": "prob", "suffix": ""},
+        "n100": {"study": "points", "model": "n100", "sampling": "max", "suffix": "_n100"},
+        "n200": {"study": "points", "model": "n200", "sampling": "max", "suffix": "_n200"},
+        "n300": {"study": "points", "model": "n300", "sampling": "max", "suffix": "_n300"},
+    },
+}
+
+OPTIONS: dict[str, Any] = {
+    "what": None, "stage": "all", "variants": None, "models": None, "force": False, "train_steps": None,
+    "threads": 0, "device": "auto", "params": "params.yaml", "data_dir": "data/fundamental",
+    "lines_dir": "data/lines", "ckpt_dir": "checkpoints", "eval_dir": "reports/eval", "table": True,
+}
+
+
+def _names(v) -> list[str] | None:
+    if v is None or v == "":
+        return None
+    if isinstance(v, str):
+        return [s.strip() for s in v.split(",") if s.strip()]
+    return [str(s) for s in v]
+
+
+def check_options(options: dict[str, Any]) -> dict[str, Any]:
+    unknown = sorted(set(options) - set(OPTIONS))
+    if unknown:
+        raise RlsacError(f"unknown ablate option(s) {unknown}; known: {sorted(OPTIONS)}")
+    o = {**OPTIONS, **{k: v for k, v in options.items() if v is not None}}
+    if o["what"] not in WHATS:
+        raise RlsacError(f"ablate --what must be one of {', '.join(WHATS)}, got {o['what']!r}")
+    if o["stage"] not in STAGES:
+        raise RlsacError(f"ablate stage must be one of {', '.join(STAGES)}, got {o['stage']!r}")
+    if o["train_steps"] is not None and int(o["train_steps"]) <= 0:
+        raise RlsacError(f"train_steps must be positive, got {o['train_steps']}")
+    o["variants"], o["models"] = _names(o["variants"]), _names(o["models"])
+    return o
+
+
+def protocol(params: dict[str, Any]) -> dict[str, Any]:
+    """``DEFAULTS`` with each top-level key replaced by params.yaml ``ablation``'s, checked."""
+    from rlsac.commands import _section
+
+    given = _section(params, "ablation")
+    unknown = sorted(set(given) - set(DEFAULTS))
+    if unknown:
+        raise RlsacError(f"unknown params key(s) ablation.{unknown}; known: {sorted(DEFAULTS)}")
+    p = {**copy.deepcopy(DEFAULTS), **copy.deepcopy(given)}
+    for name, m in p["models"].items():
+        if m.get("study") not in STUDIES:
+            raise RlsacError(f"ablation.models.{name}.study must be one of {', '.join(STUDIES)}")
+    for name, v in p["variants"].items():
+        if v.get("study") not in STUDIES + ("all",):
+            raise RlsacError(f"ablation.variants.{name}.study must be one of {', '.join(STUDIES)}, all")
+        if v.get("model") != FULL and v.get("model") not in p["models"]:
+            raise RlsacError(f"ablation.variants.{name}.model {v.get('model')!r} is not in ablation.models")
+        if v.get("sampling", "max") not in ("max", "prob"):
+            raise RlsacError(f"ablation.variants.{name}.sampling must be max or prob")
+    return p
+
+
+def model_checkpoint(model: str, ckpt_dir: str | Path = "checkpoints") -> Path:
+    """full -> <ckpt_dir>/fundamental.pt (the paper's model), else <ckpt_dir>/ablation/<model>.pt."""
+    return Path(ckpt_dir) / ("fundamental.pt" if model == FULL else f"ablation/{model}.pt")
+
+
+def variant_checkpoint(v: dict[str, Any], ckpt_dir: str | Path = "checkpoints") -> Path:
+    """The variant's ``checkpoint`` from params.yaml (relative to the default checkpoints/ folder, re-rooted
+    under ``ckpt_dir``), else its model's."""
+    given = v.get("checkpoint")
+    if not given:
+        return model_checkpoint(v["model"], ckpt_dir)
+    path = Path(given)
+    if not path.is_absolute() and path.parts[:1] == ("checkpoints",):
+        path = Path(ckpt_dir, *path.parts[1:])
+    return path
+
+
+def _rate(r) -> str:
+    return f"{float(r):g}"
+
+
+# ------------------------------------------------------------------------------------------ the plan
+
+
+def plan(o: dict[str, Any], params: dict[str, Any]) -> dict[str, Any]:
+    """-> {"models": {name: train options or None (the reference)}, "variants": {name: evaluate options}}"""
+    if o["what"] == "generalisation":
+        return _plan_generalisation(o, params)
+    from rlsac.commands import _section, deep_update
+
+    p = protocol(params)
+    data, ckpts, evals = Path(o["data_dir"]), Path(o["ckpt_dir"]), Path(o["eval_dir"]) / "ablation"
+    chosen = {n: v for n, v in p["variants"].items() if o["what"] == "all" or v["study"] in (o["what"], "all")}
+    if o["variants"]:
+        missing = [n for n in o["variants"] if n not in chosen]
+        if missing:
+            raise RlsacError(f"variant(s) {missing} not in ablation '{o['what']}' (known: {', '.join(chosen)})")
+        chosen = {n: chosen[n] for n in o["variants"]}
+    wanted = o["models"] or sorted({v["model"] for v in chosen.values()})
+    unknown = [m for m in wanted if m != FULL and m not in p["models"]]
+    if unknown:
+        raise RlsacError(f"model(s) {unknown} not in ablation.models (known: {', '.join(p['models'])})")
+
+    def checkpoint(model: str) -> Path:
+        return model_checkpoint(model, ckpts)
+
+    base = {**_section(params, "train", "fundamental"), "task": "fundamental"}
+    models: dict[str, dict | None] = {}
+    for m in wanted:
+        if m == FULL:  # the paper's model is trained by `rlsac train` (dvc stage train_fundamental)
+            models[m] = None
+            continue
+        spec = p["models"][m]
+        t = deep_update(deep_update(base, p["train"]), spec.get("train") or {})
+        suffix = spec.get("suffix", "")
+        t.update(task="fundamental", data=str(data / f"train{suffix}.h5"), val_data=str(data / f"val{suffix}.h5"),
+                 out=str(checkpoint(m)), run_name=f"train ablation {m}",
+                 tags={**(t.get("tags") or {}), "ablation": spec["study"], "model": m})
+        models[m] = t
+    variants = {}
+    for n, v in chosen.items():
+        variants[n] = {"task": "fundamental", "method": "rlsac", "data": str(data / f"test{v.get('suffix', '')}.h5"),
+                       "checkpoint": str(variant_checkpoint(v, o["ckpt_dir"])), "iterations": int(p["iterations"]),
+                       "seed": int(p["seed"]), "sampling": v.get("sampling", "max"), "out_dir": str(evals / n),
+                       "tags": {"ablation": o["what"] if v["study"] == "all" else v["study"], "variant": n,
+                                "model": v["model"]}}
+    return {"models": models, "variants": variants}
+
+
+def _plan_generalisation(o: dict[str, Any], params: dict[str, Any]) -> dict[str, Any]:
+    from rlsac.commands import _section
+
+    lines = _section(params, "lines")
+    p = protocol(params)
+    rates = lines.get("rates") or [0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7]
+    src = _rate(p["generalisation"].get("train_rate", 0.5))
+    ldir, ckpt = Path(o["lines_dir"]), Path(o["ckpt_dir"]) / f"line_o{src}.pt"
+    names = {f"o{_rate(r)}": _rate(r) for r in rates}
+    if o["variants"]:
+        missing = [n for n in o["variants"] if n not in names]
+        if missing:
+            raise RlsacError(f"variant(s) {missing} not in ablation 'generalisation' (known: {', '.join(names)})")
+        names = {n: names[n] for n in o["variants"]}
+    t = {**_section(params, "train", "line"), "task": "line"}
+    t.update(data=str(ldir / f"train_o{src}.h5"), val_data=str(ldir / f"val_o{src}.h5"), out=str(ckpt),
+             run_name=f"train line o{src}", tags={**(t.get("tags") or {}), "ablation": "generalisation"})
+    if o["models"] and o["models"] != [f"line_o{src}"]:
+        raise RlsacError(f"the generalisation study has one model, line_o{src}")
+    variants = {n: {"task": "line", "method": "rlsac", "data": str(ldir / f"test_o{r}.h5"), "checkpoint": str(ckpt),
+                    "iterations": int(lines.get("iterations", 150)), "seed": 0, "sampling": "max",
+                    "out_dir": str(Path(o["eval_dir"]) / "lines" / f"ours-{src}" / f"o{r}"),
+                    "tags": {"ablation": "generalisation", "variant": n, "model": f"line_o{src}"}}
+                for n, r in names.items()}
+    return {"models": {f"line_o{src}": t}, "variants": variants}
+
+
+# ------------------------------------------------------------------------------------------ running
+
+
+def ablate(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
+    """Run one ablation study (see the module docstring); -> {"what", "trained", "skipped", "variants", "table"}."""
+    from rlsac.commands import _params
+
+    o = check_options(options)
+    params = _params(o["params"])
+    pl = plan(o, params)
+    if int(o["threads"]) > 0:
+        import torch
+
+        torch.set_num_threads(int(o["threads"]))
+    trained, skipped = [], []
+    if o["stage"] in ("all", "train"):
+        for name, t in pl["models"].items():
+            if t is None:
+                skipped.append(name)
+                continue
+            if Path(t["out"]).is_file() and not o["force"]:
+                skipped.append(name)
+                continue
+            trained.append(name)
+            train_model(t, o, track)
+    results: dict[str, dict] = {}
+    if o["stage"] in ("all", "evaluate"):
+        from rlsac.evaluate import evaluate
+
+        for name, e in pl["variants"].items():
+            if not Path(e["checkpoint"]).is_file():
+                hint = ("train it with `rlsac train --task fundamental` (dvc stage train_fundamental)"
+                        if e["checkpoint"].endswith("fundamental.pt") else "run the study with stage all or train")
+                raise RlsacError(f"{e['checkpoint']}: no checkpoint for variant {name}; {hint}")
+            s = evaluate({**e, "device": o["device"]}, track=track)
+            results[name] = {k: s.get(k) for k in ("mAA", "mAA_R", "mAA_t", "median_R", "median_t", "median_deg",
+                                                    "out_dir", "checkpoint") if k in s}
+    table = None
+    if o["stage"] == "all" and o["table"] and results and o["what"] != "generalisation":
+        table = rebuild_table(track)
+    return {"what": o["what"], "stage": o["stage"], "trained": trained, "skipped": skipped, "variants": results,
+            "table": table}
+
+
+def train_model(t: dict[str, Any], o: dict[str, Any], track: bool) -> dict:
+    from rlsac.commands import deep_update
+    from rlsac.train import train
+
+    for key in ("data", "val_data"):
+        if t.get(key) and not Path(t[key]).is_file():
+            raise RlsacError(f"{t[key]}: no such file (prepare it first, e.g. `dvc repro` or rlsac prepare-cvpr2020)")
+    extra: dict[str, Any] = {"device": o["device"]}
+    if o["train_steps"] is not None:
+        extra["sac"] = {"total_steps": int(o["train_steps"])}
+    if int(o["threads"]) > 0:
+        extra["threads"] = int(o["threads"])
+    return train(deep_update(t, extra), track=track)
+
+
+def rebuild_table(track: bool = True):
+    """Table 3 through ``rlsac.reports.tables`` when that module exists; -> its result or None."""
+    import importlib
+    import inspect
+
+    try:
+        mod = importlib.import_module("rlsac.reports.tables")
+    except ModuleNotFoundError:
+        return None
+    fn = getattr(mod, "build", None)
+    if fn is None:
+        return None
+    kwargs = {"track": track} if "track" in inspect.signature(fn).parameters else {}
+    result = fn({"which": "3"}, **kwargs)
+    files = result.get("files") if isinstance(result, dict) else result
+    return ", ".join(map(str, files)) if isinstance(files, (list, tuple)) else str(files)
+
+
+def format_summary(s: dict[str, Any]) -> str:
+    lines = [f"ablation {s['what']} ({s['stage']}): trained {', '.join(s['trained']) or 'none'}; "
+             f"kept existing {', '.join(s['skipped']) or 'none'}"]
+    for name, r in s["variants"].items():
+        metrics = ", ".join(f"{k}={v:.4g}" for k, v in r.items() if isinstance(v, float))
+        lines.append(f"  {name}: {metrics} -> {r.get('out_dir')}")
+    if s.get("table"):
+        lines.append(f"table: {s['table']}")
+    return "\n".join(lines)
