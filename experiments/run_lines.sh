@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Table 1 by hand (what the DVC stages do): data, one model per outlier rate.
-# Usage: bash experiments/run_lines.sh RATE [RATE ...]   (RESUME=1 continues from checkpoints/*.state.pt)
+# Usage: bash experiments/run_lines.sh RATE [RATE ...]   (RESUME=1 continues from checkpoints/*.state.pt;
+# STEPS=N overrides params.yaml train.line.sac.total_steps)
 set -euo pipefail
 for r in "$@"; do
   i=$(python -c "print(round(10*$r))")
@@ -8,7 +9,8 @@ for r in "$@"; do
   [ -f "data/lines/val_o$r.h5" ] || rlsac synth-lines --outlier "$r" --n-instances 200 --seed $((2000 + i)) --out "data/lines/val_o$r.h5" --no-tracking
   [ -f "data/lines/test_o$r.h5" ] || rlsac synth-lines --outlier "$r" --n-instances 1000 --seed $((3000 + i)) --out "data/lines/test_o$r.h5" --no-tracking
   extra=()
-  [ "${RESUME:-0}" = 1 ] && [ -f "checkpoints/line_o$r.state.pt" ] && extra=(--resume)
+  [ -n "${STEPS:-}" ] && extra+=(--set "sac.total_steps=$STEPS")
+  [ "${RESUME:-0}" = 1 ] && [ -f "checkpoints/line_o$r.state.pt" ] && extra+=(--resume)
   rlsac train --task line --data "data/lines/train_o$r.h5" --val-data "data/lines/val_o$r.h5" \
     --out "checkpoints/line_o$r.pt" --device cpu --set run_name="train line o$r" "${extra[@]}"
 done

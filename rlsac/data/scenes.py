@@ -216,8 +216,8 @@ def import_scenes(conf: ImportConf, track: bool = True, progress: bool = True) -
         source_images(src / s)
     dst = Path(conf.out) / conf.split
     dst.mkdir(parents=True, exist_ok=True)
-    torch.set_grad_enabled(False)
-    with start_run("fundamental", "import-scenes", {**asdict(conf), "scenes": ",".join(scenes)}, enabled=track) as run:
+    with torch.no_grad(), start_run("fundamental", "import-scenes", {**asdict(conf), "scenes": ",".join(scenes)},
+                                    enabled=track) as run:
         per_scene = {}
         for s in tqdm(scenes, desc="scenes", unit="scene", disable=not progress):
             per_scene[s] = _import_scene(src / s, dst, conf, progress)
