@@ -34,6 +34,9 @@ class EnvConf:
     varsigma: int = 3  # training: stop when the episode best is not exceeded for varsigma steps (paper)
     residual_clip: float = 5.0  # residual feature = min(r / eps, clip) / clip; 5 eps separates near-inliers
     candidates: int = 16  # candidate minimal sets drawn per row and step for de-duplication
+    # "inlier_ratio" (paper) or "improvement": the gain of the ratio over the episode's best so far,
+    # which rewards what the output keeps (the best hypothesis) rather than every good repeat
+    reward: str = "inlier_ratio"
 
 
 class SampleConsensusEnv:
@@ -143,6 +146,8 @@ class SampleConsensusEnv:
         inl = (res <= task.threshold) & self.mask
         count = inl.sum(-1).masked_fill(~valid, 0)
         reward = count.float() / self.n_valid
+        if conf.reward == "improvement":
+            reward = (reward - self.ep_best.clamp_min(0).float() / self.n_valid).clamp_min(0.0)
 
         # memory features of the next state (only rows that acted change)
         onehot = torch.zeros_like(self.action, dtype=torch.bool).scatter_(1, idx, True)

@@ -55,6 +55,8 @@ def train(options: dict, track: bool = True) -> dict:
         raise RlsacError("train needs --data")
     if conf.sac.train_sampling not in ("prob", "max"):
         raise RlsacError(f"sac.train_sampling must be 'prob' or 'max', got {conf.sac.train_sampling!r}")
+    if conf.env.reward not in ("inlier_ratio", "improvement"):
+        raise RlsacError(f"env.reward must be 'inlier_ratio' or 'improvement', got {conf.env.reward!r}")
     if conf.threads > 0:
         torch.set_num_threads(conf.threads)
     device = resolve_device(conf.device)

@@ -99,3 +99,13 @@ def test_random_first_sets_are_distinct_across_episodes():
     env = SampleConsensusEnv(task, EnvConf(), training=False)
     env.reset(batch, task.features(batch), episodes=3, generator=torch.Generator().manual_seed(0))
     assert sorted(env.used[0, :3].tolist()) == [0 * 3 + 1, 0 * 3 + 2, 1 * 3 + 2]
+
+
+def test_improvement_reward_pays_only_new_bests():
+    task = LineTask()
+    batch = {"coords": PTS[None].clone(), "mask": torch.ones(1, 7, dtype=torch.bool)}
+    env = SampleConsensusEnv(task, EnvConf(reward="improvement"), training=True)
+    env.reset(batch, task.features(batch), first=torch.tensor([[4, 5]]))  # 3 inliers
+    r1, _, _ = env.step(torch.tensor([[0, 1]]))  # 4: improves by 1/7
+    r2, _, _ = env.step(torch.tensor([[1, 6]]))  # 2: no improvement
+    assert torch.allclose(r1, torch.tensor([1 / 7])) and r2.item() == 0.0

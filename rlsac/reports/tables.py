@@ -141,6 +141,16 @@ def _tex_escape(s: str) -> str:
 # ------------------------------------------------------------------------------------------- Table 1
 
 
+def _collect(path: Path, missing: list[str], found: list[dict]) -> dict | None:
+    """read_summary, noting the path as missing or the summary as found."""
+    s = read_summary(path)
+    if s is None:
+        missing.append(str(path))
+    else:
+        found.append(s)
+    return s
+
+
 def table1(eval_root: str | Path = "reports/eval", out_dir: str | Path = "reports",
            rates: tuple[float, ...] | list[float] = paper.TABLE1_RATES) -> pd.DataFrame:
     """Table 1: mAA@0.5 deg and median angular error (deg) per outlier rate, ours beside the paper."""
@@ -152,11 +162,7 @@ def table1(eval_root: str | Path = "reports/eval", out_dir: str | Path = "report
         pap: dict[str, Any] = {"method": label, "source": "paper"}
         for r in rates:
             path = root / d / f"o{r:g}" / "summary.json"
-            s = read_summary(path)
-            if s is None:
-                missing.append(str(path))
-            else:
-                found.append(s)
+            s = _collect(path, missing, found)
             ours[f"{r:g} mAA"], ours[f"{r:g} med"] = _get(s, "mAA"), _get(s, "median_deg")
             p = paper.TABLE1[label].get(float(r), (math.nan, math.nan))
             pap[f"{r:g} mAA"], pap[f"{r:g} med"] = p
@@ -192,11 +198,7 @@ def table2(eval_root: str | Path = "reports/eval", out_dir: str | Path = "report
     rows, found = [], []
     for d, label, paper_row, note in FUNDAMENTAL_ROWS:
         path = root / d / f"i{iterations}" / "summary.json"
-        s = read_summary(path)
-        if s is None:
-            missing.append(str(path))
-        else:
-            found.append(s)
+        s = _collect(path, missing, found)
         rows.append({"method": label, "source": "ours", **{k: _get(s, k) for k in F_KEYS},
                      "n": _get(s, "n_instances"), "note": note})
         if paper_row is not None:
