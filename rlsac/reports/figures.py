@@ -87,6 +87,8 @@ STYLE = {"font.size": 11, "axes.titlesize": 11, "axes.labelsize": 11, "legend.fo
 # ------------------------------------------------------------------------------------------ helpers
 
 
+RESIDUAL_LABEL = {"sampson": "Sampson, px", "sampson_sq": "squared Sampson, px²", "symmetric": "symmetric epipolar, px"}
+
 def _options(options: dict[str, Any]) -> dict[str, Any]:
     unknown = sorted(set(options) - set(DEFAULTS))
     if unknown:
@@ -435,8 +437,9 @@ def plot_fundamental_pair(o: dict[str, Any], out_dir: Path) -> tuple[list[str], 
         _draw_pair(ax, canvas, tf1, tf2, batch["coords"][0].numpy(), inl, minimal)
         ax.set_title(f"{data['label']}: inlier rate {inl.sum() / n_valid:.2f} "
                      f"({inl.sum()}/{n_valid}), {_err_text(eR, et)}\n{who}")
+        residual = RESIDUAL_LABEL.get(task.residual, task.residual)
         handles = [Line2D([], [], color="blue", lw=2, label="minimal set (best hypothesis)"),
-                   Line2D([], [], color="lime", lw=1.5, label=f"inliers (Sampson ≤ {task.threshold:g} px)")]
+                   Line2D([], [], color="lime", lw=1.5, label=f"inliers ({residual} ≤ {task.threshold:g})")]
         ax.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, -0.01), ncol=2, frameon=False)
         fig.tight_layout()
         return _save(fig, out_dir, "fundamental_pair"), "; ".join(notes)
