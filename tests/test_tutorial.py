@@ -278,3 +278,30 @@ def test_gt_helpers():
     assert 3 / np.sqrt(2) * 0.8 < e <= 3.0
     Fb = fundamental.gt_fundamental(np.stack([K, K]), np.stack([K, K]), np.stack([dR, dR]), np.stack([dT, dT]))
     np.testing.assert_allclose(Fb[1], F)
+
+
+def test_fundamental_end_to_end_cli(tmp_path, prepared, monkeypatch):
+    """prepared tutorial-layout file -> tiny RLSAC training -> evaluate every method through the CLI."""
+    import json
+
+    from click.testing import CliRunner
+
+    from rlsac.cli import cli
+
+    monkeypatch.chdir(tmp_path)
+    runner = CliRunner()
+    sets = ["threads=1", "val_instances=2", "val_iterations=20", "val_every=5", "sac.total_steps=6",
+            "sac.num_envs=2", "sac.batch_size=4", "sac.learning_starts=4", "policy.graph_dims=4"]
+    args = ["train", "--task", "fundamental", "--data", str(prepared), "--val-data", str(prepared),
+            "--out", "ck/f.pt", "--device", "cpu", "--params", "none.yaml", "--no-tracking"]
+    res = runner.invoke(cli, args + [a for s in sets for a in ("--set", s)])
+    assert res.exit_code == 0, res.output
+    for method in ("ransac", "magsac", "usac", "opencv_ransac", "rlsac"):
+        extra = ["--checkpoint", "ck/f.pt", "--batch-size", "2"] if method == "rlsac" else []
+        res = runner.invoke(cli, ["evaluate", "--task", "fundamental", "--method", method, "--data", str(prepared),
+                                  "--iterations", "30", "--out-dir", f"ev/{method}", "--device", "cpu",
+                                  "--no-tracking", *extra])
+        assert res.exit_code == 0, (method, res.output)
+        s = json.loads((tmp_path / "ev" / method / "summary.json").read_text())
+        assert s["n_instances"] >= 2 and 0.0 <= s["mAA_R"] <= 1.0 and 0.0 <= s["mAA_t"] <= 1.0
+        assert (tmp_path / "ev" / method / "errors.csv").read_text().count("\n") == s["n_instances"] + 1
