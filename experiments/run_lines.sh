@@ -4,10 +4,10 @@
 # STEPS=N overrides params.yaml train.line.sac.total_steps)
 set -euo pipefail
 for r in "$@"; do
-  i=$(python -c "print(round(10*$r))")
-  [ -f "data/lines/train_o$r.h5" ] || rlsac synth-lines --outlier "$r" --n-instances 4000 --seed $((1000 + i)) --out "data/lines/train_o$r.h5" --no-tracking
-  [ -f "data/lines/val_o$r.h5" ] || rlsac synth-lines --outlier "$r" --n-instances 200 --seed $((2000 + i)) --out "data/lines/val_o$r.h5" --no-tracking
-  [ -f "data/lines/test_o$r.h5" ] || rlsac synth-lines --outlier "$r" --n-instances 1000 --seed $((3000 + i)) --out "data/lines/test_o$r.h5" --no-tracking
+  # data: sizes and seeds from params.yaml `lines` (rlsac lines-data, as the DVC stage does)
+  if [ ! -f "data/lines/train_o$r.h5" ] || [ ! -f "data/lines/val_o$r.h5" ] || [ ! -f "data/lines/test_o$r.h5" ]; then
+    rlsac lines-data --rate "$r" --no-tracking
+  fi
   extra=()
   [ -n "${STEPS:-}" ] && extra+=(--set "sac.total_steps=$STEPS")
   [ "${RESUME:-0}" = 1 ] && [ -f "checkpoints/line_o$r.state.pt" ] && extra+=(--resume)
