@@ -1,13 +1,16 @@
 """Baselines at the same iteration budgets as RLSAC.
 
 ``ransac``: our own batched RANSAC for any task (uniform minimal sets, inlier count, refinement on
-the best hypothesis' inliers). OpenCV's RANSAC / USAC / MAGSAC++ for fundamental matrices follow.
+the best hypothesis' inliers). ``oracle``: the refinement on the true inliers, the best any sampler
+followed by that refinement can do (synthetic data only). OpenCV's RANSAC / USAC / MAGSAC++ for
+fundamental matrices follow.
 """
 
 from __future__ import annotations
 
 import torch
 
+from rlsac.errors import RlsacError
 from rlsac.sampling import gather_points, uniform_minimal_sets
 from rlsac.tasks import Task
 
@@ -38,6 +41,22 @@ def ransac(task: Task, batch: dict, iterations: int, generator: torch.Generator 
         best_h = h if best_h is None else torch.where(better.view(B, *[1] * (h.dim() - 1)), h, best_h)
         best_c = torch.where(better, c, best_c)
     return finalize(task, coords, mask, best_h, best_c >= task.sample_size)
+
+
+@torch.no_grad()
+def oracle(task: Task, batch: dict) -> dict[str, torch.Tensor]:
+    """The task's refinement on the ground-truth inliers: an upper bound for sample consensus.
+
+    batch: coords (B, N, d), mask (B, N), inlier_mask (B, N) true inliers -> hyp, valid, inliers,
+    best_count as ``ransac``. Rows with fewer true inliers than the refinement needs are invalid.
+    """
+    coords, mask = batch["coords"], batch["mask"]
+    if "inlier_mask" not in batch:
+        raise RlsacError("the oracle needs the true inlier mask (synthetic data only)")
+    truth = torch.as_tensor(batch["inlier_mask"], dtype=torch.bool, device=coords.device) & mask
+    hyp, valid = task.refine(coords, truth)
+    inl = (task.residuals(hyp, coords) <= task.threshold) & mask & valid[:, None]
+    return {"hyp": hyp, "valid": valid, "inliers": inl, "best_count": inl.sum(-1)}
 
 
 def finalize(task: Task, coords, mask, hyp, valid) -> dict[str, torch.Tensor]:

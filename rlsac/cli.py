@@ -151,8 +151,9 @@ def train(task: str, tracking: bool, params_path: str, sets: tuple[str, ...], **
 
 @cli.command()
 @click.option("--task", type=click.Choice(["line", "fundamental"]), required=True)
-@click.option("--method", type=click.Choice(["ransac", "rlsac", "usac", "usac_accurate", "magsac", "opencv_ransac"]),
-              required=True)
+@click.option("--method", type=click.Choice(["ransac", "rlsac", "oracle", "usac", "usac_accurate", "magsac",
+                                           "opencv_ransac"]), required=True,
+              help="oracle = refinement on the true inliers (lines only).")
 @click.option("--data", type=click.Path(dir_okay=False), required=True, help="Test h5.")
 @click.option("--checkpoint", type=click.Path(dir_okay=False), help="RLSAC checkpoint (method rlsac).")
 @click.option("--iterations", type=int, help="Hypotheses per instance [default: params.yaml evaluate.<task>].")

@@ -4,8 +4,9 @@
 have defaults):
 
     task        "line" | "fundamental"
-    method      "ransac" (our batched RANSAC, any task), "rlsac" (needs ``checkpoint``), or one of
-                OpenCV's "opencv_ransac" | "usac" | "usac_accurate" | "magsac" (fundamental only)
+    method      "ransac" (our batched RANSAC, any task), "rlsac" (needs ``checkpoint``), one of
+                OpenCV's "opencv_ransac" | "usac" | "usac_accurate" | "magsac" (fundamental only), or
+                "oracle" (the refinement on the true inliers, lines only: the headroom of any sampler)
     data        h5 file written by ``rlsac synth-lines`` / ``rlsac prepare-cvpr2020``
     checkpoint  RLSAC checkpoint (.pt), method "rlsac" only
     iterations  hypotheses per instance (default 150 for lines, 1000 for fundamental)
@@ -35,7 +36,7 @@ from rlsac.tracking import start_run
 
 OPENCV_METHODS = ("opencv_ransac", "usac", "usac_accurate", "magsac")
 OPENCV_FLAG = {"opencv_ransac": "ransac", "usac": "usac", "usac_accurate": "usac_accurate", "magsac": "magsac"}
-METHODS = ("ransac", "rlsac") + OPENCV_METHODS
+METHODS = ("ransac", "rlsac", "oracle") + OPENCV_METHODS
 DEFAULT_ITERATIONS = {"line": 150, "fundamental": 1000}
 EXPERIMENT = {"line": "lines", "fundamental": "fundamental"}
 DEFAULTS: dict[str, Any] = {
@@ -110,6 +111,8 @@ def check_options(options: dict[str, Any]) -> dict[str, Any]:
         raise RlsacError(f"unknown method '{o['method']}' (known: {', '.join(METHODS)})")
     if o["method"] in OPENCV_METHODS and o["task"] != "fundamental":
         raise RlsacError(f"method '{o['method']}' is OpenCV's fundamental-matrix estimator: use --task fundamental")
+    if o["method"] == "oracle" and o["task"] != "line":
+        raise RlsacError("method 'oracle' needs the true inlier mask, which only synthetic lines have: use --task line")
     if o["method"] == "rlsac" and not o["checkpoint"]:
         raise RlsacError("method 'rlsac' needs --checkpoint")
     if o["checkpoint"] and not Path(o["checkpoint"]).is_file():
@@ -152,6 +155,11 @@ def make_estimator(o: dict[str, Any], device: str) -> tuple[Task, Callable[[dict
 
         task = task_from(o["task"])
         return task, lambda batch, g: ransac(task, batch, iterations, g), {}
+    if method == "oracle":
+        from rlsac.baselines import oracle
+
+        task = task_from(o["task"])
+        return task, lambda batch, g: oracle(task, batch), {}
     if method in OPENCV_METHODS:
         try:
             from rlsac.baselines import opencv_fundamental

@@ -153,6 +153,7 @@ def test_evaluate_bad_data(workdir, make, fragment):
 
 @pytest.mark.parametrize("args,fragment", [
     (["--method", "usac"], "use --task fundamental"),
+    (["--task", "fundamental", "--method", "oracle"], "only synthetic lines"),
     (["--method", "rlsac"], "needs --checkpoint"),
     (["--method", "rlsac", "--checkpoint", "nope.pt"], "no such checkpoint"),
     (["--method", "ransac", "--iterations", "0"], "iterations must be positive"),
@@ -240,3 +241,6 @@ def test_calibration_table():
     t = commands.calibration_table({0.1: (0.9, 0.04), 0.7: (0.5, 0.2)})
     assert t["mAA_diff"].tolist() == pytest.approx([0.03, -0.108])
     assert t["median_diff"].tolist() == pytest.approx([-0.009, 0.065])
+    assert "mAA_oracle" not in t
+    t = commands.calibration_table({0.1: (0.9, 0.04)}, oracle={0.1: (0.95, 0.03)})
+    assert t["mAA_oracle"].tolist() == [0.95] and t["median_oracle"].tolist() == [0.03]

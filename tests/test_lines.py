@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import torch
 
-from rlsac.baselines import ransac
+from rlsac.baselines import oracle, ransac
 from rlsac.config import build
 from rlsac.data import lines
 from rlsac.data.lines import LineDataConf
@@ -125,3 +125,32 @@ def test_ransac_recovers_an_easy_line():
     # found inliers are mostly true inliers
     inl = out["inliers"].numpy()
     assert (inl & d["inlier_mask"]).sum() / inl.sum() > 0.9
+
+
+def test_oracle_fits_the_true_inliers_only():
+    task = get_task("line")
+    x = torch.linspace(0, 8, 6)
+    inl = torch.stack([x, 0.5 * x + 1], -1)  # y = x/2 + 1 -> normal (1, -2)/sqrt5, c = 2/sqrt5
+    out = torch.tensor([[1.0, 9.0], [7.0, 0.5], [3.0, 6.0], [9.0, 9.0]])  # far from it
+    coords = torch.cat([inl, out])[None]
+    truth = np.array([[True] * 6 + [False] * 4])
+    batch = {"coords": coords, "mask": torch.ones(1, 10, dtype=torch.bool), "inlier_mask": truth}
+    res = oracle(task, batch)
+    r5 = np.sqrt(5)
+    assert res["valid"].item() and _same_line(res["hyp"][0], [1 / r5, -2 / r5, 2 / r5])
+    assert res["inliers"][0].tolist() == truth[0].tolist()
+    one = {**batch, "inlier_mask": np.array([[True] + [False] * 9])}
+    assert not oracle(task, one)["valid"].item()  # a single true inlier defines no line
+    with pytest.raises(RlsacError, match="true inlier mask"):
+        oracle(task, {"coords": coords, "mask": batch["mask"]})
+
+
+def test_oracle_is_at_least_as_good_as_ransac_on_average():
+    task = get_task("line")
+    d = lines.generate(conf(outlier_rate=0.6, n_instances=200, seed=7))
+    b = lines.to_batch(d)
+    g = torch.Generator().manual_seed(0)
+    e_ransac = task.errors(ransac(task, b, 150, g)["hyp"].numpy(), np.ones(200, bool), None, d)["err_deg"]
+    e_oracle = task.errors(oracle(task, b)["hyp"].numpy(), np.ones(200, bool), None, d)["err_deg"]
+    assert np.median(e_oracle) < np.median(e_ransac)
+    assert e_oracle.max() < 5.0  # never a wrong line

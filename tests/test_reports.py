@@ -61,12 +61,13 @@ def test_table1_cells_paper_and_missing(tree):
     assert math.isnan(cell(df, "0.5 mAA", method="Ours", source="ours"))
     for label, rows in paper.TABLE1.items():
         assert cell(df, "0.7 mAA", method=label, source="paper") == rows[0.7][0]
-    assert len(df.attrs["missing"]) == 3 * 7 - 2
+    assert len(df.attrs["missing"]) == 4 * 7 - 2
+    assert set(df.loc[df["method"] == "Oracle", "source"]) == {"ours"}  # no paper row for our extra method
     md = (tree / "out" / "table1_lines.md").read_text()
     assert "calibrated synthetic lines" in md and "0.812" in md and "0.608" in md and "–" in md
     assert (tree / "out" / "table1_lines.tex").read_text().count("--") > 10
     csv = pd.read_csv(tree / "out" / "table1_lines.csv")
-    assert csv.shape == (6, 16) and csv["0.1 mAA"].iloc[0] == pytest.approx(0.8123)
+    assert csv.shape == (7, 16) and csv["0.1 mAA"].iloc[0] == pytest.approx(0.8123)
 
 
 def test_table2_and_table3(tree):
