@@ -230,7 +230,9 @@ def plot(tracking: bool, sets: tuple[str, ...]) -> None:
 
 @cli.command("calibrate-lines")
 @click.option("--n-instances", type=int, default=1000, show_default=True)
-@click.option("--seed", type=int, default=123, show_default=True)
+@click.option("--seed", type=int, default=123, show_default=True, help="First data seed.")
+@click.option("--n-seeds", type=int, default=12, show_default=True,
+              help="Data seeds seed..seed+n-1; the row is their mean, with the seed-to-seed spread.")
 @click.option("--iterations", type=int, default=150, show_default=True)
 @click.option("--out", default="reports/calibration_lines", show_default=True, help="Output stem (.md and .csv).")
 @click.option("--params", "params_path", default="params.yaml", show_default=True,

@@ -227,9 +227,12 @@ def test_missing_module_is_not_implemented():
 
 
 def test_calibrate_lines_tiny(workdir):
-    r = invoke("calibrate-lines", "--n-instances", 10, "--iterations", 20, "--out", "rep/cal", "--no-tracking")
+    r = invoke("calibrate-lines", "--n-instances", 10, "--n-seeds", 2, "--iterations", 20, "--out", "rep/cal",
+               "--no-tracking")
     assert r.exit_code == 0, r.output
     table = pd.read_csv(workdir / "rep/cal.csv")
+    assert (table["mAA_min"] <= table["mAA_ours"] + 1e-4).all() and (table["mAA_ours"] <= table["mAA_max"] + 1e-4).all()
+    assert table["seeds_within"].isin([0.0, 0.5, 1.0]).all()
     assert table["outlier_rate"].tolist() == pytest.approx([0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7])
     assert table["mAA_paper"].iloc[0] == pytest.approx(0.870) and table["median_paper"].iloc[-1] == 0.135
     assert np.allclose(table["mAA_diff"], table["mAA_ours"] - table["mAA_paper"], atol=1e-3)
@@ -244,3 +247,6 @@ def test_calibration_table():
     assert "mAA_oracle" not in t
     t = commands.calibration_table({0.1: (0.9, 0.04)}, oracle={0.1: (0.95, 0.03)})
     assert t["mAA_oracle"].tolist() == [0.95] and t["median_oracle"].tolist() == [0.03]
+    t = commands.calibration_table({0.1: (0.905, 0.04)}, per_seed={0.1: [0.86, 0.95]})
+    assert t["mAA_sd"].tolist() == pytest.approx([0.0636396]) and t["seeds_within"].tolist() == [0.5]
+    assert t["mAA_min"].tolist() == [0.86] and t["mAA_max"].tolist() == [0.95]

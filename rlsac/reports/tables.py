@@ -176,7 +176,7 @@ def table1(eval_root: str | Path = "reports/eval", out_dir: str | Path = "report
     its = sorted({int(s["iterations"]) for s in found if s.get("iterations")})
     ckpts = sorted({Path(s["checkpoint"]).name for s in found if s.get("checkpoint")})
     caption = ("Dataset: calibrated synthetic lines (`rlsac synth-lines` defaults: N=100 points in a 10×10 picture, "
-               "inlier band 0.083, threshold 0.1; test files `data/lines/test_o{rate}.h5`"
+               "inlier band 0.0825, threshold 0.1; test files `data/lines/test_o{rate}.h5`"
                + (f", {'/'.join(map(str, n))} instances per rate" if n else "") + "). "
                + (f"Budget {'/'.join(map(str, its))} hypotheses per instance. " if its else "")
                + "Columns: mAA@0.5° and median angular error (°) per outlier rate o. "
