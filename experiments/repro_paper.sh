@@ -1,13 +1,16 @@
 #!/usr/bin/env bash
-# The paper profile through `dvc repro`, as two lanes that can run side by side on a 2-core machine.
+# The paper profile through `dvc repro`, as three lanes that run side by side on a 2-core machine.
 #
 # `dvc repro` runs stages one after another, but it releases the repository lock while a stage's
-# command runs, so two `dvc repro` processes on disjoint stages share the machine safely
+# command runs, so several `dvc repro` processes on disjoint stages share the machine safely
 # (`--wait-for-lock` queues their short dvc.lock updates). Each lane is one `dvc repro` over its
-# stages (and whatever they depend on); `final` builds the tables and figures once both are done.
+# stages (and whatever they depend on); `final` builds the tables and figures once all are done.
+# The line models are split in two lanes (rates 0.1-0.3 and 0.4-0.7): with a single lines lane the
+# fundamental lane finishes first and one core sits idle for the last hour.
 #
-#   bash experiments/repro_paper.sh            # both lanes in parallel, then final
-#   bash experiments/repro_paper.sh lines      # one lane: lines | fundamental | final
+#   bash experiments/repro_paper.sh                 # all lanes in parallel, then final
+#   bash experiments/repro_paper.sh lines_low       # one lane: lines_low | lines_high | fundamental | final
+#   bash experiments/repro_paper.sh --list          # "lane stage" per line (a foreach group = all its items)
 #
 # Logs and wall times go to logs/repro_<lane>.log. OMP_NUM_THREADS=1 keeps each stage on one core.
 set -euo pipefail
@@ -16,12 +19,22 @@ export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}"
 DVC="${DVC:-dvc}"
 mkdir -p logs
 
+line_stages() {  # the line stages of the given outlier rates
+  local r s out=""
+  for r in "$@"; do
+    for s in lines_data train_lines eval_lines_ransac eval_lines_ours eval_lines_oracle eval_lines_generalisation; do
+      out="$out $s@$r"
+    done
+  done
+  echo "$out"
+}
+
 declare -A STAGES=(
-  [lines]="lines_data train_lines eval_lines_ransac eval_lines_ours eval_lines_oracle eval_lines_generalisation"
+  [lines_low]="$(line_stages 0.1 0.2 0.3)"
+  [lines_high]="$(line_stages 0.4 0.5 0.6 0.7)"
   [fundamental]="import_scenes prepare_fundamental train_fundamental eval_fundamental eval_fundamental_rlsac ablation_data ablation_train ablation_eval"
   [final]="tables figures"
 )
-
 lane() {
   local name=$1 t0 t1
   t0=$(date +%s)
@@ -32,14 +45,26 @@ lane() {
   echo "== $name: done $(date -Is), wall $((t1 - t0)) s" | tee -a "logs/repro_$name.log"
 }
 
+if [ "${1:-}" = "--list" ]; then
+  for name in lines_low lines_high fundamental final; do
+    for stage in ${STAGES[$name]}; do echo "$name $stage"; done
+  done
+  exit 0
+fi
 if [ $# -gt 0 ]; then
   for name in "$@"; do lane "$name"; done
   exit 0
 fi
 start=$(date +%s)
-lane lines & p1=$!
-lane fundamental & p2=$!
-wait $p1
-wait $p2
+pids=()
+for name in lines_low lines_high fundamental; do
+  lane "$name" & pids+=($!)
+done
+failed=0
+for pid in "${pids[@]}"; do wait "$pid" || failed=1; done
+if [ "$failed" -ne 0 ]; then
+  echo "== a lane failed, see logs/repro_*.log; tables and figures not rebuilt" >&2
+  exit 1
+fi
 lane final
 echo "== paper profile: wall $(( $(date +%s) - start )) s"

@@ -58,6 +58,22 @@ class Run:
             self._mlflow.set_tags(tags)
 
 
+def _store_lock(uri: str):
+    """Serialise first use of a sqlite store across processes.
+
+    Two commands started together on a fresh ``mlflow.db`` (e.g. two ``dvc repro`` lanes) both run
+    MLflow's schema migrations and one fails with "table ... already exists"; creating the same
+    experiment twice races the same way. A lock file next to the database orders them.
+    """
+    prefix = "sqlite:///"
+    if not uri.startswith(prefix):
+        return contextlib.nullcontext()
+    from filelock import FileLock
+
+    db = Path(uri[len(prefix):])
+    return FileLock(str(db) + ".lock", timeout=600)
+
+
 @contextlib.contextmanager
 def start_run(experiment: str, run_name: str, params: dict[str, Any] | None = None,
               tags: dict[str, str] | None = None, enabled: bool = True) -> Iterator[Run]:
@@ -68,8 +84,10 @@ def start_run(experiment: str, run_name: str, params: dict[str, Any] | None = No
     _quiet()
     import mlflow
 
-    mlflow.set_tracking_uri(os.environ.get("MLFLOW_TRACKING_URI", DEFAULT_URI))
-    mlflow.set_experiment(experiment)
+    uri = os.environ.get("MLFLOW_TRACKING_URI", DEFAULT_URI)
+    mlflow.set_tracking_uri(uri)
+    with _store_lock(uri):
+        mlflow.set_experiment(experiment)
     active = mlflow.start_run(run_name=run_name)
     run = Run(mlflow)
     run.run_id = active.info.run_id

@@ -129,3 +129,23 @@ def test_ablation_plan_is_coherent(profile):
     assert len(gen["variants"]) == len(rates)
     src = f"{float(p['generalisation']['train_rate']):g}"
     assert all(e["checkpoint"] == str(Path("checkpoints") / f"line_o{src}.pt") for e in gen["variants"].values())
+
+
+def test_repro_script_lanes_cover_every_stage_once():
+    """experiments/repro_paper.sh runs each paper stage in exactly one lane, and only real stages."""
+    dvc_repo = pytest.importorskip("dvc.repo")
+    import subprocess
+
+    out = subprocess.run(["bash", str(ROOT / "experiments" / "repro_paper.sh"), "--list"], check=True,
+                         capture_output=True, text=True).stdout
+    listed = [line.split() for line in out.splitlines()]
+    with dvc_repo.Repo(str(ROOT)) as repo:
+        names = [s.name for s in repo.index.stages
+                 if Path(os.path.abspath(s.path)).parent == PROFILES["paper"] and s.cmd]
+    lane_of: dict[str, list[str]] = {name: [] for name in names}
+    for lane, target in listed:
+        hits = [n for n in names if n == target or n.split("@")[0] == target]
+        assert hits, f"{lane}: {target} is not a stage"
+        for n in hits:
+            lane_of[n].append(lane)
+    assert {n: lanes for n, lanes in lane_of.items() if len(lanes) != 1} == {}

@@ -1,0 +1,51 @@
+"""The MLflow helper: run status, and several processes opening one fresh sqlite store at once."""
+
+import multiprocessing as mp
+
+import pytest
+
+from rlsac.tracking import start_run
+
+
+def _log_one(uri: str, i: int) -> None:
+    import os
+
+    os.environ["MLFLOW_TRACKING_URI"] = uri
+    with start_run("lines", f"worker {i}", params={"i": i}) as run:
+        run.metrics({"value": float(i)})
+
+
+def _runs(uri: str):
+    import mlflow
+
+    client = mlflow.MlflowClient(uri)
+    exp = client.get_experiment_by_name("lines")
+    return client.search_runs([exp.experiment_id])
+
+
+def test_failed_block_marks_run_failed(tmp_path, monkeypatch):
+    uri = f"sqlite:///{tmp_path / 'm.db'}"
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
+    with pytest.raises(RuntimeError):
+        with start_run("lines", "boom"):
+            raise RuntimeError("x")
+    with start_run("lines", "ok", params={"a": {"b": 1}}):
+        pass
+    runs = {r.info.run_name: r for r in _runs(uri)}
+    assert {k: r.info.status for k, r in runs.items()} == {"boom": "FAILED", "ok": "FINISHED"}
+    assert runs["ok"].data.params == {"a.b": "1"}
+
+
+def test_parallel_processes_on_a_fresh_store(tmp_path):
+    # Without the lock, concurrent schema migrations fail with "table ... already exists".
+    uri = f"sqlite:///{tmp_path / 'fresh.db'}"
+    ctx = mp.get_context("spawn")
+    procs = [ctx.Process(target=_log_one, args=(uri, i)) for i in range(3)]
+    for p in procs:
+        p.start()
+    for p in procs:
+        p.join(timeout=300)
+    assert [p.exitcode for p in procs] == [0, 0, 0]
+    runs = _runs(uri)
+    assert sorted(r.data.metrics["value"] for r in runs) == [0.0, 1.0, 2.0]
+    assert all(r.info.status == "FINISHED" for r in runs)
