@@ -7,10 +7,13 @@ import pytest
 from rlsac.tracking import start_run
 
 
-def _log_one(uri: str, i: int) -> None:
+def _log_one(uri: str, i: int, barrier) -> None:
     import os
 
+    import mlflow  # noqa: F401  (imported before the barrier so that the workers start together)
+
     os.environ["MLFLOW_TRACKING_URI"] = uri
+    barrier.wait()
     with start_run("lines", f"worker {i}", params={"i": i}) as run:
         run.metrics({"value": float(i)})
 
@@ -40,7 +43,8 @@ def test_parallel_processes_on_a_fresh_store(tmp_path):
     # Without the lock, concurrent schema migrations fail with "table ... already exists".
     uri = f"sqlite:///{tmp_path / 'fresh.db'}"
     ctx = mp.get_context("spawn")
-    procs = [ctx.Process(target=_log_one, args=(uri, i)) for i in range(3)]
+    barrier = ctx.Barrier(3)
+    procs = [ctx.Process(target=_log_one, args=(uri, i, barrier)) for i in range(3)]
     for p in procs:
         p.start()
     for p in procs:
