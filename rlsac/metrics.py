@@ -23,6 +23,29 @@ def mAA(errors: np.ndarray, limit: float, n: int = 10) -> float:
     return float(acc.mean())
 
 
+def paired_bootstrap_maa(errors_a, errors_b, limit: float, n_boot: int = 2000, seed: int = 0,
+                         level: float = 0.95) -> tuple[float, float, float]:
+    """mAA(a) - mAA(b) on the same instances, with a paired percentile bootstrap interval.
+
+    errors_a, errors_b: (M,) errors of two methods on the same M instances (NaN = failure).
+    Returns (difference, low, high); resampling instances, not errors, keeps the pairing, which is
+    what makes small differences between methods on one test set measurable.
+    """
+    a = np.asarray(errors_a, dtype=np.float64).ravel()
+    b = np.asarray(errors_b, dtype=np.float64).ravel()
+    if a.size != b.size or a.size == 0:
+        raise ValueError(f"paired bootstrap needs two non-empty error lists of one length, got {a.size} and {b.size}")
+    th = thresholds(limit)
+    # (M, n) hit matrix per method: the mAA of a resample is the mean of its rows
+    hits_a = (np.where(np.isnan(a), np.inf, a)[:, None] <= th[None, :]).mean(axis=1)
+    hits_b = (np.where(np.isnan(b), np.inf, b)[:, None] <= th[None, :]).mean(axis=1)
+    diff = hits_a - hits_b
+    idx = np.random.default_rng(seed).integers(0, a.size, size=(n_boot, a.size))
+    boot = diff[idx].mean(axis=1)
+    tail = 100 * (1 - level) / 2
+    return float(diff.mean()), float(np.percentile(boot, tail)), float(np.percentile(boot, 100 - tail))
+
+
 def median(errors: np.ndarray) -> float:
     errors = np.asarray(errors, dtype=np.float64).ravel()
     if errors.size == 0:

@@ -28,6 +28,23 @@ def test_maa_failures_and_empty():
     assert math.isnan(metrics.mAA([], 0.5))
 
 
+def test_paired_bootstrap_known_difference():
+    a = np.full(200, 0.02)  # hit at every threshold
+    b = np.concatenate([np.full(100, 0.02), np.full(100, 1.0)])  # half the instances missed
+    d, lo, hi = metrics.paired_bootstrap_maa(a, b, 0.5, seed=1)
+    assert d == pytest.approx(0.5)
+    assert 0.35 < lo < 0.5 < hi < 0.65
+    assert metrics.paired_bootstrap_maa(a, a, 0.5) == (0.0, 0.0, 0.0)
+    d, lo, hi = metrics.paired_bootstrap_maa(b, a, 0.5)  # antisymmetric
+    assert d == pytest.approx(-0.5) and hi < 0
+    assert metrics.paired_bootstrap_maa(a, b, 0.5, seed=3) == metrics.paired_bootstrap_maa(a, b, 0.5, seed=3)
+
+
+def test_paired_bootstrap_rejects_unpaired():
+    with pytest.raises(ValueError, match="one length"):
+        metrics.paired_bootstrap_maa([0.1, 0.2], [0.1], 0.5)
+
+
 def test_median():
     assert metrics.median([3.0, 1.0, 2.0]) == 2.0
     assert metrics.median([1.0, 2.0, 3.0, 4.0]) == 2.5

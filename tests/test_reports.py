@@ -70,6 +70,19 @@ def test_table1_cells_paper_and_missing(tree):
     assert csv.shape == (7, 16) and csv["0.1 mAA"].iloc[0] == pytest.approx(0.8123)
 
 
+def test_table1_paired_comparison_from_errors(tree):
+    assert tables.table1("ev", "out").attrs["paired"] is None  # no errors.csv: no comparison, no note
+    for method, errs in (("ransac", [0.02] * 5 + [1.0] * 5), ("ours", [0.02] * 10)):
+        d = tree / "ev" / "lines" / method / "o0.2"
+        d.mkdir(parents=True, exist_ok=True)
+        pd.DataFrame({"instance": range(10), "err_deg": errs}).to_csv(d / "errors.csv", index=False)
+    paired = tables.table1("ev", "out").attrs["paired"]
+    assert list(paired["comparison"]) == ["Ours − RANSAC", "Ours-0.5 − RANSAC"]
+    assert paired.loc[0, "o=0.2"].startswith("+0.500 [")
+    assert paired.loc[0, "o=0.1"] == "–" and paired.loc[1, "o=0.2"] == "–"
+    assert "Paired comparison" in (tree / "out" / "table1_lines.md").read_text()
+
+
 def test_table2_and_table3(tree):
     df = tables.table2("ev", "out")
     assert cell(df, "mAA_R", method="MAGSAC++", source="ours") == pytest.approx(0.6611)
