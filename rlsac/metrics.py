@@ -14,13 +14,16 @@ def thresholds(limit: float, n: int = 10) -> np.ndarray:
     return limit * np.arange(1, n + 1) / n
 
 
-def mAA(errors: np.ndarray, limit: float, n: int = 10) -> float:
+def accuracy_per_instance(errors: np.ndarray, limit: float, n: int = 10) -> np.ndarray:
+    """(M,) errors -> (M,) fraction of the n thresholds each error meets; mAA is its mean."""
     errors = np.asarray(errors, dtype=np.float64).ravel()
-    if errors.size == 0:
-        return float("nan")
     errors = np.where(np.isnan(errors), np.inf, errors)
-    acc = (errors[None, :] <= thresholds(limit, n)[:, None]).mean(axis=1)
-    return float(acc.mean())
+    return (errors[:, None] <= thresholds(limit, n)[None, :]).mean(axis=1)
+
+
+def mAA(errors: np.ndarray, limit: float, n: int = 10) -> float:
+    acc = accuracy_per_instance(errors, limit, n)
+    return float(acc.mean()) if acc.size else float("nan")
 
 
 def paired_bootstrap_maa(errors_a, errors_b, limit: float, n_boot: int = 2000, seed: int = 0,
@@ -35,11 +38,7 @@ def paired_bootstrap_maa(errors_a, errors_b, limit: float, n_boot: int = 2000, s
     b = np.asarray(errors_b, dtype=np.float64).ravel()
     if a.size != b.size or a.size == 0:
         raise ValueError(f"paired bootstrap needs two non-empty error lists of one length, got {a.size} and {b.size}")
-    th = thresholds(limit)
-    # (M, n) hit matrix per method: the mAA of a resample is the mean of its rows
-    hits_a = (np.where(np.isnan(a), np.inf, a)[:, None] <= th[None, :]).mean(axis=1)
-    hits_b = (np.where(np.isnan(b), np.inf, b)[:, None] <= th[None, :]).mean(axis=1)
-    diff = hits_a - hits_b
+    diff = accuracy_per_instance(a, limit) - accuracy_per_instance(b, limit)
     idx = np.random.default_rng(seed).integers(0, a.size, size=(n_boot, a.size))
     boot = diff[idx].mean(axis=1)
     tail = 100 * (1 - level) / 2

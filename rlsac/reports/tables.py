@@ -27,6 +27,7 @@ from rlsac.reports import paper
 
 DASH = "–"
 LINE_LIMIT_DEG = 0.5  # Table 1's mAA limit (thresholds 0.05..0.5 deg)
+PAIRED_BOOT = 2000  # bootstrap resamples of the Table 1 paired comparison: interval ends stable to ~0.001
 # directory -> Table 1 row; "oracle" (TLS on the true inliers) is ours only: the reference a sampler aims at
 LINE_METHODS = {"ransac": "RANSAC", "ours": "Ours", "ours-0.5": "Ours-0.5", "oracle": "Oracle"}
 # Table 2 rows: (directory, row label, paper row or None, note)
@@ -197,20 +198,18 @@ def table1(eval_root: str | Path = "reports/eval", out_dir: str | Path = "report
     return df
 
 
-PAIRED_BOOT = 2000
-
-
 def _paired_vs_ransac(root: Path, rates) -> pd.DataFrame | None:
     """Ours / Ours-0.5 minus RANSAC per rate from the per-instance errors; None if nothing to pair."""
     def errors(d: str, r: float):
         path = root / d / f"o{r:g}" / "errors.csv"
         return pd.read_csv(path)["err_deg"].to_numpy() if path.is_file() else None
 
+    ransac = {r: errors("ransac", r) for r in rates}
     rows = []
     for d in ("ours", "ours-0.5"):
         row: dict[str, str] = {"comparison": f"{LINE_METHODS[d]} − RANSAC"}
         for r in rates:
-            a, b = errors(d, r), errors("ransac", r)
+            a, b = errors(d, r), ransac[r]
             if a is None or b is None or a.size != b.size:
                 row[f"o={r:g}"] = DASH
                 continue
