@@ -70,8 +70,7 @@ def _store_lock(uri: str):
         return contextlib.nullcontext()
     from filelock import FileLock
 
-    db = Path(uri[len(prefix):])
-    return FileLock(str(db) + ".lock", timeout=600)
+    return FileLock(uri[len(prefix):] + ".lock", timeout=600)
 
 
 @contextlib.contextmanager

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from dvc import repo as dvc_repo
 
 from rlsac import ablate
 from rlsac.cli import cli
@@ -91,7 +92,6 @@ def test_templated_values_and_params_exist(pipeline, profile):
 @pytest.mark.parametrize("profile", list(PROFILES))
 def test_dvc_renders_and_cli_accepts_every_command(profile):
     """DVC's own templating renders each profile; click parses every rendered command line."""
-    dvc_repo = pytest.importorskip("dvc.repo")
     with dvc_repo.Repo(str(ROOT)) as repo:
         stages = [s for s in repo.index.stages
                   if Path(os.path.abspath(s.path)).parent == PROFILES[profile] and s.cmd]  # no symlink resolving
@@ -133,7 +133,6 @@ def test_ablation_plan_is_coherent(profile):
 
 def test_repro_script_lanes_cover_every_stage_once():
     """experiments/repro_paper.sh runs each paper stage in exactly one lane, and only real stages."""
-    dvc_repo = pytest.importorskip("dvc.repo")
     import subprocess
 
     out = subprocess.run(["bash", str(ROOT / "experiments" / "repro_paper.sh"), "--list"], check=True,
