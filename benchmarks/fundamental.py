@@ -21,9 +21,9 @@ import numpy as np
 import torch
 
 from rlsac.baselines import opencv_fundamental
-from rlsac.evaluate import _ckpt_value, checkpoint_task_options, resolve_device, task_from
+from rlsac.evaluate import checkpoint_task_options, resolve_device, task_from
 from rlsac.policy import Actor, PolicyConf
-from rlsac.rollout import in_channels, load_actor, rlsac_estimate
+from rlsac.rollout import checkpoint_env, in_channels, load_actor, rlsac_estimate
 
 
 def _sync(device: str) -> None:
@@ -71,20 +71,20 @@ def main() -> None:
     if args.checkpoint:
         actor, conf = load_actor(args.checkpoint, device)
         task = task_from("fundamental", checkpoint_task_options(dict(conf)))
-        psi = int(_ckpt_value(dict(conf), "steps_per_episode") or 15)
+        env_conf = checkpoint_env(dict(conf))
         who = args.checkpoint
     else:
         task = task_from("fundamental")
         torch.manual_seed(0)
         actor = Actor(in_channels(task), PolicyConf(graph_dims=4)).to(device).eval()
-        psi, who = 15, "randomly initialised actor (no --checkpoint)"
-    episodes = -(-args.iterations // psi)
+        env_conf, who = checkpoint_env({}), "randomly initialised actor (no --checkpoint)"
+    episodes = -(-args.iterations // env_conf.steps_per_episode)
     print(f"device {device}, {torch.get_num_threads()} thread(s); data: {what}; {args.iterations} iterations; "
           f"actor: {who}")
 
     def run_rlsac(idx, seed=0):
         batch = fundamental.to_batch(data, idx, device=device)
-        return rlsac_estimate(task, batch, actor, args.iterations, psi,
+        return rlsac_estimate(task, batch, actor, args.iterations, env_conf,
                               generator=torch.Generator(device=device).manual_seed(seed)), batch
 
     run_rlsac(list(range(min(2, P))))  # warm-up

@@ -80,7 +80,7 @@ def main() -> None:
           f"outlier rate {args.outlier_rate}; {args.iterations} iterations; actor: {what}")
 
     def run_rlsac():
-        return rlsac_estimate(task, batch, actor, args.iterations, args.steps_per_episode,
+        return rlsac_estimate(task, batch, actor, args.iterations, EnvConf(steps_per_episode=args.steps_per_episode),
                               generator=torch.Generator(device=device).manual_seed(0))
 
     def run_ransac():

@@ -92,7 +92,7 @@ def lines_data(tracking: bool, params_path: str, **options) -> None:
 
 @cli.command("import-scenes")
 @click.option("--src", type=click.Path(file_okay=False),
-              help="Source scenes (Strecha layout). [default: ../shared/data/strecha]")
+              help="Source scenes (Strecha layout). [default: data/strecha]")
 @click.option("--out", type=click.Path(file_okay=False),
               help="Output tutorial-layout root. [default: data/raw/strecha]")
 @click.option("--split", help="Split folder written under --out. [default: all]")

@@ -4,7 +4,8 @@
 have defaults):
 
     task        "line" | "fundamental"
-    method      "ransac" (our batched RANSAC, any task), "rlsac" (needs ``checkpoint``), one of
+    method      "ransac" (our batched RANSAC, any task), "rlsac" (needs ``checkpoint``), "uniform" (the
+                RLSAC environment with uniform minimal sets: RLSAC - uniform is the learned sampler alone), one of
                 OpenCV's "opencv_ransac" | "usac" | "usac_accurate" | "magsac" (fundamental only), or
                 "oracle" (the refinement on the true inliers, lines only: the headroom of any sampler)
     data        h5 file written by ``rlsac synth-lines`` / ``rlsac prepare-cvpr2020``
@@ -20,6 +21,7 @@ reproducible for a given (seed, batch_size, device).
 
 from __future__ import annotations
 
+import hashlib
 import time
 from pathlib import Path
 from typing import Any, Callable
@@ -36,7 +38,7 @@ from rlsac.tracking import start_run
 
 OPENCV_METHODS = ("opencv_ransac", "usac", "usac_accurate", "magsac")
 OPENCV_FLAG = {"opencv_ransac": "ransac", "usac": "usac", "usac_accurate": "usac_accurate", "magsac": "magsac"}
-METHODS = ("ransac", "rlsac", "oracle") + OPENCV_METHODS
+METHODS = ("ransac", "rlsac", "uniform", "oracle") + OPENCV_METHODS
 DEFAULT_ITERATIONS = {"line": 150, "fundamental": 1000}
 EXPERIMENT = {"line": "lines", "fundamental": "fundamental"}
 DEFAULTS: dict[str, Any] = {
@@ -137,16 +139,6 @@ def run_name(o: dict[str, Any]) -> str:
     return f"{o['task']}_{o['method']}{model}_{Path(o['data']).stem}_i{o['iterations']}_s{o['seed']}"
 
 
-def _ckpt_value(conf: dict, key: str):
-    """``key`` at the top level of a checkpoint conf, else in one of its sections."""
-    if key in conf:
-        return conf[key]
-    for v in conf.values():
-        if isinstance(v, dict) and key in v:
-            return v[key]
-    return None
-
-
 def make_estimator(o: dict[str, Any], device: str) -> tuple[Task, Callable[[dict, torch.Generator], dict], dict]:
     """-> (task, estimate(batch, generator) -> {hyp, valid, inliers} torch tensors, extra run params)."""
     method, iterations = o["method"], o["iterations"]
@@ -172,36 +164,51 @@ def make_estimator(o: dict[str, Any], device: str) -> tuple[Task, Callable[[dict
             return opencv_fundamental(batch, OPENCV_FLAG[method], iterations, seed=seed)
 
         return task, estimate, {}
-    # method == "rlsac"
-    try:
-        from rlsac.rollout import load_actor, rlsac_estimate
-    except ModuleNotFoundError as e:
-        if e.name and e.name.startswith("rlsac"):
-            raise RlsacError("RLSAC inference is not implemented yet (rlsac.rollout)") from None
-        raise
+    from rlsac.rollout import checkpoint_env, load_actor, rlsac_estimate
+
+    if method == "uniform":  # the RLSAC environment with uniform minimal sets: the learned sampler's control
+        task = task_from(o["task"])
+        env = checkpoint_env({}, o["steps_per_episode"])
+        return task, lambda batch, g: rlsac_estimate(task, batch, None, iterations, env, generator=g), \
+            {"steps_per_episode": env.steps_per_episode}
     actor, ckpt_conf = load_actor(o["checkpoint"], device)
     ckpt_conf = dict(ckpt_conf or {})
     task = task_from(o["task"], checkpoint_task_options(ckpt_conf))
-    steps = o["steps_per_episode"] or _ckpt_value(ckpt_conf, "steps_per_episode") or 15
-    steps = int(steps)
+    env = checkpoint_env(ckpt_conf, o["steps_per_episode"])
 
     def estimate(batch, g):
-        return rlsac_estimate(task, batch, actor, iterations=iterations, steps_per_episode=steps,
-                              sampling=o["sampling"], generator=g)
+        return rlsac_estimate(task, batch, actor, iterations, env, sampling=o["sampling"], generator=g)
 
-    return task, estimate, {"steps_per_episode": steps}
+    return task, estimate, {"steps_per_episode": env.steps_per_episode}
+
+
+def pair_seed(seed: int, scene: str, pair: str) -> int:
+    """A pair's own random seed from (seed, scene, pair key): its result does not depend on the file's
+    order or on the other pairs in it (a stable hash, unlike Python's salted ``hash``)."""
+    digest = hashlib.sha256(f"{int(seed)}/{scene}/{pair}".encode()).digest()
+    return int.from_bytes(digest[:8], "little") & (2**63 - 1)
 
 
 def run_method(task: Task, estimate: Callable, data: dict, to_batch: Callable, n: int, seed: int,
                device: str, batch_size: int, desc: str = "evaluate") -> tuple[dict[str, np.ndarray], np.ndarray]:
-    """Run ``estimate`` over ``n`` instances in batches -> (per-instance errors, inlier counts)."""
+    """Run ``estimate`` over ``n`` instances -> (per-instance errors, inlier counts).
+
+    Named pairs (two-view data: ``scene`` and ``pair`` keys) run one at a time, each with the
+    generator seeded by ``pair_seed``; synthetic instances run in batches of ``batch_size`` from one
+    generator seeded by ``seed`` (reproducible for a given seed, batch size and device).
+    """
     g = torch.Generator(device=device)
     g.manual_seed(int(seed))
+    per_pair = "pair" in data and "scene" in data
+    if per_pair:
+        batch_size = 1
     errs: dict[str, list[np.ndarray]] = {}
     counts: list[np.ndarray] = []
     with tqdm(total=n, desc=desc, unit="inst", disable=None, leave=False) as bar:
         for start in range(0, n, batch_size):
             idx = slice(start, min(start + batch_size, n))
+            if per_pair:
+                g.manual_seed(pair_seed(seed, data["scene"][start], data["pair"][start]))
             batch = to_batch(data, idx, device=device)
             out = estimate(batch, g)
             hyp, valid, inliers = _np(out["hyp"]), _np(out["valid"]).astype(bool), _np(out["inliers"]).astype(bool)

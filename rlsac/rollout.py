@@ -15,12 +15,15 @@ from rlsac.tasks import Task
 
 
 @torch.no_grad()
-def rlsac_estimate(task: Task, batch: dict, actor: Actor, iterations: int, steps_per_episode: int = 15,
+def rlsac_estimate(task: Task, batch: dict, actor: Actor | None, iterations: int, env_conf: EnvConf | None = None,
                    sampling: str = "max", generator: torch.Generator | None = None,
                    record: bool = False) -> dict:
     """Run ceil(iterations / psi) episodes per instance in parallel, at most ``iterations`` hypotheses.
 
     batch: coords (B, N, d), mask (B, N), plus what ``task.features`` needs.
+    actor None = the uniform control: the same environment (episodes, de-duplication, scoring,
+    refinement, budget) with uniformly random minimal sets instead of the policy's.
+    env_conf: the environment of the checkpoint (``checkpoint_env``); default EnvConf().
     -> hyp (B, *H), valid (B,), inliers (B, N); with ``record`` also ``steps``: per step the minimal
     sets (R, m), hypotheses, inlier masks and rewards of every row (for figures).
     """
@@ -28,17 +31,22 @@ def rlsac_estimate(task: Task, batch: dict, actor: Actor, iterations: int, steps
         raise RlsacError(f"sampling must be 'max' or 'prob', got {sampling!r}")
     if iterations < 1:
         raise RlsacError(f"iterations must be positive, got {iterations}")
-    env = SampleConsensusEnv(task, EnvConf(steps_per_episode=steps_per_episode), training=False)
-    episodes = math.ceil(iterations / steps_per_episode)
+    conf = env_conf or EnvConf()
+    psi = conf.steps_per_episode
+    env = SampleConsensusEnv(task, conf, training=False)
+    episodes = math.ceil(iterations / psi)
     feats = task.features(batch)
-    graph = actor.graph(feats, batch["mask"]).repeat_interleave(episodes, 0)
+    graph = None if actor is None else actor.graph(feats, batch["mask"]).repeat_interleave(episodes, 0)
     state = env.reset(batch, feats, episodes, budget=iterations, generator=generator)
     steps = []
     if record:
         steps.append(_snapshot(env))
-    for _ in range(1, steps_per_episode):
+    for _ in range(1, psi):
         if not env.active.any():
             break
+        if actor is None:
+            env.step(env.select(env.action, random=True))
+            continue
         logits = actor(state, env.mask, graph)
         env.step(env.select(logits, sample=sampling == "prob"))
         state = env.state()
@@ -77,6 +85,14 @@ def load_actor(path: str | Path, device: str | torch.device = "cpu") -> tuple[Ac
         raise RlsacError(f"{path}: not an rlsac checkpoint ({e.__class__.__name__}: {str(e)[:80]})") from None
     actor.eval()
     return actor, conf
+
+
+def checkpoint_env(ckpt_conf: dict, steps_per_episode: int | None = None) -> EnvConf:
+    """The environment a checkpoint was trained with (its ``env`` section), psi optionally overridden."""
+    env = dict((ckpt_conf or {}).get("env") or {})
+    if steps_per_episode is not None:
+        env["steps_per_episode"] = int(steps_per_episode)
+    return build(EnvConf, env, "checkpoint env")
 
 
 def in_channels(task: Task) -> int:

@@ -104,7 +104,7 @@ def train(options: dict, track: bool = True) -> dict:
     with start_run(task_experiment(conf.task), run_name, conf_dict, tags=conf.tags, enabled=track) as run:
         def validate(step: int) -> dict:
             agent.actor.eval()
-            res = rlsac_estimate(task, val, agent.actor, conf.val_iterations, conf.env.steps_per_episode,
+            res = rlsac_estimate(task, val, agent.actor, conf.val_iterations, conf.env,
                                  generator=torch.Generator(device=device).manual_seed(1234))
             agent.actor.train()
             errs = task.errors(res["hyp"].cpu().numpy(), res["valid"].cpu().numpy(),

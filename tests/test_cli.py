@@ -178,20 +178,26 @@ def test_evaluate_rlsac_uses_the_checkpoint_task_options(workdir, monkeypatch):
 
     def load_actor(path, device):
         seen["device"] = device
-        return "actor", {"task": "line", "task_options": {"threshold": 0.2}, "env": {"steps_per_episode": 5}}
+        return "actor", {"task": "line", "task_options": {"threshold": 0.2},
+                         "env": {"steps_per_episode": 5, "residual_clip": 3.0, "candidates": 4}}
 
-    def rlsac_estimate(task, batch, actor, iterations, steps_per_episode, sampling, generator):
-        seen.update(threshold=task.threshold, steps=steps_per_episode, sampling=sampling, actor=actor)
+    def rlsac_estimate(task, batch, actor, iterations, env_conf, sampling, generator):
+        seen.update(threshold=task.threshold, steps=env_conf.steps_per_episode, clip=env_conf.residual_clip,
+                    candidates=env_conf.candidates, sampling=sampling, actor=actor)
         return ransac(task, batch, iterations, generator)
 
+    from rlsac import rollout
+
     fake = types.ModuleType("rlsac.rollout")
-    fake.load_actor, fake.rlsac_estimate = load_actor, rlsac_estimate
+    fake.load_actor, fake.rlsac_estimate, fake.checkpoint_env = load_actor, rlsac_estimate, rollout.checkpoint_env
     monkeypatch.setitem(sys.modules, "rlsac.rollout", fake)
     synth("d.h5", 4)
     (workdir / "ck.pt").write_bytes(b"x")
     s = evaluate({"task": "line", "method": "rlsac", "data": "d.h5", "checkpoint": "ck.pt", "iterations": 10,
                   "device": "cpu", "out_dir": "ev"}, track=False)
-    assert seen == {"device": "cpu", "threshold": 0.2, "steps": 5, "sampling": "max", "actor": "actor"}
+    # the checkpoint's own env settings (not code defaults) drive the test-time environment
+    assert seen == {"device": "cpu", "threshold": 0.2, "steps": 5, "clip": 3.0, "candidates": 4, "sampling": "max",
+                    "actor": "actor"}
     assert s["steps_per_episode"] == 5 and (workdir / "ev/errors.csv").is_file()
 
 

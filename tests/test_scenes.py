@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import shutil
 from pathlib import Path
 
@@ -15,13 +16,13 @@ from rlsac.data.scenes import ImportConf, gt_check, import_scenes, mutual_nn, re
 from rlsac.data.tutorial import PrepareConf, prepare
 from rlsac.errors import RlsacError
 
-# tests/ sits in the repository root; CI clones the repository with shared/ beside it.
-STRECHA = Path(__file__).resolve().parents[2] / "shared" / "data" / "strecha"
+# The Strecha copy ships inside the repository (data/strecha); RLSAC_STRECHA points at another copy.
+STRECHA = Path(os.environ.get("RLSAC_STRECHA", Path(__file__).resolve().parents[1] / "data" / "strecha"))
 
 
 def _strecha() -> Path:
     assert (STRECHA / "fountain-P11" / "images" / "0001.jpg").is_file(), (
-        f"Strecha data missing at {STRECHA}: the repository must be checked out with shared/data/strecha beside it"
+        f"Strecha data missing at {STRECHA}: data/strecha is tracked in the repository"
     )
     return STRECHA
 

@@ -1,6 +1,6 @@
 """Offline scene importer: calibrated image sets (Strecha layout) -> the CVPR 2020 tutorial layout.
 
-Source layout (see shared/data/strecha/README.md): ``<src>/<scene>/images/NNNN.jpg`` and
+Source layout (see data/strecha/README.md): ``<src>/<scene>/images/NNNN.jpg`` and
 ``<src>/<scene>/cameras/NNNN.jpg.camera`` holding K (3 lines), a distortion line, R camera-to-world
 (3 lines), the camera centre C and "W H". World to camera: x_cam = R^T (X - C), so the tutorial's
 world-to-camera pose is R_wc = R^T and T = -R^T C.
@@ -37,7 +37,7 @@ from rlsac.tracking import start_run
 
 @dataclass
 class ImportConf:
-    src: str = "../shared/data/strecha"  # the shared Strecha copy beside the repository
+    src: str = "data/strecha"  # the Strecha copy shipped in the repository (data/strecha/README.md)
     out: str = "data/raw/strecha"  # raw tutorial-layout data, input of `rlsac prepare-cvpr2020`
     split: str = "all"  # one split folder; train/val/test are chosen later by prepare's --scenes
     scenes: str = ""  # comma-separated scene names; "" = every scene folder of src

@@ -121,28 +121,25 @@ def _save(fig, out_dir: Path, name: str) -> list[str]:
 
 
 def _load_policy(path: str | None, task_name: str, device: str):
-    """-> (actor, task, steps_per_episode, note) or (None, default task, 15, why) without a checkpoint."""
-    from rlsac.evaluate import _ckpt_value, checkpoint_task_options, task_from
+    """-> (actor, task, env conf, note) or (None, default task, EnvConf(), why) without a checkpoint."""
+    from rlsac.evaluate import checkpoint_task_options, task_from
+    from rlsac.rollout import checkpoint_env, load_actor
 
     if not path or not Path(path).is_file():
-        return None, task_from(task_name), 15, f"no checkpoint at {path}: uniform random minimal sets (RANSAC)"
-    from rlsac.rollout import load_actor
-
+        return None, task_from(task_name), checkpoint_env({}), f"no checkpoint at {path}: uniform random minimal sets"
     actor, conf = load_actor(path, device)
     conf = dict(conf or {})
     task = task_from(task_name, checkpoint_task_options(conf))
-    steps = int(_ckpt_value(conf, "steps_per_episode") or 15)
-    return actor, task, steps, ""
+    return actor, task, checkpoint_env(conf), ""
 
 
-def _episode(task, batch, actor, steps: int, gen: torch.Generator) -> list[dict]:
+def _episode(task, batch, actor, env, gen: torch.Generator) -> list[dict]:
     """One episode per batch row: per step minimal_set (B, m), hyp, inliers (B, N), count (B,)."""
+    steps = env.steps_per_episode
     if actor is not None:
         from rlsac.rollout import rlsac_estimate
 
-        out = rlsac_estimate(task, batch, actor, iterations=steps, steps_per_episode=steps, generator=gen,
-                             record=True)
-        return out["steps"]
+        return rlsac_estimate(task, batch, actor, iterations=steps, env_conf=env, generator=gen, record=True)["steps"]
     from rlsac.sampling import gather_points, uniform_minimal_sets
 
     coords, mask = batch["coords"], batch["mask"]
@@ -409,7 +406,7 @@ def plot_fundamental_pair(o: dict[str, Any], out_dir: Path) -> tuple[list[str], 
     if actor is not None:
         from rlsac.rollout import rlsac_estimate
 
-        out = rlsac_estimate(task, batch, actor, iterations=iters, steps_per_episode=psi, generator=gen, record=True)
+        out = rlsac_estimate(task, batch, actor, iterations=iters, env_conf=psi, generator=gen, record=True)
         counts = torch.stack([s["count"] for s in out["steps"]])  # (T, R): first maximum = the env's best
         t, r = divmod(int(torch.argmax(counts.flatten())), counts.shape[1])
         minimal = out["steps"][t]["minimal_set"][r].numpy()
