@@ -44,6 +44,13 @@ class SACConf:
     init_alpha: float = 0.01  # rewards are inlier ratios in [0, 1]: alpha = 1 would drown them in entropy
     target_entropy_scale: float = 0.5  # per-point entropy target = 0.5 log N: ~sqrt(N) plausible points
     train_sampling: str = "prob"  # probabilistic sampling while training (paper); "max" for the ablation
+    # False: the psi cut ends the Bellman backup (the paper's fixed-length episode); True: it is a time
+    # limit the state does not show, so bootstrap through it (cleanrl's truncation); kappa/varsigma stay terminal
+    bootstrap_truncation: bool = False
+    # Not in the paper (off = paper): the first warm_start_updates updates fit the actor to the ground-truth
+    # inlier labels (cross-entropy, NG-RANSAC's initialisation) instead of the SAC actor loss; critics and
+    # temperature learn as usual meanwhile. Gives SAC a sampler that already prefers inliers to refine.
+    warm_start_updates: int = 0
 
 
 class ReplayBuffer:
@@ -92,11 +99,13 @@ class SACAgent(torch.nn.Module):
         self.q_opt = torch.optim.Adam([*self.qf1.parameters(), *self.qf2.parameters()], lr=conf.critic_lr)
         self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=conf.actor_lr)
         self.alpha_opt = torch.optim.Adam([self.log_alpha], lr=conf.alpha_lr)
+        self.register_buffer("n_updates", torch.zeros((), dtype=torch.long))  # saved with the state: resume-safe
 
-    def update(self, s, s2, mask, graph, action, reward, done) -> dict[str, float]:
+    def update(self, s, s2, mask, graph, action, reward, done, labels=None) -> dict[str, float]:
         """One gradient step of critics, actor and temperature on a batch of transitions.
 
         s, s2 (b, N, C) states; mask (b, N); graph (b, N, k) their shared kNN graph; action (b, m).
+        labels (b, N) bool ground-truth inliers: given, the actor step is the supervised warm start.
         """
         c, alpha = self.conf, self.log_alpha.exp().detach()
         # --- critics: soft Bellman target from the next state's policy and the target critics
@@ -117,7 +126,12 @@ class SACAgent(torch.nn.Module):
         # --- actor: expected soft advantage under the current per-point policy
         p, logp = masked_policy(self.actor(s, mask, graph), mask)
         qmin = torch.minimum(q1_all, q2_all).detach().masked_fill(~mask, 0.0)
-        actor_loss = (p * (alpha * logp - qmin)).sum(-1).mean()
+        if labels is None:
+            actor_loss = (p * (alpha * logp - qmin)).sum(-1).mean()
+        else:  # cross-entropy against the uniform distribution over the true inliers (rows without any skipped)
+            y = labels.float() * mask
+            n_in = y.sum(-1)
+            actor_loss = -((y * logp).sum(-1) / n_in.clamp_min(1.0))[n_in > 0].sum() / n_in.gt(0).sum().clamp_min(1)
         self.actor_opt.zero_grad()
         actor_loss.backward()
         self.actor_opt.step()
@@ -130,6 +144,7 @@ class SACAgent(torch.nn.Module):
         alpha_loss.backward()
         self.alpha_opt.step()
 
+        self.n_updates += 1
         with torch.no_grad():
             for net, tgt in ((self.qf1, self.qf1_target), (self.qf2, self.qf2_target)):
                 for p_, tp in zip(net.parameters(), tgt.parameters(), strict=True):
@@ -150,6 +165,7 @@ def train_loop(agent: SACAgent, task, data: dict, env_conf: EnvConf, start_step:
     """
     c = agent.conf
     feats_all, mask_all, coords_all = data["features"], data["mask"], data["coords"]
+    labels_all = data.get("labels")  # ground-truth inliers, only for the supervised warm start
     graph_all = agent.actor.graph(feats_all, mask_all)  # data features never change: one graph per instance
     I, N = mask_all.shape
     device = feats_all.device
@@ -172,6 +188,8 @@ def train_loop(agent: SACAgent, task, data: dict, env_conf: EnvConf, start_step:
         idx = env.select(logits, sample=c.train_sampling == "prob")
         mem = env.memory()
         reward, done, act = env.step(idx)
+        if c.bootstrap_truncation:  # stored done = the kappa/varsigma stops only, not the psi cut
+            done = done & ((env.same_count >= env_conf.kappa) | (env.no_better >= env_conf.varsigma))
         state = env.state()
         buffer.add(inst[act], mem[act], env.memory()[act], idx[act], reward[act], done[act])
         n_trans += int(act.sum())
@@ -186,8 +204,10 @@ def train_loop(agent: SACAgent, task, data: dict, env_conf: EnvConf, start_step:
                 b_inst, b_mem, b_mem2, b_a, b_r, b_d = buffer.sample(c.batch_size, generator)
                 x = feats_all[b_inst]
                 m = mask_all[b_inst]
+                warm = labels_all is not None and int(agent.n_updates) < c.warm_start_updates
                 metrics = agent.update(torch.cat([x, b_mem], -1), torch.cat([x, b_mem2], -1), m,
-                                       graph_all[b_inst], b_a, b_r, b_d)
+                                       graph_all[b_inst], b_a, b_r, b_d, labels_all[b_inst] if warm else None)
+                metrics["charts/warm_start"] = float(warm)
                 n_upd += 1
             if step % 50 == 0:
                 el = max(time.time() - t0, 1e-9)

@@ -28,6 +28,9 @@ class Task(Protocol):
     def residuals(self, hyps: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
         """hyps (B, *H), coords (B, N, d) -> residuals (B, N), compared against ``threshold``."""
 
+    def true_inliers(self, batch: dict) -> torch.Tensor:
+        """Ground-truth inlier labels (B, N) bool, for the supervised warm start (not in the paper)."""
+
     def refine(self, coords: torch.Tensor, inliers: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Non-minimal fit on inliers. coords (B, N, d), inliers (B, N) bool -> hyps (B, *H), valid (B,)."""
 

@@ -64,6 +64,15 @@ class FundamentalTask:
         out = torch.cat([c1, c2, rest], dim=-1)
         return out * batch["mask"][..., None].to(dt)
 
+    def true_inliers(self, batch: dict) -> torch.Tensor:
+        """Ground-truth inlier labels (B, N) bool: Sampson distance to the ground-truth F within the
+        inlier threshold (supervised warm start only; the paper's RLSAC never sees them)."""
+        from rlsac.data.fundamental import gt_fundamental
+
+        F = torch.as_tensor(gt_fundamental(_np(batch["K1"]), _np(batch["K2"]), _np(batch["dR"]), _np(batch["dT"])),
+                            dtype=batch["coords"].dtype, device=batch["coords"].device)
+        return (self.residuals(F, batch["coords"]) <= self.threshold) & batch["mask"]
+
     # ------------------------------------------------------------------------------- geometry
     def solve(self, pts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """pts (B, 8, 4) -> F (B, 3, 3), valid (B,) (False for degenerate samples; F is then 0)."""

@@ -55,6 +55,11 @@ class LineTask:
         c = -(normal * mean).sum(-1)
         return torch.cat([normal, c[:, None]], dim=-1), count >= 2
 
+    def true_inliers(self, batch: dict) -> torch.Tensor:
+        """Ground-truth inlier labels (B, N) bool: the generator's mask (supervised warm start only)."""
+        return torch.as_tensor(np.asarray(batch["inlier_mask"]), dtype=torch.bool,
+                               device=batch["coords"].device) & batch["mask"]
+
     def features(self, batch: dict) -> torch.Tensor:
         """Network input: coordinates scaled to [0, 1]. (B, N, 2)"""
         return batch["coords"] / self.picture_size
