@@ -51,6 +51,28 @@ def test_quick_dvc_yaml_is_the_same_pipeline():
     assert link.is_symlink() and link.resolve() == (ROOT / "dvc.yaml").resolve()
 
 
+def test_quick_profile_is_its_own_dvc_project():
+    """The quick profile is a DVC project of its own without git (`dvc --cd experiments/quick repro`): the
+    repository's DVC commands (params diff, metrics show, plots show at HEAD) never read its symlinked
+    dvc.yaml or its missing outputs, and its lock file, rewritten by every run, stays out of git."""
+    import subprocess
+
+    quick = PROFILES["quick"]
+    with dvc_repo.Repo(str(ROOT)) as repo:
+        assert repo.root_dir == str(ROOT)
+        assert not [s for s in repo.index.stages if Path(os.path.abspath(s.path)).parent != ROOT]
+    with dvc_repo.Repo(str(quick)) as repo:
+        assert repo.root_dir == str(quick) and type(repo.scm).__name__ == "NoSCM"  # git-ignored dvc.lock allowed
+        assert {s.name.split("@")[0] for s in repo.index.stages} >= {"lines_data", "tables", "figures"}
+    rel = quick.relative_to(ROOT)
+    tracked = subprocess.run(["git", "ls-files", str(rel)], cwd=ROOT, check=True, capture_output=True,
+                             text=True).stdout.split()
+    assert str(rel / ".dvc" / "config") in tracked and str(rel / "dvc.lock") not in tracked
+    for written in ("dvc.lock", ".dvc/tmp/x", ".dvc/cache/x", "data/x", "checkpoints/x", "reports/x", "mlflow.db"):
+        assert subprocess.run(["git", "check-ignore", "-q", str(rel / written)], cwd=ROOT).returncode == 0, written
+    assert subprocess.run(["git", "check-ignore", "-q", "dvc_plots/index.html"], cwd=ROOT).returncode == 0
+
+
 def test_profiles_have_the_same_keys():
     paper, quick = (_load(p / "params.yaml") for p in PROFILES.values())
     assert sorted(paper) == sorted(quick)
@@ -59,6 +81,12 @@ def test_profiles_have_the_same_keys():
         for k, v in paper[section].items():
             if isinstance(v, dict) and k not in ("models", "variants"):
                 assert sorted(v) == sorted(quick[section][k]), f"{section}.{k}"
+    assert sorted(paper["train"]) == sorted(quick["train"])
+    for task, opts in paper["train"].items():
+        assert sorted(opts) == sorted(quick["train"][task]), f"train.{task}"
+        for k, v in opts.items():  # a paper option group (policy, sac, ...): quick may add CI-size knobs only
+            if isinstance(v, dict):
+                assert set(v) <= set(quick["train"][task][k]), f"train.{task}.{k}"
     for p in (paper, quick):
         for task, opts in p["train"].items():
             build(TrainConf, {**(opts or {}), "task": task}, f"train.{task}")  # unknown keys raise
@@ -92,7 +120,7 @@ def test_templated_values_and_params_exist(pipeline, profile):
 @pytest.mark.parametrize("profile", list(PROFILES))
 def test_dvc_renders_and_cli_accepts_every_command(profile):
     """DVC's own templating renders each profile; click parses every rendered command line."""
-    with dvc_repo.Repo(str(ROOT)) as repo:
+    with dvc_repo.Repo(str(PROFILES[profile])) as repo:
         stages = [s for s in repo.index.stages
                   if Path(os.path.abspath(s.path)).parent == PROFILES[profile] and s.cmd]  # no symlink resolving
     names = {s.name.split("@")[0] for s in stages}
