@@ -29,10 +29,10 @@ from typing import Any, Callable
 import numpy as np
 import pandas as pd
 import torch
-from tqdm import tqdm
 
 from rlsac.errors import RlsacError
 from rlsac.io import atomic_path, write_json
+from rlsac.progress import tqdm  # no bars unless a person watches (not under CI, not redirected)
 from rlsac.tasks import TASK_NAMES, Task, get_task
 from rlsac.tracking import start_run
 

@@ -22,10 +22,10 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 import torch.nn.functional as F
-from tqdm import tqdm
 
 from rlsac.env import MEMORY_DIM, EnvConf, SampleConsensusEnv
 from rlsac.policy import Actor, Critic, PolicyConf
+from rlsac.progress import tqdm  # no bars unless a person watches (not under CI, not redirected)
 
 
 @dataclass

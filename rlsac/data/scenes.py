@@ -27,11 +27,11 @@ import cv2
 import h5py
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from rlsac.data.fundamental import gt_fundamental, sampson
 from rlsac.errors import RlsacError
 from rlsac.io import atomic_path, write_json
+from rlsac.progress import tqdm  # no bars unless a person watches (not under CI, not redirected)
 from rlsac.tracking import start_run
 
 

@@ -32,11 +32,11 @@ from pathlib import Path
 import cv2
 import h5py
 import numpy as np
-from tqdm import tqdm
 
 from rlsac.data.fundamental import KIND, N_FEATURES, gt_inliers
 from rlsac.errors import RlsacError
 from rlsac.io import atomic_path, open_h5, read_array, write_json
+from rlsac.progress import tqdm  # no bars unless a person watches (not under CI, not redirected)
 from rlsac.tracking import start_run
 
 FILES = ("matches.h5", "match_conf.h5", "K1_K2.h5", "R.h5", "T.h5")
