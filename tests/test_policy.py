@@ -1,0 +1,238 @@
+"""The EdgeConv policy and the test-time rollout: EdgeConv against its textbook formula, the policy's
+dependence on neighbours and on each memory channel, and what the real rollout feeds the actor and
+does with its logits (max = top-m logits, the memory channels of the state, the checkpoint's env)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from rlsac.config import build, to_dict
+from rlsac.data.lines import LineDataConf, generate, to_batch, write
+from rlsac.evaluate import evaluate
+from rlsac.policy import Actor, Critic, EdgeConv, PolicyConf, knn
+from rlsac.rollout import checkpoint_env, load_actor, rlsac_estimate
+from rlsac.sampling import set_keys
+from rlsac.tasks.line import LineTask
+from rlsac.train import TrainConf
+
+PCONF = PolicyConf(k=4, widths=[8, 8], global_width=8, head_width=8)
+
+
+def make_actor(seed: int = 0, cls=Actor) -> Actor:
+    torch.manual_seed(seed)
+    net = cls(5, PCONF)
+    with torch.no_grad():
+        net.head[-1].weight.mul_(20.0)  # a fresh network's logits are nearly flat: spread them
+    return net.eval()
+
+
+def states(r=3, n=12, seed=1):
+    g = torch.Generator().manual_seed(seed)
+    s = torch.rand(r, n, 5, generator=g)
+    s[..., 2] = torch.where(torch.rand(r, n, generator=g) < 0.2, 1.0, -1.0)  # action channel +-1
+    return s
+
+
+def test_edgeconv_is_max_over_neighbours_of_the_edge_function():
+    """h_i = max_{j in N(i)} leaky_relu(W1 x_i + b + W2 (x_j - x_i)), computed edge by edge."""
+    torch.manual_seed(0)
+    conv = EdgeConv(5, 7)
+    x = states(r=2, n=9)
+    idx = knn(x[..., :2], 4, None)
+    xi = x[:, :, None, :].expand(-1, -1, 4, -1)
+    xj = torch.stack([x[b][idx[b]] for b in range(2)])  # (R, N, k, C)
+    edge = conv.centre(xi) + xj @ conv.neigh.weight.T - xi @ conv.neigh.weight.T
+    ref = torch.nn.functional.leaky_relu(edge, 0.2).amax(dim=2)
+    assert torch.allclose(conv(x, idx), ref, atol=1e-6)
+
+
+def test_edgeconv_output_changes_only_with_its_neighbours():
+    torch.manual_seed(0)
+    conv = EdgeConv(5, 7)
+    x = states(r=1, n=9)
+    idx = knn(x[..., :2], 3, None)
+    i = 0
+    neigh = [j for j in idx[0, i].tolist() if j != i]
+    far = [j for j in range(9) if j not in idx[0, i].tolist()]
+    base = conv(x, idx)[0, i]
+    moved = x.clone()
+    moved[0, neigh, 2:] += 3.0  # a neighbour's features (not its coordinates: the graph stays)
+    assert not torch.allclose(conv(moved, idx)[0, i], base)
+    moved = x.clone()
+    moved[0, far, 2:] += 3.0
+    assert torch.allclose(conv(moved, idx)[0, i], base)
+
+
+def test_knn_graph_uses_coordinates_and_skips_masked_points():
+    x = torch.tensor([[[0.0, 0.0], [1.0, 0.0], [0.1, 0.0], [5.0, 0.0]]])
+    mask = torch.tensor([[True, True, False, True]])
+    assert knn(x, 2, mask)[0].tolist()[:2] == [[0, 1], [1, 0]]  # point 2 is nearest to 0 but masked
+    actor = make_actor()
+    s = states()
+    moved = s.clone()
+    moved[..., 2:] = torch.rand_like(moved[..., 2:])  # memory channels do not move the first graph
+    assert torch.equal(actor.graph(s), actor.graph(moved))
+    four = Actor(5, dataclasses.replace(PCONF, graph_dims=4))
+    assert torch.equal(four.graph(s), knn(s[..., :4], 4, None))
+
+
+@pytest.mark.parametrize("cls", [Actor, Critic])
+def test_output_depends_on_the_neighbourhood_graph(cls):
+    net = make_actor(cls=cls)
+    s = states()
+    self_only = torch.arange(12).view(1, 12, 1).expand(3, 12, PCONF.k)  # every edge a self-loop
+    assert (net(s, None, net.graph(s)) - net(s, None, self_only)).abs().max() > 1e-2
+
+
+@pytest.mark.parametrize("cls", [Actor, Critic])
+@pytest.mark.parametrize("channel", [2, 3, 4], ids=["action", "residual", "history"])
+def test_output_depends_on_each_memory_channel(cls, channel):
+    net = make_actor(cls=cls)
+    s = states()
+    graph = net.graph(s)
+    moved = s.clone()
+    moved[0, :6, channel] = -moved[0, :6, channel] + 0.5  # row 0 only: rows are independent
+    diff = (net(s, None, graph) - net(moved, None, graph)).abs()
+    assert diff[0].max() > 1e-2 and diff[1:].max() == 0
+
+
+def test_actor_masks_padded_points():
+    actor = make_actor()
+    s = states()
+    mask = torch.ones(3, 12, dtype=torch.bool)
+    mask[1, 8:] = False
+    logits = actor(s, mask)
+    assert torch.isinf(logits[1, 8:]).all() and torch.isfinite(logits[mask]).all()
+    moved = s.clone()
+    moved[1, 8:] += 5.0  # padded points influence nothing
+    assert torch.allclose(actor(moved, mask)[1, :8], logits[1, :8], atol=1e-6)
+
+
+# ---------------------------------------------------------------- the real test-time rollout
+def line_batch(n_inst=10, n_points=30, seed=5):
+    return to_batch(generate(LineDataConf(outlier_rate=0.5, n_instances=n_inst, n_points=n_points, seed=seed)))
+
+
+def spy(actor):
+    """Record every (state, logits) the actor sees through a forward hook (the real network runs)."""
+    calls = []
+
+    def hook(module, args, kwargs, out):
+        calls.append((args[0] if args else kwargs["state"], out))
+
+    return calls, actor.register_forward_hook(hook, with_kwargs=True)
+
+
+def run(sampling=None, seed=0, iterations=15):
+    actor, task, batch = make_actor(), LineTask(), line_batch()
+    calls, handle = spy(actor)
+    kw = {} if sampling is None else {"sampling": sampling}
+    out = rlsac_estimate(task, batch, actor, iterations, generator=torch.Generator().manual_seed(seed),
+                         record=True, **kw)
+    handle.remove()
+    return task, batch, calls, out
+
+
+def chosen_vs_top(calls, steps):
+    """Per actor call t and row: was the top-m of its logits unused, and was it the next set chosen?"""
+    unused_top, took_top = [], []
+    used = [set_keys(steps[0]["minimal_set"], 30)]
+    for t, (_, logits) in enumerate(calls):
+        top = set_keys(logits.topk(2, dim=-1).indices, 30)
+        nxt = set_keys(steps[t + 1]["minimal_set"], 30)
+        free = ~(torch.stack(used, -1) == top[:, None]).any(-1)
+        unused_top.append(free)
+        took_top.append(nxt == top)
+        used.append(nxt)
+    return torch.stack(unused_top), torch.stack(took_top)
+
+
+def test_max_sampling_takes_the_top_m_logits():
+    """Default test-time sampling (the paper's max): whenever the top-2 logits form an unused set, that
+    set is the next hypothesis; used sets fall back to other candidates."""
+    _, _, calls, out = run()
+    assert len(calls) == 14 and out["hypotheses"] == 150
+    free, took = chosen_vs_top(calls, out["steps"])
+    assert free.sum() >= 10 and took[free].all()
+    assert not took[~free].any()  # a used set is never repeated (de-duplication)
+
+
+def test_prob_sampling_draws_from_the_softmax():
+    _, _, calls, out = run("prob")
+    free, took = chosen_vs_top(calls, out["steps"])
+    assert took[free].float().mean() < 0.5  # the top-2 logits are one plausible set among many
+    assert len({tuple(sorted(r)) for s in out["steps"][1:] for r in s["minimal_set"].tolist()}) > 100
+
+
+def test_rollout_feeds_the_actor_the_current_memory_channels():
+    """At call t the state holds the set and hypothesis of step t (action +1 on its 2 points, residuals
+    to its line clipped at 5 thresholds), the history of all t + 1 sets, and the data features."""
+    task, batch, calls, out = run()
+    coords = batch["coords"]
+    for t, (state, _) in enumerate(calls):
+        step = out["steps"][t]
+        onehot = torch.zeros(10, 30, dtype=torch.bool).scatter_(1, step["minimal_set"], True)
+        assert torch.equal(state[..., :2], coords / 10)
+        assert torch.equal(state[..., 2], onehot.float() * 2 - 1)
+        res = (task.residuals(step["hyp"], coords) / 0.1).clamp(max=5.0) / 5.0
+        assert torch.allclose(state[..., 3], res, atol=1e-5)
+        assert torch.equal(state[..., 4].sum(-1), torch.full((10,), 2.0 * (t + 1)))
+
+
+def test_uniform_control_runs_the_same_environment_without_the_actor():
+    actor, task, batch = make_actor(), LineTask(), line_batch()
+    calls, handle = spy(actor)
+    g = torch.Generator().manual_seed(0)
+    uni = rlsac_estimate(task, batch, None, 40, generator=g, record=True)
+    handle.remove()
+    assert calls == [] and uni["hypotheses"] == 10 * 40 and uni["valid"].all()
+    assert (uni["inliers"].sum(-1) >= 2).all()
+
+
+# ---------------------------------------------------------------- the checkpoint's environment
+def save_checkpoint(path, actor, env: dict):
+    conf = to_dict(build(TrainConf, {"task": "line", "env": env, "policy": dataclasses.asdict(PCONF)}))
+    torch.save({"actor": actor.state_dict(), "conf": conf, "in_channels": 5, "step": 0, "val": {}}, path)
+
+
+def residual_clip_seen(state: torch.Tensor) -> float:
+    """From a state alone: the clip c with residual channel = min(r / eps, c) / c for the line through
+    the two +1 points (r from the coordinates channels); -> c fitted over unsaturated points."""
+    task = LineTask()
+    coords = state[..., :2] * 10
+    pair = (state[..., 2] > 0).float().topk(2, dim=-1).indices
+    hyp, _ = task.solve(torch.gather(coords, 1, pair[..., None].expand(-1, -1, 2)))
+    r = task.residuals(hyp, coords) / 0.1
+    ch = state[..., 3]
+    keep = (ch < 0.999) & (r > 0.05)
+    assert (ch[r > 6.0] == 1.0).all()  # far points saturate for either clip
+    return float((r[keep] / ch[keep]).median())
+
+
+def test_checkpoint_env_settings_drive_the_real_test_time_rollout(workdir):
+    """Two checkpoints with the same actor and different env sections, evaluated by `evaluate` through the
+    real rollout: psi sets the actor calls per episode, residual_clip the residual channel it sees."""
+    conf = LineDataConf(outlier_rate=0.5, n_instances=6, n_points=30, seed=9)
+    write(workdir / "d.h5", generate(conf), conf)
+    actor = make_actor()
+    save_checkpoint(workdir / "a.pt", actor, {"steps_per_episode": 5, "residual_clip": 2.0, "candidates": 4})
+    save_checkpoint(workdir / "b.pt", actor, {})
+    seen = {}
+    for name in ("a", "b"):
+        loaded, ck = load_actor(workdir / f"{name}.pt")
+        assert checkpoint_env(ck).steps_per_episode == (5 if name == "a" else 15)
+        calls = []
+        hook = torch.nn.modules.module.register_module_forward_hook(
+            lambda m, args, out, calls=calls: calls.append(args[0]) if isinstance(m, Actor) else None)
+        try:
+            s = evaluate({"task": "line", "method": "rlsac", "data": "d.h5", "checkpoint": f"{name}.pt",
+                          "iterations": 20, "device": "cpu", "out_dir": f"ev_{name}"}, track=False)
+        finally:
+            hook.remove()
+        seen[name] = (s["steps_per_episode"], len(calls), [residual_clip_seen(c) for c in calls])
+    assert seen["a"][:2] == (5, 4) and seen["b"][:2] == (15, 14)
+    assert np.allclose(seen["a"][2], 2.0, rtol=1e-3) and np.allclose(seen["b"][2], 5.0, rtol=1e-3)
