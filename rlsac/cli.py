@@ -17,18 +17,23 @@ from rlsac.errors import RlsacError
 class _UserError(click.ClickException):
     exit_code = 2
 
+    def __init__(self, message: str, exit_code: int = 2):
+        super().__init__(message)
+        self.exit_code = exit_code
+
     def show(self, file=None) -> None:
         click.echo(f"error: {self.format_message()}", err=True)
 
 
 class _Group(click.Group):
-    """Turns RlsacError raised by any command into a one-line error with exit code 2."""
+    """Turns RlsacError raised by any command into a one-line error with exit code 2 (an interrupted
+    training: 130 / 143)."""
 
     def invoke(self, ctx):
         try:
             return super().invoke(ctx)
         except RlsacError as e:
-            raise _UserError(" ".join(str(e).split()) or e.__class__.__name__) from None
+            raise _UserError(" ".join(str(e).split()) or e.__class__.__name__, getattr(e, "exit_code", 2)) from None
 
 
 def tracking_option(f):
@@ -198,6 +203,26 @@ def ablate(tracking: bool, sets: tuple[str, ...], **options) -> None:
     from rlsac.commands import parse_sets
 
     click.echo(format_summary(run({**options, **parse_sets(sets)}, track=tracking)))
+
+
+@cli.command()
+@click.option("--stage", type=click.Choice(["data", "train", "evaluate"]), required=True,
+              help="data: prepare the fold's train/val/test files; train: its RLSAC models; evaluate: every method "
+                   "and model at every budget.")
+@click.option("--regime", required=True, help="Data regime, a key of params.yaml folds.pool (e.g. easy, hard).")
+@click.option("--fold", required=True, help="Test building, one of params.yaml folds.test (e.g. castle).")
+@click.option("--model", help="With --stage train: one model of folds.models [default: all of them].")
+@click.option("--params", "params", default="params.yaml", show_default=True,
+              help="params.yaml: its folds, fundamental and train.fundamental sections.")
+@click.option("--threads", type=int, default=1, show_default=True, help="torch CPU threads (1 is fastest here).")
+@device_option
+@tracking_option
+def folds(tracking: bool, **options) -> None:
+    """Leave-one-building-out fundamental-matrix benchmark, one stage of one fold (rlsac.folds)."""
+    from rlsac.folds import folds as run
+    from rlsac.folds import format_summary
+
+    click.echo(format_summary(run(options, track=tracking)))
 
 
 @cli.command()

@@ -17,8 +17,8 @@ import yaml
 
 from rlsac import config
 from rlsac.errors import RlsacError
-from rlsac.io import atomic_path, write_text
-from rlsac.tracking import start_run
+from rlsac.io import atomic_path, check_writable, write_text
+from rlsac.tracking import check_store, start_run
 
 # Table 1 of the paper, RANSAC row: outlier rate -> (mAA@0.5 deg, median error in deg).
 PAPER_RANSAC_LINES = {
@@ -27,8 +27,15 @@ PAPER_RANSAC_LINES = {
 }
 
 
-def _params(path: str | Path | None = "params.yaml") -> dict[str, Any]:
-    return config.load_params(path) if path else {}
+DEFAULT_PARAMS = "params.yaml"
+
+
+def _params(path: str | Path | None = DEFAULT_PARAMS) -> dict[str, Any]:
+    """params.yaml -> mapping. The default ./params.yaml may be absent (code defaults apply); any other
+    file named (``--params FILE``) must exist; "" or None = no params file."""
+    if not path:
+        return {}
+    return config.load_params(path, required=str(path) != DEFAULT_PARAMS)
 
 
 def _section(params: dict, *keys: str) -> dict[str, Any]:
@@ -70,9 +77,10 @@ def synth_lines(options: dict[str, Any], track: bool = True, params_path: str | 
     options = dict(options)
     out = options.pop("out", None)
     conf = line_conf(options, params_path)
-    path = Path(out) if out else default_lines_path(conf)
+    path = check_writable(Path(out) if out else default_lines_path(conf))
+    check_store(track)
     params = config.to_dict(conf)
-    name = f"synth-lines o{conf.outlier_rate:g} s{conf.seed}"
+    name = f"synth-lines {path.stem} o{conf.outlier_rate:g} s{conf.seed}"
     with start_run("lines", name, params={**params, "out": str(path)},
                    tags={"command": "synth-lines", "artifact_path": str(path)}, enabled=track) as run:
         data = lines.generate(conf)
@@ -93,18 +101,29 @@ def lines_protocol_data(options: dict[str, Any], track: bool = True,
     """
     if options.get("rate") is None:
         raise RlsacError("lines-data needs --rate")
-    rate = float(options["rate"])
+    rate = config.check_value("rate", options["rate"], float, "[0, 1)")
     proto = _section(_params(params_path), "lines")
     splits = options.get("splits") or "train,val,test"
     splits = [x.strip() for x in splits.split(",") if x.strip()] if isinstance(splits, str) else list(splits)
+    if not splits:
+        raise RlsacError("lines-data --splits names no split")
+    if len(set(splits)) != len(splits):
+        raise RlsacError(f"lines-data --splits repeats a split: {','.join(splits)}")
     defaults = {"n_train": 4000, "n_val": 200, "n_test": 1000, "seed_train": 1000, "seed_val": 2000, "seed_test": 3000}
-    files, seeds = [], {}
-    for split in splits:
+    plan = []
+    for split in splits:  # every split checked (and its generator settings built) before anything is written
         if f"n_{split}" not in {**defaults, **proto} or f"seed_{split}" not in {**defaults, **proto}:
             raise RlsacError(f"unknown split {split!r}: params.yaml lines has no n_{split}/seed_{split}")
-        n = int(proto.get(f"n_{split}", defaults.get(f"n_{split}")))
-        seed = int(proto.get(f"seed_{split}", defaults.get(f"seed_{split}"))) + round(10 * rate)
-        out = Path(options.get("out_dir") or "data/lines") / f"{split}_o{rate:g}.h5"
+        n = config.check_value(f"lines.n_{split}", proto.get(f"n_{split}", defaults.get(f"n_{split}")), int,
+                               "[1, inf)")
+        seed = config.check_value(f"lines.seed_{split}", proto.get(f"seed_{split}", defaults.get(f"seed_{split}")),
+                                  int, "[0, inf)") + round(10 * rate)
+        out = check_writable(Path(options.get("out_dir") or "data/lines") / f"{split}_o{rate:g}.h5")
+        line_conf({"outlier_rate": rate, "n_instances": n, "seed": seed}, params_path)
+        plan.append((split, n, seed, out))
+    check_store(track)
+    files, seeds = [], {}
+    for split, n, seed, out in plan:
         s = synth_lines({"outlier_rate": rate, "n_instances": n, "seed": seed, "out": str(out)}, track, params_path)
         files.append(s["path"])
         seeds[split] = seed
@@ -190,11 +209,17 @@ def calibrate_lines(options: dict[str, Any], track: bool = True,
     o.update({k: v for k, v in options.items() if v is not None})
     device = resolve_device(o.pop("device"))
     out, rates = Path(o.pop("out")), o.pop("rates")
-    iterations, batch_size, n_seeds = int(o.pop("iterations")), int(o.pop("batch_size")), int(o.pop("n_seeds"))
-    if iterations <= 0 or batch_size <= 0 or n_seeds <= 0:
-        raise RlsacError("iterations, batch_size and n_seeds must be positive")
-    seeds = [int(o["seed"]) + k for k in range(n_seeds)]
-    confs = {float(r): line_conf({**o, "outlier_rate": float(r)}, params_path) for r in rates}  # validate all first
+    iterations = config.check_value("iterations", o.pop("iterations"), int, "[1, inf)")
+    batch_size = config.check_value("batch_size", o.pop("batch_size"), int, "[1, inf)")
+    n_seeds = config.check_value("n_seeds", o.pop("n_seeds"), int, "[1, inf)")
+    o["seed"] = config.check_value("seed", o["seed"], int, config.SEED_RANGE)
+    seeds = [o["seed"] + k for k in range(n_seeds)]
+    # validate all first: every rate's and every seed's settings, and both outputs
+    confs = {float(r): line_conf({**o, "outlier_rate": float(r)}, params_path) for r in rates}
+    line_conf({**o, "seed": seeds[-1]}, params_path)
+    for suffix in (".md", ".csv"):
+        check_writable(out.with_suffix(suffix))
+    check_store(track)
     task = task_from("line")
     shown = config.to_dict(next(iter(confs.values())))
     command = (f"rlsac calibrate-lines --n-instances {shown['n_instances']} --seed {shown['seed']} "
@@ -251,13 +276,19 @@ def _module(name: str, what: str):
         raise
 
 
-def _with_conf(module: str, cls_name: str, func: str, what: str, options: dict[str, Any], track: bool):
+def _with_conf(module: str, cls_name: str, func: str, what: str, options: dict[str, Any], track: bool,
+               outputs=lambda conf: ()):
+    """Build ``cls_name`` from ``options`` (checked by config.build), check that ``outputs(conf)`` can be
+    written and the tracking store too, then call ``func(conf)``."""
     mod = _module(module, what)
     cls = getattr(mod, cls_name, None)
     fn = getattr(mod, func, None)
     if cls is None or fn is None:
         raise RlsacError(f"{what}: not implemented yet ({module}.{cls_name}/{func} missing)")
-    conf = config.build(cls, {k: v for k, v in options.items() if v is not None}, cls_name)
+    conf = config.build(cls, {k: v for k, v in options.items() if v is not None}, what)
+    for path in outputs(conf):
+        check_writable(path)
+    check_store(track)
     return _call(fn, conf, track)
 
 
@@ -271,12 +302,14 @@ def _call(fn, arg, track: bool):
 
 def import_scenes(options: dict[str, Any], track: bool = True):
     """``rlsac.data.scenes.import_scenes(ImportConf(**options))``."""
-    return _with_conf("rlsac.data.scenes", "ImportConf", "import_scenes", "import-scenes", options, track)
+    return _with_conf("rlsac.data.scenes", "ImportConf", "import_scenes", "import-scenes", options, track,
+                      lambda c: [Path(c.out) / c.split / "import_summary.json"])
 
 
 def prepare_cvpr2020(options: dict[str, Any], track: bool = True):
     """``rlsac.data.tutorial.prepare(PrepareConf(**options))``."""
-    return _with_conf("rlsac.data.tutorial", "PrepareConf", "prepare", "prepare-cvpr2020", options, track)
+    return _with_conf("rlsac.data.tutorial", "PrepareConf", "prepare", "prepare-cvpr2020", options, track,
+                      lambda c: [c.out])
 
 
 def ablate(options: dict[str, Any], track: bool = True):

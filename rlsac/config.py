@@ -1,12 +1,26 @@
-"""Typed configurations: every option has a default, and unknown keys are rejected.
+"""Typed configurations: every option has a default, a type and a range, and unknown keys are rejected.
 
-Each section of params.yaml maps onto one dataclass below; ``build(Cls, mapping)`` merges a
-mapping over the defaults and raises a one-line error for a key the dataclass does not declare.
+Each section of params.yaml maps onto one dataclass; ``build(Cls, mapping)`` merges a mapping over the
+defaults and is the one place where options are checked, for every command and every source (code,
+params.yaml, ``--set``):
+
+* unknown keys raise a one-line error naming the known ones;
+* each value is coerced to its field's annotated type (``int``, ``float``, ``bool``, ``str``,
+  ``list[int]``, ``dict``, a nested config dataclass, ``X | None``); strings such as "1e-4" (YAML 1.1
+  reads them as strings) become floats, integral floats such as 1e4 become ints; a float must be finite;
+* a class may declare ``ranges = {field: spec}`` (a plain class attribute, not a field): an interval
+  "[lo, hi]" / "(lo, hi)" / "[lo, inf)" checked on the value (on each element of a list), or a tuple
+  of allowed values;
+* a class may define ``check()`` for rules across fields; ``build`` calls it last.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
+import re
+import types
+import typing
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -15,23 +29,157 @@ import yaml
 from rlsac.errors import RlsacError
 
 T = TypeVar("T")
+SEED_RANGE = "[0, 4294967295]"  # numpy's seeds are unsigned 32-bit integers
+
+_INTERVAL = re.compile(r"^\s*([\[(])\s*([^,]+?)\s*,\s*([^,]+?)\s*([\])])\s*$")
 
 
 def build(cls: type[T], overrides: dict[str, Any] | None = None, where: str = "") -> T:
-    """Return ``cls`` with its defaults replaced by ``overrides``; nested dataclasses recurse."""
-    overrides = dict(overrides or {})
+    """Return ``cls`` with its defaults replaced by ``overrides``; nested dataclasses recurse.
+
+    Every override is type-checked, coerced and range-checked (see the module docstring); any
+    failure is an RlsacError naming the dotted key, e.g. ``train.sac.actor_lr must be > 0``.
+    """
+    where = where or cls.__name__
+    if overrides is None:
+        overrides = {}
+    if not isinstance(overrides, dict):
+        raise RlsacError(f"{where} must be a mapping of options, got {_show(overrides)}")
     fields = {f.name: f for f in dataclasses.fields(cls)}
-    unknown = sorted(set(overrides) - set(fields))
+    unknown = sorted(set(overrides) - set(fields), key=str)
     if unknown:
-        raise RlsacError(f"unknown config key(s) {unknown} in {where or cls.__name__}; known: {sorted(fields)}")
+        raise RlsacError(f"unknown config key(s) {unknown} in {where}; known: {sorted(fields)}")
+    hints = _hints(cls)
+    ranges = getattr(cls, "ranges", None) or {}
     kwargs = {}
     for name, value in overrides.items():
         f = fields[name]
+        key = f"{where}.{name}"
         default = f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
-        if dataclasses.is_dataclass(default) and isinstance(value, dict):
-            value = build(type(default), value, f"{where}.{name}" if where else name)
+        if dataclasses.is_dataclass(default):
+            if not isinstance(value, dict):
+                raise RlsacError(f"{key} must be a mapping of {type(default).__name__} options, got {_show(value)}")
+            kwargs[name] = build(type(default), value, key)
+            continue
+        value = coerce(key, value, hints.get(name, Any))
+        if name in ranges:
+            check_range(key, value, ranges[name])
         kwargs[name] = value
-    return cls(**kwargs)
+    conf = cls(**kwargs)
+    check = getattr(conf, "check", None)
+    if callable(check):
+        check()
+    return conf
+
+
+def _hints(cls) -> dict[str, Any]:
+    try:
+        return typing.get_type_hints(cls)
+    except Exception:  # an annotation that cannot be resolved is simply not type-checked
+        return {}
+
+
+def _show(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def coerce(key: str, value: Any, tp: Any) -> Any:
+    """``value`` as type ``tp`` (see the module docstring) or a one-line RlsacError about ``key``."""
+    origin = typing.get_origin(tp)
+    if tp is Any or tp is object:
+        return value
+    if origin in (typing.Union, types.UnionType):
+        args = typing.get_args(tp)
+        if value is None and type(None) in args:
+            return None
+        errors = []
+        for a in args:
+            if a is type(None):
+                continue
+            try:
+                return coerce(key, value, a)
+            except RlsacError as e:
+                errors.append(str(e))
+        raise RlsacError(errors[0] if len(errors) == 1 else f"{key}: {_show(value)} matches none of {tp}")
+    if tp is bool:
+        if isinstance(value, bool):
+            return value
+        raise RlsacError(f"{key} must be true or false, got {_show(value)}")
+    if tp is int:
+        v = value
+        if isinstance(v, str):
+            v = _number(v)
+        if isinstance(v, float) and math.isfinite(v) and v == int(v):
+            v = int(v)
+        if isinstance(v, int) and not isinstance(v, bool):
+            return v
+        raise RlsacError(f"{key} must be an integer, got {_show(value)}")
+    if tp is float:
+        v = _number(value) if isinstance(value, str) else value
+        if isinstance(v, (int, float)) and not isinstance(v, bool):
+            v = float(v)
+            if not math.isfinite(v):
+                raise RlsacError(f"{key} must be a finite number, got {_show(value)}")
+            return v
+        raise RlsacError(f"{key} must be a number, got {_show(value)}")
+    if tp is str:
+        if isinstance(value, str):
+            return value
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            return str(value)
+        raise RlsacError(f"{key} must be a string, got {_show(value)}")
+    if tp is list or origin is list:
+        if not isinstance(value, (list, tuple)):
+            raise RlsacError(f"{key} must be a list, got {_show(value)}")
+        args = typing.get_args(tp)
+        return [coerce(f"{key}[{i}]", v, args[0]) for i, v in enumerate(value)] if args else list(value)
+    if tp is dict or origin is dict:
+        if not isinstance(value, dict):
+            raise RlsacError(f"{key} must be a mapping, got {_show(value)}")
+        return dict(value)
+    return value
+
+
+def _number(text: str) -> Any:
+    try:
+        return int(text)
+    except ValueError:
+        pass
+    try:
+        return float(text)
+    except ValueError:
+        return text
+
+
+def check_range(key: str, value: Any, spec: Any) -> None:
+    """Check ``value`` (each element of a list) against an interval string or a tuple of choices."""
+    if isinstance(value, list):
+        for i, v in enumerate(value):
+            check_range(f"{key}[{i}]", v, spec)
+        return
+    if value is None:
+        return
+    if isinstance(spec, (tuple, list, set, frozenset)):
+        if value not in spec:
+            raise RlsacError(f"{key} must be one of {', '.join(map(str, spec))}, got {_show(value)}")
+        return
+    m = _INTERVAL.match(str(spec))
+    if not m:
+        raise ValueError(f"bad range spec {spec!r} for {key}")
+    lo_b, lo, hi, hi_b = m.groups()
+    lo_v, hi_v = float(lo), float(hi)
+    ok = (value >= lo_v if lo_b == "[" else value > lo_v) and (value <= hi_v if hi_b == "]" else value < hi_v)
+    if not ok:
+        raise RlsacError(f"{key} must be in {lo_b}{lo}, {hi}{hi_b}, got {_show(value)}")
+
+
+def check_value(key: str, value: Any, tp: Any, spec: Any = None) -> Any:
+    """Coerce and range-check one option outside a dataclass (e.g. evaluate's options dict)."""
+    value = coerce(key, value, tp)
+    if spec is not None:
+        check_range(key, value, spec)
+    return value
 
 
 def to_dict(conf) -> dict[str, Any]:
@@ -50,11 +198,24 @@ def flatten(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
     return out
 
 
-def load_params(path: str | Path = "params.yaml") -> dict[str, Any]:
+def load_params(path: str | Path | None = "params.yaml", required: bool = False) -> dict[str, Any]:
+    """params.yaml -> mapping. A missing file is {} unless ``required`` (a file the user named);
+    a file that is not valid YAML, or whose top level is not a mapping, is an error."""
+    if path is None or str(path) == "":
+        return {}
     path = Path(path)
     if not path.is_file():
+        if required or path.exists():
+            raise RlsacError(f"{path}: no such params file" if not path.exists() else f"{path}: not a file")
         return {}
     try:
-        return yaml.safe_load(path.read_text()) or {}
+        data = yaml.safe_load(path.read_text())
     except yaml.YAMLError as e:
         raise RlsacError(f"{path}: invalid YAML ({e.__class__.__name__})") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise RlsacError(f"{path}: unreadable ({e.__class__.__name__})") from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise RlsacError(f"{path}: params file must be a mapping of sections, got {type(data).__name__}")
+    return data

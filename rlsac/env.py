@@ -38,6 +38,10 @@ class EnvConf:
     # which rewards what the output keeps (the best hypothesis) rather than every good repeat
     reward: str = "inlier_ratio"
 
+    # checked by rlsac.config.build for every source (params.yaml, --set, a checkpoint's env section)
+    ranges = {"steps_per_episode": "[1, inf)", "kappa": "[1, inf)", "varsigma": "[1, inf)",
+              "residual_clip": "(0, inf)", "candidates": "[1, inf)", "reward": ("inlier_ratio", "improvement")}
+
 
 class SampleConsensusEnv:
     """Batched environment. Call ``reset`` with a batch, then alternate ``choose`` and ``step``."""

@@ -23,8 +23,11 @@ from rlsac.errors import RlsacError
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path next to ``path``; rename it onto ``path`` only if the block succeeds."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    except OSError as e:  # commands check their outputs first (check_writable); this is the last guard
+        raise RlsacError(f"cannot write {path}: {e.strerror or e.__class__.__name__}") from None
     os.close(fd)
     tmp = Path(tmp)
     umask = os.umask(0)
@@ -36,6 +39,54 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     finally:
         if tmp.exists():
             tmp.unlink()
+
+
+def check_writable(path: str | os.PathLike, what: str = "output") -> Path:
+    """Fail early, with a one-line RlsacError, when ``path`` (a file to be written, or a directory to
+    write into) could not be written: a parent that is a regular file, a folder that cannot be
+    created or written (read-only, /proc, ...). Nothing is left behind: missing folders are not
+    created, the probe file is removed at once. -> ``path`` as a Path."""
+    path = Path(path)
+    if path.exists() and not (path.is_file() or path.is_dir()):
+        raise RlsacError(f"cannot write {what} {path}: not a regular file or folder")
+    anc = path if path.is_dir() else path.parent
+    while not anc.exists():
+        if anc.is_symlink():
+            raise RlsacError(f"cannot write {what} {path}: {anc} is a broken link")
+        anc = anc.parent
+    if not anc.is_dir():
+        raise RlsacError(f"cannot write {what} {path}: {anc} is not a folder")
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".rlsac-probe.", suffix=".tmp", dir=anc)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as e:
+        raise RlsacError(f"cannot write {what} {path}: {anc} is not writable ({e.strerror or e.__class__.__name__})") \
+            from None
+    if path.is_file() and not os.access(path, os.W_OK) and not os.access(anc, os.W_OK):
+        raise RlsacError(f"cannot write {what} {path}: read-only file")
+    return path
+
+
+def clean_stale_temps(path: str | os.PathLike) -> list[Path]:
+    """Remove the temporary siblings ``atomic_path`` leaves when a process is killed mid-write
+    (``.<name>.XXXX.tmp``); call it before writing ``path`` again. -> the removed files."""
+    path = Path(path)
+    removed = []
+    if path.parent.is_dir():
+        for p in path.parent.glob(f".{glob_escape(path.name)}.*.tmp"):
+            try:
+                p.unlink()
+                removed.append(p)
+            except OSError:
+                pass
+    return removed
+
+
+def glob_escape(name: str) -> str:
+    import glob
+
+    return glob.escape(name)
 
 
 def write_text(path: str | os.PathLike, text: str) -> Path:
@@ -82,3 +133,24 @@ def read_array(f: h5py.File, key: str, shape: tuple | None = None, finite: bool 
     if finite and arr.dtype.kind == "f" and not np.isfinite(arr).all():
         raise RlsacError(f"{f.filename}: key '{key}' contains NaN or inf")
     return arr
+
+
+def load_torch(path: str | os.PathLike, device="cpu", what: str = "checkpoint") -> dict:
+    """``torch.load`` of a file ``rlsac train`` wrote -> its dict; anything else (a text or h5 file, a
+    truncated save) is a one-line RlsacError."""
+    import pickle
+
+    import torch
+
+    path = Path(path)
+    if not path.is_file():
+        raise RlsacError(f"{path}: no such {what} file")
+    try:
+        obj = torch.load(path, map_location=device, weights_only=False)
+    except (pickle.UnpicklingError, EOFError, RuntimeError, ValueError, OSError, AttributeError, ImportError,
+            IndexError, KeyError, TypeError, UnicodeDecodeError) as e:
+        raise RlsacError(f"{path}: not an rlsac {what} ({e.__class__.__name__}: {' '.join(str(e).split())[:80]})") \
+            from None
+    if not isinstance(obj, dict):
+        raise RlsacError(f"{path}: not an rlsac {what} (holds a {type(obj).__name__})")
+    return obj

@@ -44,6 +44,7 @@ class SACConf:
     init_alpha: float = 0.01  # rewards are inlier ratios in [0, 1]: alpha = 1 would drown them in entropy
     target_entropy_scale: float = 0.5  # per-point entropy target = 0.5 log N: ~sqrt(N) plausible points
     train_sampling: str = "prob"  # probabilistic sampling while training (paper); "max" for the ablation
+
     # False: the psi cut ends the Bellman backup (the paper's fixed-length episode); True: it is a time
     # limit the state does not show, so bootstrap through it (cleanrl's truncation); kappa/varsigma stay terminal
     bootstrap_truncation: bool = False
@@ -51,6 +52,13 @@ class SACConf:
     # inlier labels (cross-entropy, NG-RANSAC's initialisation) instead of the SAC actor loss; critics and
     # temperature learn as usual meanwhile. Gives SAC a sampler that already prefers inliers to refine.
     warm_start_updates: int = 0
+
+    # checked by rlsac.config.build for every source (params.yaml, --set)
+    ranges = {"total_steps": "[1, inf)", "num_envs": "[1, inf)", "buffer_size": "[1, inf)", "batch_size": "[1, inf)",
+              "learning_starts": "[0, inf)", "updates_per_step": "[1, inf)", "gamma": "[0, 1]", "tau": "(0, 1]",
+              "actor_lr": "(0, inf)", "critic_lr": "(0, inf)", "alpha_lr": "(0, inf)", "init_alpha": "(0, inf)",
+              "target_entropy_scale": "[0, inf)", "train_sampling": ("prob", "max"),
+              "warm_start_updates": "[0, inf)"}
 
 
 class ReplayBuffer:
@@ -73,6 +81,22 @@ class ReplayBuffer:
         self.action[idx], self.reward[idx], self.done[idx] = action, reward, done.float()
         self.full = self.full or self.ptr + k >= self.size
         self.ptr = (self.ptr + k) % self.size
+
+    def state_dict(self) -> dict:
+        """The filled part of the buffer (for an exact ``--resume``), on the CPU."""
+        n = len(self)
+        return {"size": self.size, "ptr": self.ptr, "full": self.full,
+                **{k: getattr(self, k)[:n].cpu() for k in ("inst", "mem", "mem2", "action", "reward", "done")}}
+
+    def load_state_dict(self, st: dict) -> None:
+        n = st["inst"].shape[0]
+        if st["size"] != self.size or tuple(st["mem"].shape[1:]) != tuple(self.mem.shape[1:]) or \
+                tuple(st["action"].shape[1:]) != tuple(self.action.shape[1:]):
+            raise ValueError(f"saved buffer {st['size']} x {tuple(st['mem'].shape[1:])} does not fit "
+                             f"{self.size} x {tuple(self.mem.shape[1:])}")
+        for k in ("inst", "mem", "mem2", "action", "reward", "done"):
+            getattr(self, k)[:n] = st[k].to(self.inst.device)
+        self.ptr, self.full = int(st["ptr"]), bool(st["full"])
 
     def sample(self, k: int, generator: torch.Generator):
         idx = torch.randint(len(self), (k,), generator=generator, device=generator.device).to(self.inst.device)
@@ -158,10 +182,12 @@ class SACAgent(torch.nn.Module):
 
 def train_loop(agent: SACAgent, task, data: dict, env_conf: EnvConf, start_step: int, generator: torch.Generator,
                log, validate=None, val_every: int = 500, checkpoint=None, ckpt_every: int = 500,
-               buffer: ReplayBuffer | None = None) -> ReplayBuffer:
+               buffer: ReplayBuffer | None = None, stop=None) -> ReplayBuffer:
     """Collect episodes with the actor and update the agent; ``data`` = coords, mask, features (I, ...).
 
-    ``log(metrics, step)``, ``validate(step) -> metrics`` and ``checkpoint(step)`` are callbacks.
+    ``log(metrics, step)``, ``validate(step) -> metrics``, ``checkpoint(step, buffer)`` (at the first episode
+    end at or after every ``ckpt_every`` steps) and ``stop() -> bool`` (checked after each step; the loop
+    checkpoints and returns at the next episode end) are callbacks; ``buffer`` resumes a saved buffer.
     """
     c = agent.conf
     feats_all, mask_all, coords_all = data["features"], data["mask"], data["coords"]
@@ -172,7 +198,7 @@ def train_loop(agent: SACAgent, task, data: dict, env_conf: EnvConf, start_step:
     if buffer is None:
         buffer = ReplayBuffer(c.buffer_size, N, task.sample_size, device)
     env = SampleConsensusEnv(task, env_conf, training=True)
-    running, t0, n_trans, n_upd = False, time.time(), 0, 0
+    running, t0, n_trans, n_upd, ckpt_due = False, time.time(), 0, 0, False
     ep_return = torch.zeros(c.num_envs, device=device)
     bar = tqdm(range(start_step, c.total_steps), desc="train", unit="step", dynamic_ncols=True,
                initial=start_step, total=c.total_steps)
@@ -216,8 +242,17 @@ def train_loop(agent: SACAgent, task, data: dict, env_conf: EnvConf, start_step:
                 bar.set_postfix(alpha=f"{metrics['charts/alpha']:.3f}", H=f"{metrics['charts/entropy']:.2f}")
         if validate is not None and (step + 1) % val_every == 0:
             log(validate(step + 1), step)
-        if checkpoint is not None and (step + 1) % ckpt_every == 0:
-            checkpoint(step + 1, buffer)
+        # A checkpoint waits for the end of the running episode: the loop's whole state is then the agent, the
+        # buffer and the generator, so resuming from it replays the uninterrupted run exactly. ``stop()`` (a
+        # signal) ends the loop the same way, after a checkpoint.
+        ckpt_due = ckpt_due or (checkpoint is not None and (step + 1) % ckpt_every == 0)
+        stopping = stop is not None and stop()
+        if (ckpt_due or stopping) and not running:
+            if checkpoint is not None:
+                checkpoint(step + 1, buffer)
+            ckpt_due = False
+            if stopping:
+                break
     bar.close()
     return buffer
 

@@ -73,30 +73,138 @@ def _store_lock(uri: str):
     return FileLock(uri[len(prefix):] + ".lock", timeout=600)
 
 
-@contextlib.contextmanager
-def start_run(experiment: str, run_name: str, params: dict[str, Any] | None = None,
-              tags: dict[str, str] | None = None, enabled: bool = True) -> Iterator[Run]:
-    """Open an MLflow run in ``experiment``; the run ends FINISHED, or FAILED if the block raises."""
+def store_path(uri: str | None = None) -> Path | None:
+    """The database file of a ``sqlite:///`` tracking URI (None for other stores)."""
+    uri = uri or os.environ.get("MLFLOW_TRACKING_URI", DEFAULT_URI)
+    prefix = "sqlite:///"
+    return Path(uri[len(prefix):]) if uri.startswith(prefix) else None
+
+
+def check_store(enabled: bool = True) -> None:
+    """Fail early, with a one-line RlsacError, when the tracking store cannot be written (a
+    read-only working directory, a path under a regular file): commands call it before their work."""
     if not enabled:
-        yield Run(None)
         return
+    from rlsac.errors import RlsacError
+    from rlsac.io import check_writable
+
+    db = store_path()
+    if db is None:
+        return
+    try:
+        check_writable(db, "the MLflow store")
+        check_writable(Path(str(db) + ".lock"), "the MLflow store lock")
+    except RlsacError as e:
+        raise RlsacError(f"{e}; use --no-tracking or set MLFLOW_TRACKING_URI") from None
+
+
+def command_name() -> str | None:
+    """The ``rlsac`` subcommand being run (from click's context), None outside the CLI."""
+    try:
+        import click
+
+        ctx = click.get_current_context(silent=True)
+    except ImportError:  # pragma: no cover
+        return None
+    return ctx.info_name if ctx is not None and ctx.parent is not None else None
+
+
+def run_status(run_id: str) -> str | None:
+    """Status of run ``run_id`` in the current store (RUNNING, FINISHED, FAILED, KILLED), None if absent."""
     _quiet()
     import mlflow
 
+    mlflow.set_tracking_uri(os.environ.get("MLFLOW_TRACKING_URI", DEFAULT_URI))
+    try:
+        return mlflow.MlflowClient().get_run(run_id).info.status
+    except Exception:  # deleted, or from another store
+        return None
+
+
+def close_run(run_id: str, status: str = "KILLED", reason: str = "") -> None:
+    """End a run left RUNNING by a killed process (status KILLED, reason as the ``error`` tag)."""
+    import mlflow
+
+    client = mlflow.MlflowClient()
+    if reason:
+        client.set_tag(run_id, "error", reason[:5000])
+    client.set_terminated(run_id, status=status)
+
+
+def _error_tags(e: BaseException) -> dict[str, str]:
+    message = " ".join(str(e).split()) or e.__class__.__name__
+    if isinstance(e, KeyboardInterrupt) and not str(e):
+        message = "interrupted (KeyboardInterrupt)"
+    return {"error": message[:5000], "error_type": e.__class__.__name__}
+
+
+@contextlib.contextmanager
+def start_run(experiment: str, run_name: str, params: dict[str, Any] | None = None,
+              tags: dict[str, str] | None = None, enabled: bool = True, run_id: str | None = None) -> Iterator[Run]:
+    """Open an MLflow run in ``experiment``; the run ends FINISHED, FAILED if the block raises (the
+    message in the ``error`` tag), KILLED on KeyboardInterrupt or an exception whose ``run_status``
+    is "KILLED". The ``command`` tag defaults to the rlsac subcommand.
+
+    ``run_id``: continue that run (``rlsac train --resume``) when the store still has it; params it
+    already holds with another value are not re-logged but tagged ``changed_on_resume.<key>``.
+    """
+    if not enabled:
+        yield Run(None)
+        return
+    check_store()
+    _quiet()
+    import mlflow
+
+    from rlsac.errors import RlsacError
+
     uri = os.environ.get("MLFLOW_TRACKING_URI", DEFAULT_URI)
-    mlflow.set_tracking_uri(uri)
-    with _store_lock(uri):
-        mlflow.set_experiment(experiment)
-    active = mlflow.start_run(run_name=run_name)
+    tags = {k: str(v) for k, v in (tags or {}).items()}
+    if "command" not in tags and command_name():
+        tags["command"] = command_name()
+    try:
+        mlflow.set_tracking_uri(uri)
+        with _store_lock(uri):
+            mlflow.set_experiment(experiment)
+        old = None
+        if run_id is not None:
+            try:
+                old = mlflow.MlflowClient().get_run(run_id)
+            except Exception:
+                old = None
+            if old is not None and old.info.experiment_id != mlflow.get_experiment_by_name(experiment).experiment_id:
+                old = None
+        if old is not None:
+            active = mlflow.start_run(run_id=run_id)
+        else:
+            active = mlflow.start_run(run_name=run_name)
+    except RlsacError:
+        raise
+    except Exception as e:  # an unusable store: one line, not MLflow's traceback
+        raise RlsacError(f"MLflow tracking at {uri} failed ({e.__class__.__name__}: {' '.join(str(e).split())[:200]}); "
+                         "use --no-tracking or set MLFLOW_TRACKING_URI") from None
     run = Run(mlflow)
     run.run_id = active.info.run_id
     status = "FAILED"
     try:
         if params:
-            run.params(params)
+            if old is not None:
+                have = old.data.params
+                flat = {k: (str(v)[:500] if v is not None else "None") for k, v in flatten(params).items()}
+                changed = {k: v for k, v in flat.items() if k in have and have[k] != v}
+                run.params({k: v for k, v in flat.items() if k not in have})
+                if changed:
+                    run.tags({f"changed_on_resume.{k}": f"{have[k]} -> {v}"[:5000] for k, v in changed.items()})
+            else:
+                run.params(params)
         if tags:
             run.tags(tags)
         yield run
         status = "FINISHED"
+    except BaseException as e:
+        if isinstance(e, KeyboardInterrupt) or getattr(e, "run_status", None) == "KILLED":
+            status = "KILLED"
+        with contextlib.suppress(Exception):
+            run.tags(_error_tags(e))
+        raise
     finally:
         mlflow.end_run(status=status)

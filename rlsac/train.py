@@ -1,13 +1,21 @@
 """``rlsac train``: build the configuration, load data, run SAC-Discrete, write checkpoints and MLflow.
 
 Two files per run: ``out`` (actor weights + the configuration: small, what ``rlsac evaluate``
-loads) and ``out.state.pt`` (critics, targets, temperature, optimisers, RNG: what ``--resume`` needs;
-the replay buffer is not saved and refills for ``learning_starts`` transitions after a resume).
+loads) and ``out.state.pt`` (critics, targets, temperature, optimisers, RNG, the filled part of the
+replay buffer, the kept actor and the MLflow run id: what ``--resume`` needs). States are saved at the
+end of an episode, so ``--resume`` after a kill reproduces the uninterrupted run exactly (same seed ->
+same final and kept models). The state file is the reference: on ``--resume`` an ``out`` left from
+another step by a kill between the two writes is rewritten from it, and stale temporary files are removed.
+SIGINT / SIGTERM stop at the end of the running episode, save the state and end the MLflow run KILLED;
+``--resume`` continues the same MLflow run.
 The actor kept in ``out`` is the one with the best validation mAA seen so far.
 """
 
 from __future__ import annotations
 
+import signal
+import sys
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -18,14 +26,13 @@ from rlsac.config import build, to_dict
 from rlsac.data import load, slice_batch
 from rlsac.devices import resolve_device
 from rlsac.env import EnvConf
-from rlsac.errors import RlsacError
-from rlsac.io import atomic_path
+from rlsac.errors import Interrupted, RlsacError
+from rlsac.io import atomic_path, check_writable, clean_stale_temps, load_torch
 from rlsac.policy import PolicyConf
 from rlsac.rollout import in_channels, rlsac_estimate
-from rlsac.sac import SACAgent, SACConf, seed_everything, train_loop
+from rlsac.sac import ReplayBuffer, SACAgent, SACConf, seed_everything, train_loop
 from rlsac.tasks import get_task
-from rlsac.tracking import start_run
-
+from rlsac.tracking import check_store, start_run
 
 SELECTIONS = ("inlier_ratio", "val_mAA", "last")
 
@@ -55,11 +62,19 @@ class TrainConf:
     policy: PolicyConf = field(default_factory=PolicyConf)
     sac: SACConf = field(default_factory=SACConf)
 
+    # checked by rlsac.config.build for every source (params.yaml, --set); nested sections have their own
+    ranges = {"task": ("line", "fundamental"), "device": ("auto", "cpu", "cuda"), "seed": "[0, 4294967295]",
+              "threads": "[0, inf)", "val_instances": "[1, inf)", "val_iterations": "[1, inf)",
+              "val_every": "[1, inf)", "ckpt_every": "[1, inf)", "selection": SELECTIONS}
+
 
 def train(options: dict, track: bool = True) -> dict:
     conf = build(TrainConf, options, "train")
     if not conf.data:
         raise RlsacError("train needs --data")
+    out = check_writable(conf.out, "checkpoint")
+    state_path = check_writable(out.with_suffix(".state.pt"), "training state")
+    check_store(track)
     if conf.sac.train_sampling not in ("prob", "max"):
         raise RlsacError(f"sac.train_sampling must be 'prob' or 'max', got {conf.sac.train_sampling!r}")
     if conf.selection not in SELECTIONS:
@@ -84,36 +99,74 @@ def train(options: dict, track: bool = True) -> dict:
     if device.type != "cpu":
         gen = torch.Generator(device=device).manual_seed(conf.seed)
     agent = SACAgent(in_channels(task), conf.policy, conf.sac).to(device)
-    out = Path(conf.out)
-    state_path = out.with_suffix(".state.pt")
+    for p in (out, state_path):  # left by a process killed while saving
+        clean_stale_temps(p)
     start, best, history = 0, {"score": -1.0}, []
+    buffer, old_run_id, kept = None, None, {"payload": None}
     if conf.resume:
         if not state_path.is_file():
             raise RlsacError(f"{state_path}: nothing to resume from")
-        st = torch.load(state_path, map_location=device, weights_only=False)
-        agent.load_state_dict(st["agent"])
-        for name in ("q_opt", "actor_opt", "alpha_opt"):
-            getattr(agent, name).load_state_dict(st[name])
-        start, best, history = st["step"], {"score": -1.0, **st["best"]}, st.get("history", [])
-        gen.set_state(st["generator"].to(gen.device) if device.type == "cpu" else st["generator"])
+        st = load_torch(state_path, device, "training state")
+        try:
+            agent.load_state_dict(st["agent"])
+            for name in ("q_opt", "actor_opt", "alpha_opt"):
+                getattr(agent, name).load_state_dict(st[name])
+            start, best, history = st["step"], {"score": -1.0, **st["best"]}, st.get("history", [])
+            gen.set_state(st["generator"].to(gen.device) if device.type == "cpu" else st["generator"])
+            if st.get("buffer") is not None:
+                buffer = ReplayBuffer(conf.sac.buffer_size, data["mask"].shape[1], task.sample_size, device)
+                buffer.load_state_dict(st["buffer"])
+        except (KeyError, RuntimeError, ValueError, TypeError) as e:
+            raise RlsacError(f"{state_path}: does not fit this configuration and data "
+                             f"({e.__class__.__name__}: {' '.join(str(e).split())[:100]})") from None
+        old_run_id, kept["payload"] = st.get("mlflow_run_id"), st.get("kept_actor")
+        if kept["payload"] is not None:  # the pair: out must hold the actor the state kept
+            try:
+                on_disk = load_torch(out, "cpu")
+            except RlsacError:
+                on_disk = {}
+            if on_disk.get("step") != kept["payload"].get("step"):
+                with atomic_path(out) as tmp:
+                    torch.save(kept["payload"], tmp)
     conf_dict = to_dict(conf)
-    run_name = conf.run_name or f"train {conf.task} {Path(conf.data).stem}"
+    logged_conf = {k: v for k, v in conf_dict.items() if k != "resume"}
+    run_name = conf.run_name or f"train {conf.task} {out.stem} ({Path(conf.data).stem})"
+    if conf.resume:
+        run_name += f" resumed at {start}"
+    tags = {"command": "train", **conf.tags, "out": str(out)}
+    if old_run_id:
+        tags["resumed_from"] = old_run_id
+    mlflow_run: dict = {}
 
     def save_actor(step: int, metrics: dict) -> None:
+        kept["payload"] = {"actor": {k: v.detach().clone() for k, v in agent.actor.state_dict().items()},
+                           "conf": conf_dict, "in_channels": in_channels(task), "step": step, "val": metrics,
+                           "selection": conf.selection, "history": list(history)}
         with atomic_path(out) as tmp:
-            torch.save({"actor": agent.actor.state_dict(), "conf": conf_dict, "in_channels": in_channels(task),
-                        "step": step, "val": metrics, "selection": conf.selection, "history": history}, tmp)
+            torch.save(kept["payload"], tmp)
 
-    def save_state(step: int, _buffer=None) -> None:
+    def save_state(step: int, buf=None) -> None:
+        nonlocal buffer
+        buffer = buf if buf is not None else buffer
+        if val is None or conf.selection == "last":  # the latest actor is the one to keep
+            save_actor(step, history[-1] if history else {})
+        # one file holds everything a resume needs, the kept actor included: a kill between this write and
+        # the actor's leaves a pair that --resume repairs from here
         with atomic_path(state_path) as tmp:
             torch.save({"agent": agent.state_dict(), "q_opt": agent.q_opt.state_dict(),
                         "actor_opt": agent.actor_opt.state_dict(), "alpha_opt": agent.alpha_opt.state_dict(),
                         "step": step, "best": best, "history": history, "generator": gen.get_state(),
+                        "buffer": buffer.state_dict() if buffer is not None else None,
+                        "kept_actor": kept["payload"], "mlflow_run_id": mlflow_run.get("id"),
                         "conf": conf_dict}, tmp)
-        if val is None or conf.selection == "last":  # the latest actor is the one to keep
-            save_actor(step, history[-1] if history else {})
+        saved.update(step=step, after_signal=bool(stop.signum))
 
-    with start_run(task_experiment(conf.task), run_name, conf_dict, tags=conf.tags, enabled=track) as run:
+    saved = {"step": start, "after_signal": False}
+    stop = _StopOnSignal()
+    with start_run(task_experiment(conf.task), run_name, logged_conf, tags=tags, enabled=track,
+                   run_id=old_run_id) as run, stop:
+        mlflow_run["id"] = run.run_id
+
         def validate(step: int) -> dict:
             summ = validation_metrics(task, val, agent, conf, device)
             history.append({"step": step, **summ})
@@ -124,9 +177,13 @@ def train(options: dict, track: bool = True) -> dict:
             return summ
 
         t0 = time.time()
-        train_loop(agent, task, data, conf.env, start, gen, log=run.metrics,
-                   validate=validate if val is not None else None, val_every=conf.val_every,
-                   checkpoint=save_state, ckpt_every=conf.ckpt_every)
+        buffer = train_loop(agent, task, data, conf.env, start, gen, log=run.metrics,
+                            validate=validate if val is not None else None, val_every=conf.val_every,
+                            checkpoint=save_state, ckpt_every=conf.ckpt_every, buffer=buffer, stop=stop)
+        if stop.signum and saved["after_signal"] and saved["step"] < conf.sac.total_steps:
+            raise Interrupted(f"interrupted by {signal.Signals(stop.signum).name} at step {saved['step']} of "
+                              f"{conf.sac.total_steps}: state saved to {state_path}; continue with --resume",
+                              stop.signum)
         done_before = bool(history) and history[-1]["step"] == conf.sac.total_steps
         final = ({} if val is None else history[-1] if done_before else validate(conf.sac.total_steps))
         save_state(conf.sac.total_steps)
@@ -156,6 +213,39 @@ def validation_metrics(task, val: dict, agent: SACAgent, conf: TrainConf, device
     ratio = res["inliers"].sum(-1).float() / val["mask"].sum(-1).clamp_min(1)
     summ["charts/val_inlier_ratio"] = float(ratio.mean())
     return summ
+
+
+class _StopOnSignal:
+    """While active (``with``): SIGINT / SIGTERM set ``signum`` (call it: ``stop()`` -> bool) instead of
+    killing the process, so that training stops at the end of the episode after saving its state. A
+    second signal acts at once (the previous handlers are back). Only in the main thread."""
+
+    def __init__(self):
+        self.signum = 0
+        self._previous: dict = {}
+
+    def __call__(self) -> bool:
+        return bool(self.signum)
+
+    def _handle(self, signum, frame) -> None:
+        self.signum = signum
+        self._restore()
+        print(f"\nrlsac train: {signal.Signals(signum).name} received, stopping at the end of the episode "
+              "(send it again to stop at once)", file=sys.stderr, flush=True)
+
+    def _restore(self) -> None:
+        for s, h in self._previous.items():
+            signal.signal(s, h)
+        self._previous = {}
+
+    def __enter__(self):
+        if threading.current_thread() is threading.main_thread():
+            for s in (signal.SIGINT, signal.SIGTERM):
+                self._previous[s] = signal.signal(s, self._handle)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._restore()
 
 
 def task_experiment(task: str) -> str:

@@ -26,7 +26,7 @@ def test_train_then_evaluate_cli(tmp_path, monkeypatch):
         tmp_path / "te.h5", 3, 16)
     runner = CliRunner()
     args = ["train", "--task", "line", "--data", tr, "--val-data", va, "--out", "ck/line.pt", "--device", "cpu",
-            "--params", "none.yaml"]
+            "--params", ""]
     for k, v in (("threads", 1), ("val_instances", 8), ("val_every", 10), ("sac.total_steps", 20),
                  ("sac.num_envs", 4), ("sac.batch_size", 8), ("sac.learning_starts", 16)):
         args += ["--set", f"{k}={v}"]

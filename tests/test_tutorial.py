@@ -293,7 +293,7 @@ def test_fundamental_end_to_end_cli(tmp_path, prepared, monkeypatch):
     sets = ["threads=1", "val_instances=2", "val_iterations=20", "val_every=5", "sac.total_steps=6",
             "sac.num_envs=2", "sac.batch_size=4", "sac.learning_starts=4", "policy.graph_dims=4"]
     args = ["train", "--task", "fundamental", "--data", str(prepared), "--val-data", str(prepared),
-            "--out", "ck/f.pt", "--device", "cpu", "--params", "none.yaml", "--no-tracking"]
+            "--out", "ck/f.pt", "--device", "cpu", "--params", "", "--no-tracking"]
     res = runner.invoke(cli, args + [a for s in sets for a in ("--set", s)])
     assert res.exit_code == 0, res.output
     for method in ("ransac", "magsac", "usac", "opencv_ransac", "rlsac"):

@@ -50,6 +50,18 @@ def read(path: str | Path) -> tuple[dict[str, np.ndarray], dict]:
     if (out["mask"].sum(1) < 8).any():
         bad = int(np.flatnonzero(out["mask"].sum(1) < 8)[0])
         raise RlsacError(f"{path}: key 'mask' row {bad} ({out['pair'][bad]}) has fewer than 8 valid correspondences")
+    for key in ("K1", "K2", "dR"):  # the ground truth inverts K1, K2 (gt_fundamental)
+        det = np.abs(np.linalg.det(out[key]))
+        if (det < 1e-12).any():
+            bad = int(np.flatnonzero(det < 1e-12)[0])
+            raise RlsacError(f"{path}: key '{key}' row {bad} ({out['pair'][bad]}) is a singular matrix")
+    c = out["coords"]
+    first = c[np.arange(P), out["mask"].argmax(1)][:, None]  # first valid correspondence of each pair
+    same = np.all((c == first) | ~out["mask"][..., None], axis=(1, 2))
+    if same.any():
+        bad = int(np.flatnonzero(same)[0])
+        raise RlsacError(f"{path}: degenerate data: all valid correspondences of pair {bad} ({out['pair'][bad]}) are "
+                         f"identical ({int(same.sum())} such pair(s)); no fundamental matrix can be fitted")
     return out, attrs
 
 

@@ -35,6 +35,10 @@ class LineDataConf:
     extent: str = "chord"  # inliers spread along the whole chord in the picture, or the "segment" p0-p1
     seed: int = 0
 
+    # checked by rlsac.config.build (outlier_rate and the counts by check(), with their own messages)
+    ranges = {"picture_size": "(0, inf)", "band": "[0, inf)", "line": ("two_points", "point_angle", "angle_offset"),
+              "inlier_count": ("fixed", "binomial"), "extent": ("chord", "segment"), "seed": "[0, 4294967295]"}
+
     def check(self) -> None:
         if not 0.0 <= self.outlier_rate < 1.0:
             raise RlsacError(f"outlier rate must be in [0, 1), got {self.outlier_rate}")
@@ -125,8 +129,19 @@ def read(path: str | Path) -> tuple[dict[str, np.ndarray], dict]:
         line = read_array(f, "line", (pts.shape[0], 3))
         mask = read_array(f, "inlier_mask", pts.shape[:2])
         attrs = dict(f.attrs)
+    if pts.shape[0] == 0:
+        raise RlsacError(f"{path}: key 'points' holds no instances")
     if pts.shape[1] < 2:
         raise RlsacError(f"{path}: instances need at least 2 points, got {pts.shape[1]}")
+    same = np.all(pts == pts[:, :1], axis=(1, 2))
+    if same.any():
+        bad = np.flatnonzero(same)
+        raise RlsacError(f"{path}: degenerate data: all {pts.shape[1]} points of instance {int(bad[0])} are identical "
+                         f"({bad.size} such instance(s)); no line can be fitted to them")
+    normal = np.linalg.norm(line[:, :2], axis=1)
+    if (normal < 1e-12).any():
+        raise RlsacError(f"{path}: key 'line' row {int(np.flatnonzero(normal < 1e-12)[0])} is not a line "
+                         "(its normal (a, b) is zero)")
     return {"points": pts, "line": line, "inlier_mask": mask.astype(bool)}, attrs
 
 

@@ -30,7 +30,7 @@ import torch
 
 from rlsac.data.fundamental import gt_fundamental, sampson
 from rlsac.errors import RlsacError
-from rlsac.io import atomic_path, write_json
+from rlsac.io import atomic_path, check_writable, write_json
 from rlsac.progress import tqdm  # no bars unless a person watches (not under CI, not redirected)
 from rlsac.tracking import start_run
 
@@ -40,7 +40,7 @@ class ImportConf:
     src: str = "data/strecha"  # the Strecha copy shipped in the repository (data/strecha/README.md)
     out: str = "data/raw/strecha"  # raw tutorial-layout data, input of `rlsac prepare-cvpr2020`
     split: str = "all"  # one split folder; train/val/test are chosen later by prepare's --scenes
-    scenes: str = ""  # comma-separated scene names; "" = every scene folder of src
+    scenes: str | list[str] = ""  # comma-separated scene names (or a list); "" = every scene folder of src
     max_features: int = 8000  # the CVPR 2020 RANSAC tutorial extracted up to 8000 SIFT keypoints per image
     rootsift: bool = True  # RootSIFT matches better than raw SIFT under Euclidean distance (Arandjelovic 2012)
     store_max_snn: float = 1.0  # keep every mutual NN like the tutorial files; prepare selects the lowest ratios
@@ -50,6 +50,10 @@ class ImportConf:
     keep_snn: float = 0.8  # Lowe's ratio-test value: a match below it counts as evidence of overlap
     min_matches: int = 100  # pairs with fewer such matches barely overlap (see the measurement above)
     dedupe: bool = True  # SIFT duplicates keypoints with several orientations: keep one match per coordinate pair
+
+    # OpenCV reads max_features=0 as "unlimited": a cap must be given
+    ranges = {"max_features": "[1, inf)", "store_max_snn": "(0, inf)", "keep_snn": "(0, inf)",
+              "min_matches": "[0, inf)"}
 
     def scene_list(self) -> list[str]:
         if isinstance(self.scenes, (list, tuple)):
@@ -215,9 +219,24 @@ def import_scenes(conf: ImportConf, track: bool = True, progress: bool = True) -
             raise RlsacError(f"{src / s}: no such scene folder")
         source_images(src / s)
     dst = Path(conf.out) / conf.split
+    check_writable(dst / "import_summary.json")
+    created = [p for p in (dst, *dst.parents) if not p.exists()]  # removed again if the import fails
     dst.mkdir(parents=True, exist_ok=True)
-    with torch.no_grad(), start_run("fundamental", "import-scenes", {**asdict(conf), "scenes": ",".join(scenes)},
-                                    enabled=track) as run:
+    try:
+        return _import_all(src, dst, scenes, conf, track, progress, t0)
+    except BaseException:
+        for p in created:  # deepest first; only folders the import created and left empty
+            try:
+                p.rmdir()
+            except OSError:
+                break
+        raise
+
+
+def _import_all(src: Path, dst: Path, scenes: list[str], conf: ImportConf, track: bool, progress: bool,
+                t0: float) -> dict:
+    with torch.no_grad(), start_run("fundamental", f"import-scenes {dst}", {**asdict(conf), "scenes": ",".join(scenes)},
+                                    tags={"command": "import-scenes"}, enabled=track) as run:
         per_scene = {}
         for s in tqdm(scenes, desc="scenes", unit="scene", disable=not progress):
             per_scene[s] = _import_scene(src / s, dst, conf, progress)

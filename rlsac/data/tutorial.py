@@ -56,6 +56,9 @@ class PrepareConf:
     rootsift: bool = True  # RootSIFT compares better than raw SIFT under Euclidean distance (Arandjelovic 2012)
     max_pairs_per_scene: int = 0  # 0 = every pair; a cap (first pairs in key order) keeps huge scenes quick
     gt_threshold: float = 2.0  # Sampson distance (px) under which a correspondence counts as a GT inlier in the summary
+
+    # checked by rlsac.config.build (n_points, min_correspondences and kp_size by check())
+    ranges = {"max_pairs_per_scene": "[0, inf)", "gt_threshold": "(0, inf)"}
     # 0 = the n_points lowest-SNN matches (the paper's and the tutorial's selection). P > n_points = n_points
     # matches drawn, seeded by the pair key, from the P lowest-SNN ones: the hard regime of the fold benchmark,
     # whose inlier ratio falls into the range of the tutorial data (measured in reports/folds.md).
