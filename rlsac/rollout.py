@@ -10,6 +10,7 @@ import torch
 from rlsac.config import build
 from rlsac.env import MEMORY_DIM, EnvConf, SampleConsensusEnv
 from rlsac.errors import RlsacError
+from rlsac.io import load_torch
 from rlsac.policy import Actor, PolicyConf
 from rlsac.tasks import Task
 
@@ -17,7 +18,7 @@ from rlsac.tasks import Task
 @torch.no_grad()
 def rlsac_estimate(task: Task, batch: dict, actor: Actor | None, iterations: int, env_conf: EnvConf | None = None,
                    sampling: str = "max", generator: torch.Generator | None = None,
-                   record: bool = False) -> dict:
+                   record: bool = False, reference: bool = False) -> dict:
     """Run ceil(iterations / psi) episodes per instance in parallel, at most ``iterations`` hypotheses.
 
     batch: coords (B, N, d), mask (B, N), plus what ``task.features`` needs.
@@ -26,6 +27,11 @@ def rlsac_estimate(task: Task, batch: dict, actor: Actor | None, iterations: int
     env_conf: the environment of the checkpoint (``checkpoint_env``); default EnvConf().
     -> hyp (B, *H), valid (B,), inliers (B, N); with ``record`` also ``steps``: per step the minimal
     sets (R, m), hypotheses, inlier masks and rewards of every row (for figures).
+    reference: the original per-step path (the full (R, N, c + 3) state through
+    ``actor.reference_forward``), kept for the equivalence test and the benchmarks' before/after
+    ratios. The default path sends the data channels through the first layer once per instance
+    (``actor.precompute``) and only the 3 memory channels per step (``actor.forward_memory``): the
+    same function, same final hypotheses (tests/test_speed_equivalence.py).
     """
     if sampling not in ("max", "prob"):
         raise RlsacError(f"sampling must be 'max' or 'prob', got {sampling!r}")
@@ -36,7 +42,11 @@ def rlsac_estimate(task: Task, batch: dict, actor: Actor | None, iterations: int
     env = SampleConsensusEnv(task, conf, training=False)
     episodes = math.ceil(iterations / psi)
     feats = task.features(batch)
-    graph = None if actor is None else actor.graph(feats, batch["mask"]).repeat_interleave(episodes, 0)
+    graph = prepared = None
+    if actor is not None and reference:
+        graph = actor.graph(feats, batch["mask"]).repeat_interleave(episodes, 0)
+    elif actor is not None:
+        prepared = actor.precompute(feats, batch["mask"], episodes)
     state = env.reset(batch, feats, episodes, budget=iterations, generator=generator)
     steps = []
     if record:
@@ -47,9 +57,13 @@ def rlsac_estimate(task: Task, batch: dict, actor: Actor | None, iterations: int
         if actor is None:
             env.step(env.select(env.action, random=True))
             continue
-        logits = actor(state, env.mask, graph)
+        if reference:
+            logits = actor.reference_forward(state, env.mask, graph)
+        else:
+            logits = actor.forward_memory(prepared, env.memory())
         env.step(env.select(logits, sample=sampling == "prob"))
-        state = env.state()
+        if reference:
+            state = env.state()
         if record:
             steps.append(_snapshot(env))
     out = env.result()
@@ -76,7 +90,7 @@ def load_actor(path: str | Path, device: str | torch.device = "cpu") -> tuple[Ac
     if not path.is_file():
         raise RlsacError(f"{path}: no such checkpoint")
     try:
-        ckpt = torch.load(path, map_location=device, weights_only=False)
+        ckpt = load_torch(path, device)  # a text or h5 file: one-line error
         conf = ckpt["conf"]
         pconf = build(PolicyConf, conf["policy"])
         actor = Actor(ckpt["in_channels"], pconf).to(device)
