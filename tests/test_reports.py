@@ -148,6 +148,6 @@ def test_plot_iterations_and_line_steps(tree):
         for ext in ("png", "pdf"):
             assert (tree / "figs" / f"{name}.{ext}").stat().st_size > 1000
     assert s["notes"] == "none"
-    s = figures.plot({"which": "line", "out_dir": "figs2", "line_data": "l.h5", "line_checkpoint": "nope.pt",
+    s = figures.plot({"which": "line", "out_dir": "figs2", "line_data": "l.h5", "line_checkpoint": "",
                       "line_index": 2}, track=False)
     assert "no checkpoint" in s["notes"] and (tree / "figs2" / "line_steps.png").stat().st_size > 1000

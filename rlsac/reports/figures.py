@@ -9,15 +9,22 @@ Figures (PNG + PDF in ``out_dir``, logged to the MLflow experiment "figures"):
 * ``fundamental_pair``: one real image pair, the final RLSAC estimate (minimal set and inliers);
 * ``fundamental_steps``: the same pair, step by step in one episode.
 
-Without a checkpoint the step and pair figures fall back to uniform random minimal sets (RANSAC), say
-so in their titles and in the returned summary. Options (all optional):
+Inputs follow the recorded provenance, never whether ``data/`` happens to exist: a missing line file is
+regenerated in a temporary folder from the ``rlsac lines-data`` stage that ``dvc.lock`` records for it and
+checked against the recorded hash (``rlsac.reports.provenance``); a missing checkpoint, prepared
+two-view file or image is an error (the prepared file comes from ``dvc repro prepare_fundamental@test``),
+checked for every requested figure before anything is drawn. All figures are drawn into a temporary folder
+and moved into ``out_dir`` only when every one succeeded: a failing ``rlsac plot`` leaves the committed
+figures untouched. An empty checkpoint option (``--set line_checkpoint=``) draws uniform random minimal
+sets (RANSAC) instead of a policy, and says so in the title. Options (all optional):
 
     which                  "all" or a comma list of the figure names above (short: iterations, line,
                            pair, steps)
     out_dir                reports/figures
-    eval_root, reports_dir reports/eval, reports (the iterations CSV is rebuilt there)
+    eval_root, reports_dir reports/eval, reports (the iterations table is rebuilt from the summaries in
+                           memory; reports_dir is unused and kept for old command lines)
     iterations_csv         read this CSV instead of rebuilding it
-    line_data              data/lines/test_o0.7.h5 (missing: 64 instances generated at rate 0.7)
+    line_data              data/lines/test_o0.7.h5 (missing: regenerated as recorded in dvc.lock)
     line_checkpoint        checkpoints/line_o0.7.pt
     line_index             "auto" (largest error drop among the first 64 instances) or an index
     line_steps             6 panels
@@ -34,6 +41,8 @@ so in their titles and in the returned summary. Options (all optional):
 from __future__ import annotations
 
 import math
+import os
+import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -114,19 +123,23 @@ def _save(fig, out_dir: Path, name: str) -> list[str]:
     for ext in ("png", "pdf"):
         path = out_dir / f"{name}.{ext}"
         with atomic_path(path) as tmp:
-            fig.savefig(tmp, format=ext, dpi=150 if ext == "png" else None, bbox_inches="tight")
+            fig.savefig(tmp, format=ext, dpi=150 if ext == "png" else None, bbox_inches="tight",
+                        metadata={"CreationDate": None} if ext == "pdf" else None)  # same figure, same bytes
         paths.append(str(path))
     plt.close(fig)
     return paths
 
 
 def _load_policy(path: str | None, task_name: str, device: str):
-    """-> (actor, task, env conf, note) or (None, default task, EnvConf(), why) without a checkpoint."""
+    """-> (actor, task, env conf, note), or (None, default task, EnvConf(), why) when no checkpoint is asked for
+    (empty option). A checkpoint path that does not exist is an error, never a silent fallback."""
     from rlsac.evaluate import checkpoint_task_options, task_from
     from rlsac.rollout import checkpoint_env, load_actor
 
-    if not path or not Path(path).is_file():
-        return None, task_from(task_name), checkpoint_env({}), f"no checkpoint at {path}: uniform random minimal sets"
+    if not path:
+        return None, task_from(task_name), checkpoint_env({}), "no checkpoint asked for: uniform random minimal sets"
+    if not Path(path).is_file():
+        raise RlsacError(f"{path}: no such checkpoint (an empty option draws uniform random minimal sets instead)")
     actor, conf = load_actor(path, device)
     conf = dict(conf or {})
     task = task_from(task_name, checkpoint_task_options(conf))
@@ -216,19 +229,16 @@ def _draw_line(ax, line, size: float, **kw) -> None:
 def plot_line_steps(o: dict[str, Any], out_dir: Path) -> tuple[list[str], str]:
     from rlsac import metrics
     from rlsac.data import lines
+    from rlsac.reports.provenance import recorded_lines
 
     notes = []
     path = Path(o["line_data"])
-    if path.is_file():
-        data, attrs = lines.read(path)
-        rate = float(attrs.get("outlier_rate", float("nan")))
-        source = path.name
-    else:
-        rate = 0.7
-        conf = lines.LineDataConf(outlier_rate=rate, n_instances=64, seed=3007)
-        data, attrs = lines.generate(conf), {"picture_size": conf.picture_size}
-        source = "generated (rate 0.7, seed 3007)"
-        notes.append(f"no line data at {path}: {source}")
+    with recorded_lines(path) as readable:
+        data, attrs = lines.read(readable)
+    if readable != path:
+        notes.append(f"{path} regenerated as recorded in dvc.lock")
+    rate = float(attrs.get("outlier_rate", float("nan")))
+    source = f"{path.name} (seed {attrs['seed']})" if "seed" in attrs else path.name
     size = float(attrs.get("picture_size", 10.0))
     actor, task, psi, why = _load_policy(o["line_checkpoint"], "line", o["device"])
     if why:
@@ -379,7 +389,7 @@ def _fundamental_setup(o: dict[str, Any]):
 
     path = Path(o["fundamental_data"])
     if not path.is_file():
-        raise RlsacError(f"{path}: no prepared fundamental file (option fundamental_data)")
+        raise RlsacError(_missing_fundamental(path))
     data, attrs = fundamental.read(path)
     if o["pair"] == "auto":
         rate = fundamental.gt_inliers(data, 2.0).sum(1) / data["mask"].sum(1)
@@ -395,8 +405,37 @@ def _fundamental_setup(o: dict[str, Any]):
     images, paths = _pair_images(data, _image_root(attrs, path, o["image_root"]), i)
     notes = [why] if why else []
     if not all(ok for _, ok in images):
-        notes.append(f"images not found ({', '.join(paths)}): blank canvas")
+        raise RlsacError(f"images of pair {data['label']} not found ({', '.join(paths)}); option image_root "
+                         "gives the folder holding <scene>/images/")
     return data, attrs, i, batch, actor, task, psi, images, notes
+
+
+def _missing_fundamental(path: Path) -> str:
+    from rlsac.reports.provenance import lock_stage
+
+    hit = lock_stage(path)
+    how = f"`dvc repro {hit[0]}`" if hit else "`rlsac import-scenes` then `rlsac prepare-cvpr2020`"
+    return f"{path}: no prepared two-view file (option fundamental_data); make it with {how}"
+
+
+def check_inputs(o: dict[str, Any]) -> list[str]:
+    """Problems that would stop the requested figures, found before anything is drawn (cheap checks only)."""
+    from rlsac.reports.provenance import lock_stage
+
+    problems = []
+    if "fundamental_iterations" in o["which"] and o["iterations_csv"] and not Path(o["iterations_csv"]).is_file():
+        problems.append(f"{o['iterations_csv']}: no such iterations CSV")
+    if "line_steps" in o["which"]:
+        if not Path(o["line_data"]).is_file() and lock_stage(o["line_data"]) is None:
+            problems.append(f"{o['line_data']}: no such line file, and dvc.lock records no stage that makes it")
+        if o["line_checkpoint"] and not Path(o["line_checkpoint"]).is_file():
+            problems.append(f"{o['line_checkpoint']}: no such checkpoint")
+    if {"fundamental_pair", "fundamental_steps"} & set(o["which"]):
+        if not Path(o["fundamental_data"]).is_file():
+            problems.append(_missing_fundamental(Path(o["fundamental_data"])))
+        if o["fundamental_checkpoint"] and not Path(o["fundamental_checkpoint"]).is_file():
+            problems.append(f"{o['fundamental_checkpoint']}: no such checkpoint")
+    return problems
 
 
 def plot_fundamental_pair(o: dict[str, Any], out_dir: Path) -> tuple[list[str], str]:
@@ -478,40 +517,54 @@ def plot_fundamental_steps(o: dict[str, Any], out_dir: Path) -> tuple[list[str],
 
 
 def plot(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
-    """Draw the requested figures -> {"figures": comma list of files, "notes": fallbacks taken, "run_id"}."""
+    """Draw the requested figures -> {"figures": comma list of files, "notes": what was regenerated, "run_id"}."""
     from rlsac.tracking import start_run
 
     o = _options(options)
     out_dir = Path(o["out_dir"])
+    problems = check_inputs(o)
+    if problems:
+        raise RlsacError("rlsac plot needs: " + "; ".join(problems)
+                         + " (`--set which=...` draws only some figures; nothing was written)")
+    from rlsac.io import check_writable
+    from rlsac.tracking import check_store
+
+    check_writable(out_dir, "figure folder")
+    check_store(track)
     files: list[str] = []
     notes: list[str] = []
     with start_run("figures", "plot " + ",".join(o["which"]), params=o, tags={"command": "plot"},
                    enabled=track) as run:
-        for name in o["which"]:
-            if name == "fundamental_iterations":
-                if o["iterations_csv"]:
-                    p = Path(o["iterations_csv"])
-                    if not p.is_file():
-                        raise RlsacError(f"{p}: no such iterations CSV")
-                    df = pd.read_csv(p)
-                else:
-                    from rlsac.reports.tables import iterations_csv
+        out_dir.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(prefix=f".{out_dir.name}-", dir=out_dir.parent) as tmp:
+            drawn: list[str] = []  # every figure first, into tmp; out_dir is touched only when all succeeded
+            for name in o["which"]:
+                if name == "fundamental_iterations":
+                    if o["iterations_csv"]:
+                        df = pd.read_csv(o["iterations_csv"])
+                    else:
+                        from rlsac.reports.tables import iterations_csv
 
-                    df = iterations_csv(o["eval_root"], o["reports_dir"])
-                paths, note = plot_iterations(df, out_dir)
-            elif name == "line_steps":
-                paths, note = plot_line_steps(o, out_dir)
-            elif name == "fundamental_pair":
-                paths, note = plot_fundamental_pair(o, out_dir)
-            else:
-                paths, note = plot_fundamental_steps(o, out_dir)
-            files += paths
-            if note:
-                notes.append(f"{name}: {note}")
-            for p in paths:
-                run.artifact(p, "figures")
+                        df = iterations_csv(o["eval_root"], tmp)  # rebuilt, not written over reports/
+                    paths, note = plot_iterations(df, Path(tmp))
+                elif name == "line_steps":
+                    paths, note = plot_line_steps(o, Path(tmp))
+                elif name == "fundamental_pair":
+                    paths, note = plot_fundamental_pair(o, Path(tmp))
+                else:
+                    paths, note = plot_fundamental_steps(o, Path(tmp))
+                drawn += paths
+                if note:
+                    notes.append(f"{name}: {note}")
+            out_dir.mkdir(parents=True, exist_ok=True)
+            for p in drawn:
+                final = out_dir / Path(p).name
+                os.replace(p, final)
+                files.append(str(final))
+        for p in files:
+            run.artifact(p, "figures")
         if notes:
-            run.tags({"fallbacks": " | ".join(notes)[:4000]})
+            run.tags({"notes": " | ".join(notes)[:4000]})
     for n in notes:
         print(f"note: {n}")
     return {"figures": ", ".join(files), "notes": " | ".join(notes) or "none", "run_id": run.run_id}

@@ -83,17 +83,25 @@ def _report_missing(name: str, missing: list[str]) -> None:
             print(f"  missing {m}")
 
 
-def describe_fundamental_data(path: str | None) -> str:
-    """A caption for a prepared two-view file: which scenes, how many pairs, from where."""
+def describe_fundamental_data(path: str | None, n_pairs: int | None = None) -> str:
+    """A caption for a prepared two-view file: which scenes, how many pairs, from where. The recorded
+    provenance comes first (its prepare-cvpr2020 command in dvc.lock; ``n_pairs`` from the summaries), so
+    the caption does not depend on whether data/ exists in this checkout; else the file's own attrs."""
     if not path:
         return "unknown data"
-    try:
-        from rlsac.io import open_h5
+    from rlsac.reports.provenance import prepared_attrs
 
-        with open_h5(path) as f:
-            attrs = {k: (v.item() if hasattr(v, "item") else v) for k, v in f.attrs.items()}
-    except (RlsacError, OSError):
-        return f"`{path}` (file not readable here)"
+    attrs = prepared_attrs(path)
+    if attrs is not None:
+        attrs["n_pairs"] = "?" if n_pairs is None else n_pairs
+    else:
+        try:
+            from rlsac.io import open_h5
+
+            with open_h5(path) as f:
+                attrs = {k: (v.item() if hasattr(v, "item") else v) for k, v in f.attrs.items()}
+        except (RlsacError, OSError):
+            return f"`{path}` (file not readable here, and dvc.lock records no stage that makes it)"
     scenes = ", ".join(str(attrs.get("scenes", "?")).split(","))
     root = str(attrs.get("root", ""))
     if "strecha" in root.lower() or "strecha" in str(attrs.get("descriptor", "")).lower():
@@ -107,7 +115,8 @@ def _data_caption(summaries: list[dict]) -> str:
     paths = sorted({str(s.get("data")) for s in summaries if s and s.get("data")})
     if not paths:
         return "no results yet"
-    return "; ".join(describe_fundamental_data(p) for p in paths)
+    n = {str(s["data"]): int(s["n_instances"]) for s in summaries if s and s.get("data") and s.get("n_instances")}
+    return "; ".join(describe_fundamental_data(p, n.get(p)) for p in paths)
 
 
 # ------------------------------------------------------------------------------------------- writing
