@@ -12,6 +12,7 @@ from rlsac.env import MEMORY_DIM, EnvConf, SampleConsensusEnv
 from rlsac.errors import RlsacError
 from rlsac.io import load_torch
 from rlsac.policy import Actor, PolicyConf
+from rlsac.sampling import set_keys
 from rlsac.tasks import Task
 
 
@@ -30,8 +31,9 @@ def rlsac_estimate(task: Task, batch: dict, actor: Actor | None, iterations: int
     reference: the original per-step path (the full (R, N, c + 3) state through
     ``actor.reference_forward``), kept for the equivalence test and the benchmarks' before/after
     ratios. The default path sends the data channels through the first layer once per instance
-    (``actor.precompute``) and only the 3 memory channels per step (``actor.forward_memory``): the
-    same function, same final hypotheses (tests/test_speed_equivalence.py).
+    (``actor.precompute``) and only the 3 memory channels per step (``actor.forward_memory``), and
+    picks minimal sets with ``select_lazily``: the same function, the same final hypotheses
+    (tests/test_speed_equivalence.py).
     """
     if sampling not in ("max", "prob"):
         raise RlsacError(f"sampling must be 'max' or 'prob', got {sampling!r}")
@@ -54,16 +56,16 @@ def rlsac_estimate(task: Task, batch: dict, actor: Actor | None, iterations: int
     for _ in range(1, psi):
         if not env.active.any():
             break
-        if actor is None:
+        if actor is None:  # the uniform control
             env.step(env.select(env.action, random=True))
-            continue
-        if reference:
-            logits = actor.reference_forward(state, env.mask, graph)
         else:
-            logits = actor.forward_memory(prepared, env.memory())
-        env.step(env.select(logits, sample=sampling == "prob"))
-        if reference:
-            state = env.state()
+            if reference:
+                logits = actor.reference_forward(state, env.mask, graph)
+                env.step(env.select(logits, sample=sampling == "prob"))
+                state = env.state()
+            else:
+                logits = actor.forward_memory(prepared, env.memory())
+                env.step(select_lazily(env, logits, sample=sampling == "prob"))
         if record:
             steps.append(_snapshot(env))
     out = env.result()
@@ -71,6 +73,75 @@ def rlsac_estimate(task: Task, batch: dict, actor: Actor | None, iterations: int
     if record:
         out["steps"] = steps
     return out
+
+
+def select_lazily(env: SampleConsensusEnv, logits: torch.Tensor, sample: bool = False) -> torch.Tensor:
+    """``env.select(logits, sample)`` with the same random draws and the same result, computed lazily.
+
+    ``env.select`` ranks all 2 x ``candidates`` fallback sets of every row (two (R, K, N) top-m and
+    log-log passes) and compares each with every used set of its instance ((R, 2K, E psi) equalities),
+    although a row almost always keeps its first candidate. Here the first candidate is ranked for every
+    row and the fallbacks only for rows whose first candidate is taken (used before, or chosen by an
+    earlier episode of the instance in this step); used sets are looked up by binary search. The
+    random numbers are drawn exactly as ``env.select`` draws them, so the stream stays in step.
+    """
+    m, K, B, E = env.task.sample_size, env.conf.candidates, env.B, env.E
+    R, N = logits.shape
+    dev = logits.device
+    logits = logits.masked_fill(~env.mask, float("-inf"))
+    r_uniform = torch.rand((R, K, N), generator=env.gen, device=dev)  # uniform_minimal_sets' draw
+    u = torch.rand((R, K, N), generator=env.gen, device=dev)
+    if sample:
+        first = (logits - torch.log(-torch.log(u[:, 0].clamp(1e-12, 1 - 1e-12)))).topk(m, dim=-1).indices
+    else:
+        first = logits.topk(m, dim=-1).indices
+    J = 2 * K
+    rows = torch.arange(R, device=dev)
+    inst = rows // E
+    used = env.used.sort(dim=-1).values  # (B, E psi): -1 = empty slot, never a key
+
+    def member(keys: torch.Tensor, seq: torch.Tensor) -> torch.Tensor:
+        pos = torch.searchsorted(seq, keys).clamp_max_(seq.shape[1] - 1)
+        return seq.gather(1, pos) == keys
+
+    keys = torch.full((R, J), -2, dtype=torch.int64, device=dev)  # -2: fallback not ranked (yet)
+    key0 = set_keys(first, N)
+    keys[:, 0] = key0
+    taken = torch.zeros((R, J), dtype=torch.bool, device=dev)
+    taken[:, 0] = member(key0.view(B, E), used).view(R)
+    cand = torch.zeros((R, J, m), dtype=torch.int64, device=dev)
+    ranked = torch.zeros(R, dtype=torch.bool, device=dev)
+
+    def rank(sel: torch.Tensor) -> None:
+        """The full candidate list of rows ``sel``, exactly as env.select builds it."""
+        g = logits[sel][:, None, :] - torch.log(-torch.log(u[sel].clamp_(1e-12, 1 - 1e-12)))
+        c = g.topk(m, dim=-1).indices
+        c[:, 0] = first[sel]
+        uni = r_uniform[sel].masked_fill(~env.mask[sel][:, None, :], -1.0).topk(m, dim=-1).indices
+        c = torch.cat([c, uni], dim=1)
+        k = set_keys(c, N)
+        t = member(k, used[inst[sel]])
+        t[:, 0] |= taken[sel, 0]
+        keys[sel], taken[sel], cand[sel], ranked[sel] = k, t, c, True
+
+    if taken[:, 0].any():
+        rank(rows[taken[:, 0]])
+    earlier = torch.ones(E, E, dtype=torch.bool, device=dev).tril(-1)
+    act = env.active.view(B, E)
+    for _ in range(J):  # env.select's loop; unranked rows sit on their free first candidate
+        free = ~taken
+        some = free.any(-1)
+        ptr = torch.where(some, free.float().argmax(-1), torch.full_like(rows, J - 1))
+        chosen = keys[rows, ptr].view(B, E)
+        same = (chosen[:, :, None] == chosen[:, None, :]) & act[:, :, None] & act[:, None, :]
+        dup = (same & earlier).any(-1).flatten() & some
+        if not dup.any():
+            break
+        taken[rows[dup], ptr[dup]] = True
+        fresh = dup & ~ranked
+        if fresh.any():
+            rank(rows[fresh])
+    return torch.where(ranked[:, None], cand[rows, ptr], first)
 
 
 def _snapshot(env: SampleConsensusEnv) -> dict:
