@@ -11,21 +11,24 @@ from __future__ import annotations
 import torch
 
 from rlsac.errors import RlsacError
+from rlsac.lo import Best, LOConf, active, finish, update_best
 from rlsac.sampling import gather_points, uniform_minimal_sets
 from rlsac.tasks import Task
 
 
 @torch.no_grad()
 def ransac(task: Task, batch: dict, iterations: int, generator: torch.Generator | None = None,
-           chunk: int = 256) -> dict[str, torch.Tensor]:
-    """Plain RANSAC over a batch of instances.
+           chunk: int = 256, lo: LOConf | None = None) -> dict[str, torch.Tensor]:
+    """Plain RANSAC over a batch of instances; with ``lo`` enabled, LO-RANSAC (``rlsac.lo``).
 
     batch: coords (B, N, d), mask (B, N) -> hyp (B, *H) refined, valid (B,), inliers (B, N),
-    best_count (B,) inlier count of the best minimal-set hypothesis.
+    best_count (B,) inlier count of the best minimal-set hypothesis. With LO on, the best so far is
+    chosen by ``lo.score`` and locally optimised whenever a chunk of ``chunk`` hypotheses improves it
+    (once per chunk and instance at most), and the output adds lo_calls, lo_fits (B,), lo_seconds.
     """
     coords, mask = batch["coords"], batch["mask"]
     B, N, _ = coords.shape
-    best_h, best_c = None, torch.full((B,), -1, dtype=torch.long, device=coords.device)
+    best = Best.empty(B, coords.device)
     for start in range(0, iterations, chunk):
         k = min(chunk, iterations - start)
         idx = uniform_minimal_sets(mask, task.sample_size, k, generator)  # (B, k, m)
@@ -35,12 +38,10 @@ def ransac(task: Task, batch: dict, iterations: int, generator: torch.Generator 
         res = task.residuals(hyps, rep).view(B, k, N)
         count = ((res <= task.threshold) & mask[:, None]).sum(-1)
         count = count.masked_fill(~valid.view(B, k), -1)
-        c, j = count.max(dim=1)
-        h = hyps.view(B, k, *hyps.shape[1:])[torch.arange(B), j]
-        better = c > best_c  # ties keep the earlier hypothesis, as a sequential RANSAC would
-        best_h = h if best_h is None else torch.where(better.view(B, *[1] * (h.dim() - 1)), h, best_h)
-        best_c = torch.where(better, c, best_c)
-    return finalize(task, coords, mask, best_h, best_c >= task.sample_size)
+        best = update_best(task, lo, coords, mask, best, hyps.view(B, k, *hyps.shape[1:]), count, res, generator)
+    if active(lo):
+        return finish(task, lo, coords, mask, best, generator)
+    return finalize(task, coords, mask, best.hyp, best.count >= task.sample_size)
 
 
 @torch.no_grad()

@@ -41,19 +41,25 @@ class LineTask:
         return (coords @ hyps[:, :2, None]).squeeze(-1).add(hyps[:, 2:3]).abs()
 
     def refine(self, coords: torch.Tensor, inliers: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Total least squares on the inliers: the normal is the smallest principal direction.
+        """(Weighted) total least squares: the normal is the smallest principal direction of the
+        weighted scatter about the weighted mean, i.e. argmin sum_i w_i dist_i^2.
 
-        coords (B, N, 2), inliers (B, N) bool -> lines (B, 3), valid (B,) (False with < 2 inliers).
+        coords (B, N, 2), inliers (B, N) bool, or float weights >= 0 (LO's IRLS, ``rlsac.lo``) ->
+        lines (B, 3), valid (B,) (False with < 2 points of positive weight).
         """
-        w = inliers.to(coords.dtype)
-        count = w.sum(-1)
-        mean = (coords * w[..., None]).sum(1) / count.clamp_min(1)[:, None]
-        centred = (coords - mean[:, None]) * w[..., None]
+        if inliers.shape != coords.shape[:2]:
+            raise ValueError(f"refine: inliers {tuple(inliers.shape)} must be coords' (B, N) {tuple(coords.shape[:2])}")
+        w = inliers.to(coords.dtype).clamp_min(0)
+        wsum = w.sum(-1)
+        mean = (coords * w[..., None]).sum(1) / wsum.clamp_min(1e-30)[:, None]
+        # sqrt(w) on both sides of the scatter gives sum w (x - mean)(x - mean)^T; for a bool mask sqrt is
+        # exact (0 or 1), so the unweighted fit is bit-identical to the plain TLS it replaces
+        centred = (coords - mean[:, None]) * w.sqrt()[..., None]
         cov = centred.transpose(1, 2) @ centred
         _, vecs = torch.linalg.eigh(cov.double())
         normal = vecs[..., 0].to(coords.dtype)
         c = -(normal * mean).sum(-1)
-        return torch.cat([normal, c[:, None]], dim=-1), count >= 2
+        return torch.cat([normal, c[:, None]], dim=-1), (w > 0).sum(-1) >= 2
 
     def true_inliers(self, batch: dict) -> torch.Tensor:
         """Ground-truth inlier labels (B, N) bool: the generator's mask (supervised warm start only)."""
