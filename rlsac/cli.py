@@ -156,11 +156,12 @@ def train(task: str, tracking: bool, params_path: str, sets: tuple[str, ...], **
 
 @cli.command()
 @click.option("--task", type=click.Choice(["line", "fundamental"]), required=True)
-@click.option("--method", type=click.Choice(["ransac", "rlsac", "oracle", "usac", "usac_accurate", "magsac",
-                                           "opencv_ransac"]), required=True,
-              help="oracle = refinement on the true inliers (lines only).")
+@click.option("--method", type=click.Choice(["ransac", "rlsac", "uniform", "oracle", "usac", "usac_accurate", "magsac",
+                                           "opencv_ransac", "ransac-lo", "uniform-lo", "rlsac-lo"]), required=True,
+              help="oracle = refinement on the true inliers (lines only); *-lo = with local optimisation "
+                   "(params.yaml evaluate.<task>.lo).")
 @click.option("--data", type=click.Path(dir_okay=False), required=True, help="Test h5.")
-@click.option("--checkpoint", type=click.Path(dir_okay=False), help="RLSAC checkpoint (method rlsac).")
+@click.option("--checkpoint", type=click.Path(dir_okay=False), help="RLSAC checkpoint (methods rlsac, rlsac-lo).")
 @click.option("--iterations", type=int, help="Hypotheses per instance [default: params.yaml evaluate.<task>].")
 @click.option("--steps-per-episode", type=int, help="RLSAC episode length [default: checkpoint's, else 15].")
 @click.option("--sampling", type=click.Choice(["max", "prob"]), help="RLSAC test-time sampling [default: max].")

@@ -16,11 +16,12 @@ The output is the best hypothesis (most inliers) over all episodes, refined on i
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 
 from rlsac.baselines import finalize
+from rlsac.lo import Best, LOConf, finish, update_best
 from rlsac.sampling import gather_points, set_keys, uniform_minimal_sets
 from rlsac.tasks import Task
 
@@ -37,6 +38,8 @@ class EnvConf:
     # "inlier_ratio" (paper) or "improvement": the gain of the ratio over the episode's best so far,
     # which rewards what the output keeps (the best hypothesis) rather than every good repeat
     reward: str = "inlier_ratio"
+    # not in the paper: local optimisation / scoring of the best hypothesis (rlsac.lo); off by default
+    lo: LOConf = field(default_factory=LOConf)
 
     # checked by rlsac.config.build for every source (params.yaml, --set, a checkpoint's env section)
     ranges = {"steps_per_episode": "[1, inf)", "kappa": "[1, inf)", "varsigma": "[1, inf)",
@@ -79,7 +82,8 @@ class SampleConsensusEnv:
         self.same_count = torch.zeros(R, dtype=torch.long, device=dev)
         self.ep_best = torch.full((R,), -1, dtype=torch.long, device=dev)
         self.no_better = torch.zeros(R, dtype=torch.long, device=dev)
-        self.best_count = torch.full((B,), -1, dtype=torch.long, device=dev)
+        self.best = Best.empty(B, dev)  # best hypothesis per instance (rlsac.lo.update_best, LO if conf.lo)
+        self.best_count = self.best.count
         self.best_hyp: torch.Tensor | None = None
         self.hypotheses = 0
         self.step(first if first is not None else self.select(self.action, random=True))
@@ -165,13 +169,10 @@ class SampleConsensusEnv:
         keys = set_keys(idx, self.N).masked_fill(~act, -1).view(self.B, self.E)
         self.used[:, self.t * self.E : (self.t + 1) * self.E] = keys
         c = count.masked_fill(~act, -1).view(self.B, self.E)
-        cmax, e = c.max(1)
-        h = hyps.view(self.B, self.E, *hyps.shape[1:])[torch.arange(self.B), e]
-        better = cmax > self.best_count
-        if self.best_hyp is None:
-            self.best_hyp = h.clone()
-        self.best_hyp = torch.where(better.view(-1, *[1] * (h.dim() - 1)), h, self.best_hyp)
-        self.best_count = torch.where(better, cmax, self.best_count)
+        coords, mask = self.instances()
+        self.best = update_best(task, conf.lo, coords, mask, self.best, hyps.view(self.B, self.E, *hyps.shape[1:]),
+                                c, res.view(self.B, self.E, -1), self.gen)
+        self.best_hyp, self.best_count = self.best.hyp, self.best.count
         self.hypotheses += int(act.sum())
         self.last_hyps, self.last_inliers = hyps, inl
 
@@ -190,8 +191,14 @@ class SampleConsensusEnv:
         return reward * act, newly, act
 
     # ---------------------------------------------------------------- output
-    def result(self) -> dict[str, torch.Tensor]:
-        """Best hypothesis per instance over all episodes, refined on its inliers."""
+    def instances(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """coords (B, N, d), mask (B, N) of the instances (rows are instance-major)."""
         coords = self.coords.view(self.B, self.E, *self.coords.shape[1:])[:, 0]
-        mask = self.mask.view(self.B, self.E, -1)[:, 0]
+        return coords, self.mask.view(self.B, self.E, -1)[:, 0]
+
+    def result(self) -> dict[str, torch.Tensor]:
+        """Best hypothesis per instance over all episodes, refined on its inliers (with LO: rlsac.lo.finish)."""
+        coords, mask = self.instances()
+        if self.conf.lo.enabled:
+            return finish(self.task, self.conf.lo, coords, mask, self.best, self.gen)
         return finalize(self.task, coords, mask, self.best_hyp, self.best_count >= self.task.sample_size)

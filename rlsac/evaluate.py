@@ -40,6 +40,9 @@ OPENCV_METHODS = ("opencv_ransac", "usac", "usac_accurate", "magsac")
 OPENCV_FLAG = {"opencv_ransac": "ransac", "usac": "usac", "usac_accurate": "usac_accurate", "magsac": "magsac"}
 METHODS = ("ransac", "rlsac", "uniform", "oracle") + OPENCV_METHODS
 DEFAULT_ITERATIONS = {"line": 150, "fundamental": 1000}
+# not in the paper: the same samplers with local optimisation and the `lo` options' score (rlsac.lo)
+LO_METHODS = ("ransac-lo", "uniform-lo", "rlsac-lo")
+METHODS = METHODS + LO_METHODS
 EXPERIMENT = {"line": "lines", "fundamental": "fundamental"}
 DEFAULTS: dict[str, Any] = {
     "checkpoint": None,
@@ -52,6 +55,7 @@ DEFAULTS: dict[str, Any] = {
     "sampling": "max",  # RLSAC test-time sampling: max (paper) or prob (ablation)
     "tags": None,  # extra MLflow run tags, e.g. {"ablation": "sampling", "variant": "full"} (rlsac.ablate)
 }
+    "lo": None,  # *-lo methods: rlsac.lo.LOConf options (params.yaml evaluate.<task>.lo); ignored by the others
 
 
 def resolve_device(device: str | None) -> str:
@@ -115,8 +119,14 @@ def check_options(options: dict[str, Any]) -> dict[str, Any]:
         raise RlsacError(f"method '{o['method']}' is OpenCV's fundamental-matrix estimator: use --task fundamental")
     if o["method"] == "oracle" and o["task"] != "line":
         raise RlsacError("method 'oracle' needs the true inlier mask, which only synthetic lines have: use --task line")
-    if o["method"] == "rlsac" and not o["checkpoint"]:
-        raise RlsacError("method 'rlsac' needs --checkpoint")
+    if o["method"] in ("rlsac", "rlsac-lo") and not o["checkpoint"]:
+        raise RlsacError(f"method '{o['method']}' needs --checkpoint")
+    if o["method"] in LO_METHODS:  # bad LO options fail before any work
+        from rlsac.lo import conf_for_method
+
+        conf_for_method(o["method"], o["lo"])
+    if o["checkpoint"] and o["method"] not in ("rlsac", "rlsac-lo"):  # it would only mislabel the run and its outputs
+        raise RlsacError(f"--checkpoint is used by --method rlsac only, not by {o['method']}")
     if o["checkpoint"] and not Path(o["checkpoint"]).is_file():
         raise RlsacError(f"{o['checkpoint']}: no such checkpoint file")
     if o["iterations"] is None:
@@ -139,14 +149,24 @@ def run_name(o: dict[str, Any]) -> str:
     return f"{o['task']}_{o['method']}{model}_{Path(o['data']).stem}_i{o['iterations']}_s{o['seed']}"
 
 
-def make_estimator(o: dict[str, Any], device: str) -> tuple[Task, Callable[[dict, torch.Generator], dict], dict]:
-    """-> (task, estimate(batch, generator) -> {hyp, valid, inliers} torch tensors, extra run params)."""
+def make_estimator(o: dict[str, Any], device: str, lo=None
+                   ) -> tuple[Task, Callable[[dict, torch.Generator], dict], dict]:
+    """-> (task, estimate(batch, generator) -> {hyp, valid, inliers} torch tensors, extra run params).
+    ``lo``: the rlsac.lo.LOConf of a ``*-lo`` method, passed to its base method's sampler."""
     method, iterations = o["method"], o["iterations"]
     if method == "ransac":
         from rlsac.baselines import ransac
 
         task = task_from(o["task"])
-        return task, lambda batch, g: ransac(task, batch, iterations, g), {}
+        return task, lambda batch, g: ransac(task, batch, iterations, g, lo=lo), {}
+    if method in LO_METHODS:  # the base method with LO; its budget summed into the summary (CountingEstimate)
+        from dataclasses import asdict
+
+        from rlsac.lo import CountingEstimate, conf_for_method
+
+        lo = conf_for_method(method, o["lo"])
+        task, estimate, extra = make_estimator({**o, "method": method.removesuffix("-lo")}, device, lo)
+        return task, CountingEstimate(estimate), {**extra, "lo": asdict(lo)}
     if method == "oracle":
         from rlsac.baselines import oracle
 
@@ -168,13 +188,13 @@ def make_estimator(o: dict[str, Any], device: str) -> tuple[Task, Callable[[dict
 
     if method == "uniform":  # the RLSAC environment with uniform minimal sets: the learned sampler's control
         task = task_from(o["task"])
-        env = checkpoint_env({}, o["steps_per_episode"])
+        env = _with_lo(checkpoint_env({}, o["steps_per_episode"]), lo)
         return task, lambda batch, g: rlsac_estimate(task, batch, None, iterations, env, generator=g), \
             {"steps_per_episode": env.steps_per_episode}
     actor, ckpt_conf = load_actor(o["checkpoint"], device)
     ckpt_conf = dict(ckpt_conf or {})
     task = task_from(o["task"], checkpoint_task_options(ckpt_conf))
-    env = checkpoint_env(ckpt_conf, o["steps_per_episode"])
+    env = _with_lo(checkpoint_env(ckpt_conf, o["steps_per_episode"]), lo)
 
     def estimate(batch, g):
         return rlsac_estimate(task, batch, actor, iterations, env, sampling=o["sampling"], generator=g)
@@ -187,6 +207,13 @@ def pair_seed(seed: int, scene: str, pair: str) -> int:
     order or on the other pairs in it (a stable hash, unlike Python's salted ``hash``)."""
     digest = hashlib.sha256(f"{int(seed)}/{scene}/{pair}".encode()).digest()
     return int.from_bytes(digest[:8], "little") & (2**63 - 1)
+def _with_lo(env, lo):
+    """The environment conf with LO ``lo`` (rlsac.lo.LOConf), or unchanged when ``lo`` is None."""
+    from dataclasses import replace
+
+    return env if lo is None else replace(env, lo=lo)
+
+
 
 
 def run_method(task: Task, estimate: Callable, data: dict, to_batch: Callable, n: int, seed: int,
@@ -259,6 +286,8 @@ def evaluate(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
         write_json(json_path, summary)
         summary["out_dir"] = str(out_dir)
         run.metrics({k: v for k, v in summary.items() if isinstance(v, (int, float)) and not isinstance(v, bool)
+        if hasattr(estimate, "summary"):  # *-lo methods: the LO budget actually spent (rlsac.lo.CountingEstimate)
+            summary.update(estimate.summary(n, seconds))
                      and k not in ("iterations", "seed", "steps_per_episode")})
         run.artifact(csv_path)
         run.artifact(json_path)
