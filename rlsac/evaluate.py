@@ -298,7 +298,7 @@ def evaluate(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
 def format_summary(summary: dict[str, Any]) -> str:
     """One line: method, data and the task's metrics."""
     skip = {"task", "method", "iterations", "data", "checkpoint", "seed", "device", "n_instances", "seconds",
-            "seconds_per_instance", "out_dir", "run_id", "steps_per_episode", "n"}
+            "seconds_per_instance", "out_dir", "run_id", "steps_per_episode", "n", "lo"}
     metrics = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
                         for k, v in summary.items() if k not in skip)
     return (f"{summary['method']} on {summary['data']} ({summary['n_instances']} instances, "

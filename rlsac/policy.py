@@ -48,6 +48,10 @@ class PolicyConf:
     graph_dims: int = 2  # data channels the first kNN graph uses (coordinates)
     dynamic: bool = False  # True rebuilds the graph in feature space per layer (DGCNN); off: 3x cheaper on CPU
 
+    # checked by rlsac.config.build (widths: each layer)
+    ranges = {"k": "[1, inf)", "widths": "[1, inf)", "global_width": "[1, inf)", "head_width": "[1, inf)",
+              "graph_dims": "[1, inf)"}
+
 
 def knn(x: torch.Tensor, k: int, mask: torch.Tensor | None) -> torch.Tensor:
     """x (R, N, C) -> neighbour indices (R, N, k) (self included), never pointing at masked points."""

@@ -30,6 +30,8 @@ LINE_LIMIT_DEG = 0.5  # Table 1's mAA limit (thresholds 0.05..0.5 deg)
 PAIRED_BOOT = 2000  # bootstrap resamples of the Table 1 paired comparison: interval ends stable to ~0.001
 # directory -> Table 1 row; "oracle" (TLS on the true inliers) is ours only: the reference a sampler aims at
 LINE_METHODS = {"ransac": "RANSAC", "ours": "Ours", "ours-0.5": "Ours-0.5", "oracle": "Oracle"}
+# extra rows (issue #14), shown when at least one of their results exists: the samplers with local optimisation
+LINE_LO_METHODS = {"ransac-lo": "RANSAC-LO (not in the paper)", "ours-lo": "Ours-LO (not in the paper)"}
 # Table 2 rows: (directory, row label, paper row or None, note)
 FUNDAMENTAL_ROWS = [
     ("opencv_ransac", "RANSAC", "RANSAC", "OpenCV FM_RANSAC"),
@@ -170,7 +172,9 @@ def table1(eval_root: str | Path = "reports/eval", out_dir: str | Path = "report
     root = Path(eval_root) / "lines"
     missing: list[str] = []
     rows, found = [], []
-    for d, label in LINE_METHODS.items():
+    lo_rows = {d: v for d, v in LINE_LO_METHODS.items()
+               if any((root / d / f"o{r:g}" / "summary.json").is_file() for r in rates)}
+    for d, label in {**LINE_METHODS, **lo_rows}.items():
         ours: dict[str, Any] = {"method": label, "source": "ours"}
         pap: dict[str, Any] = {"method": label, "source": "paper"}
         for r in rates:
@@ -201,7 +205,14 @@ def table1(eval_root: str | Path = "reports/eval", out_dir: str | Path = "report
         notes = ("Paired comparison with our RANSAC on the same test instances: mAA@0.5° difference and its 95% "
                  f"interval (percentile bootstrap over instances, {PAIRED_BOOT} resamples, seed 0).\n\n"
                  + paired.to_markdown(index=False, disable_numparse=True) + "\n")
-    df.attrs.update(caption=caption, missing=missing, paired=paired)
+    gap = _gap_closed(df, rates) if lo_rows else None
+    if gap is not None:
+        notes += ("\nNot in the paper (issue #14): share of the RANSAC → Oracle mAA gap that each method closes, "
+                  "(mAA − mAA_RANSAC) / (mAA_Oracle − mAA_RANSAC); above 100% = better than TLS on the true "
+                  "inliers; – where the gap is under 0.005. *-LO = the sampler with local optimisation (`rlsac.lo`, "
+                  "params.yaml evaluate.line.lo).\n\n"
+                  + gap.to_markdown(index=False, disable_numparse=True) + "\n")
+    df.attrs.update(caption=caption, missing=missing, paired=paired, gap=gap)
     df.attrs["files"] = _write(text, df, Path(out_dir), "table1_lines", "Table 1: 2D line fitting", caption, notes)
     _report_missing("table 1", missing)
     return df
@@ -215,10 +226,14 @@ def _paired_vs_ransac(root: Path, rates) -> pd.DataFrame | None:
 
     ransac = {r: errors("ransac", r) for r in rates}
     rows = []
-    for d in ("ours", "ours-0.5"):
-        row: dict[str, str] = {"comparison": f"{LINE_METHODS[d]} − RANSAC"}
+    pairs = [("ours", "ransac"), ("ours-0.5", "ransac")]
+    if any((root / "ours-lo" / f"o{r:g}" / "errors.csv").is_file() for r in rates):
+        pairs += [("ours-lo", "ransac-lo"), ("ours-lo", "ransac")]  # not in the paper: LO rows (issue #14)
+    names = {**LINE_METHODS, "ransac-lo": "RANSAC-LO", "ours-lo": "Ours-LO"}
+    for d, base in pairs:
+        row: dict[str, str] = {"comparison": f"{names[d]} − {names[base]}"}
         for r in rates:
-            a, b = errors(d, r), ransac[r]
+            a, b = errors(d, r), ransac[r] if base == "ransac" else errors(base, r)
             if a is None or b is None or a.size != b.size:
                 row[f"o={r:g}"] = DASH
                 continue
@@ -226,6 +241,26 @@ def _paired_vs_ransac(root: Path, rates) -> pd.DataFrame | None:
             row[f"o={r:g}"] = f"{diff:+.3f} [{lo:+.3f}, {hi:+.3f}]"
         rows.append(row)
     df = pd.DataFrame(rows)
+def _gap_closed(df: pd.DataFrame, rates) -> pd.DataFrame | None:
+    """Per rate, (mAA - RANSAC) / (Oracle - RANSAC) of our rows other than RANSAC and Oracle, as text;
+    None when no rate has both ends. A gap under 0.005 mAA is too small to share out: shown as –."""
+    ours = df[df["source"] == "ours"].set_index("method")
+    if "RANSAC" not in ours.index or "Oracle" not in ours.index:
+        return None
+    rows = []
+    for label in ours.index:
+        if label in ("RANSAC", "Oracle"):
+            continue
+        row = {"method": label}
+        for r in rates:
+            lo, hi, v = (ours.loc[m, f"{r:g} mAA"] for m in ("RANSAC", "Oracle", label))
+            ok = not any(math.isnan(x) for x in (lo, hi, v)) and hi - lo >= 0.005
+            row[f"o={r:g}"] = f"{100 * (v - lo) / (hi - lo):.0f}%" if ok else DASH
+        rows.append(row)
+    out = pd.DataFrame(rows)
+    return None if out.empty or (out.drop(columns="method") == DASH).all().all() else out
+
+
     return None if (df.drop(columns="comparison") == DASH).all().all() else df
 
 
@@ -331,7 +366,7 @@ def metrics(eval_root: str | Path = "reports/eval", out_dir: str | Path = "repor
     """Headline numbers for ``dvc metrics show`` -> <out_dir>/metrics.json (only results that exist)."""
     root = Path(eval_root)
     out: dict[str, Any] = {"lines": {}, "fundamental_1k": {}, "ablation": {}}
-    for d in LINE_METHODS:
+    for d in {**LINE_METHODS, **LINE_LO_METHODS}:
         for r in paper.TABLE1_RATES:
             s = read_summary(root / "lines" / d / f"o{r:g}" / "summary.json")
             if s is not None:
