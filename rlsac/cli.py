@@ -104,7 +104,7 @@ def lines_data(tracking: bool, params_path: str, **options) -> None:
 @click.option("--scenes", help="Comma-separated scene names. [default: every scene]")
 @click.option("--max-features", type=int, help="SIFT keypoints per image. [default: 8000]")
 @click.option("--rootsift/--no-rootsift", default=None, help="RootSIFT descriptors. [default: on]")
-@click.option("--min-matches", type=int, help="Drop pairs with fewer good matches. [default: 30]")
+@click.option("--min-matches", type=int, help="Drop pairs with fewer good matches. [default: 100]")
 @click.option("--set", "sets", multiple=True, metavar="KEY=VALUE", help="Other ImportConf field; repeatable.")
 @tracking_option
 def import_scenes(tracking: bool, sets: tuple[str, ...], **options) -> None:
@@ -144,7 +144,8 @@ def prepare_cvpr2020(tracking: bool, sets: tuple[str, ...], **options) -> None:
 @click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), help="auto = cuda if available.")
 @click.option("--params", "params_path", default="params.yaml", show_default=True,
               help="params.yaml; its train.<task> section gives the defaults.")
-@click.option("--set", "sets", multiple=True, metavar="KEY=VALUE", help="Override, e.g. --set optim.lr=1e-4.")
+@click.option("--set", "sets", multiple=True, metavar="KEY=VALUE",
+              help="Override a TrainConf field, e.g. --set sac.actor_lr=1e-4.")
 @tracking_option
 def train(task: str, tracking: bool, params_path: str, sets: tuple[str, ...], **flags) -> None:
     """Train an RLSAC policy (rlsac.train)."""

@@ -221,3 +221,56 @@ def test_lo_conf_checks():
     with pytest.raises(RlsacError, match="residuals"):
         update_best(LINE, LOConf(enabled=True), torch.zeros(2, 5, 2), torch.ones(2, 5, dtype=torch.bool),
                     Best.empty(2, "cpu"), torch.zeros(2, 3, 3), torch.zeros(2, 3, dtype=torch.long))
+
+
+def test_table1_lo_rows_gap_and_pairs(workdir):
+    import json
+
+    import pandas as pd
+
+    from rlsac.reports import tables
+
+    ev = workdir / "ev" / "lines"
+    values = {"ransac": 0.70, "oracle": 0.80, "ransac-lo": 0.75, "ours-lo": 0.82, "ours": 0.72}
+    for d, v in values.items():
+        for r, shift in ((0.5, 0.0), (0.1, 0.098)):  # o=0.1: RANSAC 0.798 vs Oracle 0.898 ... shifted alike
+            p = ev / d / f"o{r:g}"
+            p.mkdir(parents=True)
+            (p / "summary.json").write_text(json.dumps({"mAA": v + shift, "median_deg": 0.1, "n_instances": 4}))
+    (ev / "oracle" / "o0.1" / "summary.json").write_text(json.dumps({"mAA": 0.801, "median_deg": 0.1}))  # tiny gap
+    for d, errs in (("ransac", [0.02, 0.02, 1.0, 1.0]), ("ransac-lo", [0.02, 0.02, 0.02, 1.0]),
+                    ("ours-lo", [0.02] * 4)):
+        pd.DataFrame({"instance": range(4), "err_deg": errs}).to_csv(ev / d / "o0.5" / "errors.csv", index=False)
+    df = tables.table1("ev", "out")
+    assert {"RANSAC-LO (not in the paper)", "Ours-LO (not in the paper)"} <= set(df["method"])
+    assert set(df.loc[df["method"].str.contains("-LO"), "source"]) == {"ours"}
+    gap = df.attrs["gap"].set_index("method")
+    assert gap.loc["RANSAC-LO (not in the paper)", "o=0.5"] == "50%"
+    assert gap.loc["Ours-LO (not in the paper)", "o=0.5"] == "120%"
+    assert gap.loc["Ours", "o=0.5"] == "20%" and gap.loc["Ours", "o=0.1"] == "–"  # gap 0.003: not shared out
+    paired = df.attrs["paired"].set_index("comparison")
+    assert paired.loc["Ours-LO − RANSAC-LO", "o=0.5"].startswith("+0.250 [")
+    assert paired.loc["Ours-LO − RANSAC", "o=0.5"].startswith("+0.500 [")
+    assert "RANSAC → Oracle" in (workdir / "out" / "table1_lines.md").read_text()
+
+
+def test_evaluate_lo_methods_report_their_budget(workdir):
+    from rlsac.evaluate import evaluate
+
+    d = lines.generate(build(LineDataConf, {"n_instances": 12, "seed": 4, "outlier_rate": 0.5}))
+    path = lines.write(workdir / "l.h5", d, build(LineDataConf, {"n_instances": 12, "seed": 4}))
+    lo = {"score": "msac", "iterations": 2}
+    s = evaluate({"task": "line", "method": "ransac-lo", "data": str(path), "iterations": 20, "lo": lo,
+                  "out_dir": "a"}, track=False)
+    assert s["lo"]["enabled"] and s["lo"]["score"] == "msac"
+    assert s["lo_fits_per_instance"] == 2 * s["lo_calls_per_instance"] >= 4  # >= 1 improvement + the final
+    u = evaluate({"task": "line", "method": "uniform-lo", "data": str(path), "iterations": 20, "lo": lo,
+                  "steps_per_episode": 5, "out_dir": "b"}, track=False)
+    assert u["lo_calls_per_instance"] >= 2 and 0 < u["lo_time_fraction"] < 1
+    plain = evaluate({"task": "line", "method": "ransac", "data": str(path), "iterations": 20, "lo": lo,
+                      "out_dir": "c"}, track=False)
+    assert "lo_calls_per_instance" not in plain  # the options are ignored by methods without LO
+    with pytest.raises(RlsacError, match="unknown config key"):
+        evaluate({"task": "line", "method": "ransac-lo", "data": str(path), "lo": {"bogus": 1}}, track=False)
+    with pytest.raises(RlsacError, match="needs --checkpoint"):
+        evaluate({"task": "line", "method": "rlsac-lo", "data": str(path)}, track=False)

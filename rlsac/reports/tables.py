@@ -218,6 +218,26 @@ def table1(eval_root: str | Path = "reports/eval", out_dir: str | Path = "report
     return df
 
 
+def _gap_closed(df: pd.DataFrame, rates) -> pd.DataFrame | None:
+    """Per rate, (mAA - RANSAC) / (Oracle - RANSAC) of our rows other than RANSAC and Oracle, as text;
+    None when no rate has both ends. A gap under 0.005 mAA is too small to share out: shown as –."""
+    ours = df[df["source"] == "ours"].set_index("method")
+    if "RANSAC" not in ours.index or "Oracle" not in ours.index:
+        return None
+    rows = []
+    for label in ours.index:
+        if label in ("RANSAC", "Oracle"):
+            continue
+        row = {"method": label}
+        for r in rates:
+            lo, hi, v = (ours.loc[m, f"{r:g} mAA"] for m in ("RANSAC", "Oracle", label))
+            ok = not any(math.isnan(x) for x in (lo, hi, v)) and hi - lo >= 0.005
+            row[f"o={r:g}"] = f"{100 * (v - lo) / (hi - lo):.0f}%" if ok else DASH
+        rows.append(row)
+    out = pd.DataFrame(rows)
+    return None if out.empty or (out.drop(columns="method") == DASH).all().all() else out
+
+
 def _paired_vs_ransac(root: Path, rates) -> pd.DataFrame | None:
     """Ours / Ours-0.5 minus RANSAC per rate from the per-instance errors; None if nothing to pair."""
     def errors(d: str, r: float):
@@ -241,26 +261,6 @@ def _paired_vs_ransac(root: Path, rates) -> pd.DataFrame | None:
             row[f"o={r:g}"] = f"{diff:+.3f} [{lo:+.3f}, {hi:+.3f}]"
         rows.append(row)
     df = pd.DataFrame(rows)
-def _gap_closed(df: pd.DataFrame, rates) -> pd.DataFrame | None:
-    """Per rate, (mAA - RANSAC) / (Oracle - RANSAC) of our rows other than RANSAC and Oracle, as text;
-    None when no rate has both ends. A gap under 0.005 mAA is too small to share out: shown as –."""
-    ours = df[df["source"] == "ours"].set_index("method")
-    if "RANSAC" not in ours.index or "Oracle" not in ours.index:
-        return None
-    rows = []
-    for label in ours.index:
-        if label in ("RANSAC", "Oracle"):
-            continue
-        row = {"method": label}
-        for r in rates:
-            lo, hi, v = (ours.loc[m, f"{r:g} mAA"] for m in ("RANSAC", "Oracle", label))
-            ok = not any(math.isnan(x) for x in (lo, hi, v)) and hi - lo >= 0.005
-            row[f"o={r:g}"] = f"{100 * (v - lo) / (hi - lo):.0f}%" if ok else DASH
-        rows.append(row)
-    out = pd.DataFrame(rows)
-    return None if out.empty or (out.drop(columns="method") == DASH).all().all() else out
-
-
     return None if (df.drop(columns="comparison") == DASH).all().all() else df
 
 

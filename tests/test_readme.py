@@ -1,0 +1,310 @@
+"""Every command the README (and experiments/README.md) shows, and every example in the ``--help`` texts, is
+accepted as written: ``rlsac`` commands by the CLI parser, their ``--set KEY=VALUE`` overrides by the
+configuration they override, ``dvc`` commands by DVC's parser with real stage names, ``mlflow`` commands by
+MLflow's. Nothing heavy is run; the fresh-clone line is checked against what CI installs.
+"""
+
+from __future__ import annotations
+
+import re
+import shlex
+import sys
+from pathlib import Path
+
+import click
+import pytest
+from dvc import repo as dvc_repo
+from dvc.cli import DvcParserError, parse_args
+
+from rlsac import ablate as ablate_mod
+from rlsac.cli import cli
+from rlsac.commands import parse_sets, train_options
+from rlsac.config import build
+from rlsac.data.lines import LineDataConf
+from rlsac.data.scenes import ImportConf
+from rlsac.data.tutorial import PrepareConf
+from rlsac.reports import figures
+from rlsac.train import TrainConf
+
+ROOT = Path(__file__).resolve().parents[1]
+DOCS = [ROOT / "README.md", ROOT / "experiments" / "README.md"]
+FENCE = re.compile(r"^```(\w*)\n(.*?)^```", re.S | re.M)
+INLINE = re.compile(r"`((?:rlsac|dvc|mlflow|\.venv/bin/\w+) [^`]+)`")
+PLACEHOLDER = re.compile(r"<[^>]+>|\.\.\.|\bCKPT\b|\bFILE\b|\bDIR\b|\bNAME\b|\bN\b|\bCOMMAND\b")
+VENV_TOOLS = {"rlsac", "dvc", "mlflow", "python", "pip", "pytest", "ruff"}
+
+
+# ----------------------------------------------------------------------------------------------- reading
+
+
+def _commands(line: str) -> list[list[str]]:
+    """One shell line -> its commands (split at &&, ;), comments dropped, ``.venv/bin/`` prefixes removed."""
+    argv = shlex.split(line, comments=True)
+    out, cur = [], []
+    for tok in argv:
+        if tok in ("&&", ";", "||"):
+            out.append(cur)
+            cur = []
+        else:
+            cur.append(tok)
+    out.append(cur)
+    cmds = []
+    for c in out:
+        if c and c[0].startswith(".venv/bin/") and c[0].split("/")[-1] in VENV_TOOLS:
+            c = [c[0].split("/")[-1], *c[1:]]
+        if c:
+            cmds.append(c)
+    return cmds
+
+
+def block_commands(text: str) -> list[tuple[str, list[str]]]:
+    """(line, argv) of every command in the fenced bash blocks of ``text``."""
+    found = []
+    for lang, body in FENCE.findall(text):
+        if lang not in ("bash", "sh"):
+            continue
+        for line in body.replace("\\\n", " ").splitlines():
+            if line.strip() and not line.lstrip().startswith("#"):
+                found += [(line, argv) for argv in _commands(line)]
+    return found
+
+
+def inline_commands(text: str) -> list[tuple[str, list[str], bool]]:
+    """(text, argv, complete) of commands in backticks outside code blocks; ``complete`` = a first table cell
+    (a full command line) rather than a mention in prose (which may leave out required options)."""
+    prose = FENCE.sub("", text)
+    found = []
+    for line in prose.splitlines():
+        first_cell = line.startswith("| `")
+        for i, m in enumerate(INLINE.finditer(line)):
+            s = m.group(1).replace("\\|", "|")
+            if PLACEHOLDER.search(s) or "|" in s:
+                continue
+            for argv in _commands(s):
+                found.append((s, argv, first_cell and i == 0))
+    return found
+
+
+def help_texts() -> list[tuple[str, str]]:
+    """(command, help text) of the group, every command and every option."""
+    out = [("", cli.help or "")]
+    for name, cmd in cli.commands.items():
+        out.append((name, cmd.help or ""))
+        for p in cmd.params:
+            if isinstance(p, click.Option):
+                out.append((name, p.help or ""))
+    return out
+
+
+# ---------------------------------------------------------------------------------------------- checking
+
+
+SET_CONF = {"import-scenes": ImportConf, "prepare-cvpr2020": PrepareConf}
+
+
+def check_sets(command: str, sets: list[str], task: str = "line") -> None:
+    """Apply ``--set`` overrides the way the command does; raises on an unknown key or a bad value."""
+    overrides = parse_sets(sets)
+    if command == "train":
+        build(TrainConf, train_options(task, {}, sets, ROOT / "params.yaml"), "train")
+    elif command in SET_CONF:
+        build(SET_CONF[command], overrides, SET_CONF[command].__name__)
+    elif command == "plot":
+        figures._options(overrides)
+    elif command == "ablate":
+        ablate_mod.check_options({"what": "all", **overrides})
+    elif overrides:
+        raise AssertionError(f"rlsac {command} takes no --set")
+
+
+def check_rlsac(argv: list[str], complete: bool = True) -> None:
+    if argv[1:] and argv[1] in ("--help", "-h", "--version"):
+        return
+    assert len(argv) >= 2 and argv[1] in cli.commands, f"unknown rlsac command: {argv}"
+    cmd = cli.commands[argv[1]]
+    if complete:
+        ctx = cmd.make_context(argv[1], argv[2:])  # unknown option, bad value or missing required option
+        sets = list(ctx.params.get("sets") or [])
+        check_sets(argv[1], sets, ctx.params.get("task") or "line")
+        if ctx.params.get("method") == "rlsac":
+            assert ctx.params.get("checkpoint"), f"{argv}: --method rlsac needs --checkpoint"
+    else:
+        known = {o for p in cmd.params for o in (*p.opts, *p.secondary_opts)}
+        for tok in argv[2:]:
+            if tok.startswith("-"):
+                assert tok.split("=")[0] in known, f"rlsac {argv[1]}: unknown option {tok}"
+
+
+_STAGES: dict[str, set[str]] = {}
+
+
+def _stage_names(where: Path) -> set[str]:
+    if str(where) not in _STAGES:
+        with dvc_repo.Repo(str(where)) as repo:
+            names = {s.name for s in repo.index.stages}
+        _STAGES[str(where)] = names | {n.split("@")[0] for n in names}
+    return _STAGES[str(where)]
+
+
+def check_dvc(argv: list[str]) -> None:
+    try:
+        args = parse_args(argv[1:])
+    except DvcParserError as e:
+        raise AssertionError(f"dvc rejects {shlex.join(argv)}") from e
+    where = ROOT / (args.cd or ".")
+    assert (where / "dvc.yaml").exists(), f"{shlex.join(argv)}: no dvc.yaml in {where}"
+    if args.func.__name__ == "CmdRepro" or argv[1:].count("repro") or "repro" in argv:
+        for t in getattr(args, "targets", None) or []:
+            assert t in _stage_names(where), f"{shlex.join(argv)}: no stage {t!r} (`dvc stage list`)"
+
+
+def check_mlflow(argv: list[str]) -> None:
+    from mlflow.cli import cli as mlflow_cli
+
+    cmd = mlflow_cli.get_command(click.Context(mlflow_cli), argv[1])  # `ui` is an alias of `server`
+    assert cmd is not None, f"mlflow has no command {argv[1]}"
+    cmd.make_context(argv[1], argv[2:])
+
+
+def check_other(argv: list[str], line: str) -> None:
+    prog = argv[0]
+    if prog == "python3":
+        assert argv[1:3] == ["-m", "venv"], line
+    elif prog == ".":
+        assert argv[1] == ".venv/bin/activate", line
+    elif prog == "pip":
+        assert argv[1] == "install" and ci_install_args() == argv[2:], f"{line}: not what .ci/run installs"
+    elif prog == "python":
+        assert argv[1:3] == ["-m", "pytest"], line
+    elif prog == "bash":
+        assert (ROOT / argv[1]).is_file(), line
+    elif prog == "mlflow":
+        check_mlflow(argv)
+    else:
+        raise AssertionError(f"a README command this test does not know how to check: {line}")
+
+
+def check(argv: list[str], line: str, complete: bool = True) -> None:
+    if argv[0] == "rlsac":
+        check_rlsac(argv, complete)
+    elif argv[0] == "dvc":
+        check_dvc(argv)
+    else:
+        check_other(argv, line)
+
+
+def ci_install_args() -> list[str]:
+    for line in (ROOT / ".ci" / "run").read_text().splitlines():
+        if " -m pip install " in line and not line.lstrip().startswith("#"):
+            argv = shlex.split(line)
+            return [a for a in argv[argv.index("install") + 1:] if a != "-q"]
+    raise AssertionError(".ci/run installs nothing")
+
+
+# ------------------------------------------------------------------------------------------------- tests
+
+
+@pytest.mark.parametrize("doc", DOCS, ids=lambda p: p.relative_to(ROOT).as_posix())
+def test_every_code_block_command_is_accepted(doc):
+    found = block_commands(doc.read_text())
+    assert found
+    for line, argv in found:
+        check(argv, line)
+
+
+@pytest.mark.parametrize("doc", DOCS, ids=lambda p: p.relative_to(ROOT).as_posix())
+def test_every_inline_command_is_accepted(doc):
+    found = inline_commands(doc.read_text())
+    assert found
+    for text, argv, complete in found:
+        check(argv, text, complete)
+
+
+def test_readme_starts_with_the_two_fresh_clone_commands():
+    """The first two code blocks: install + the main job on the embedded default (in the venv it activates),
+    then the tests; the install is the one CI makes."""
+    text = (ROOT / "README.md").read_text()
+    blocks = [body.strip() for lang, body in FENCE.findall(text) if lang == "bash"]
+    assert text.index("```bash") < 1500, "the two commands come first"
+    first, second = blocks[0], blocks[1]
+    assert "\n" not in first and "\n" not in second
+    cmds = _commands(first)
+    assert [c[0] for c in cmds] == ["python3", ".", "pip", "rlsac"]
+    assert cmds[1] == [".", ".venv/bin/activate"]  # later bare rlsac/dvc/mlflow commands find the venv
+    assert cmds[3] == ["rlsac", "calibrate-lines"]
+    assert _commands(second) == [["python", "-m", "pytest", "-q"]] and second.startswith(".venv/bin/python")
+    for argv in cmds:
+        check(argv, first)
+
+
+def test_every_rlsac_command_is_documented():
+    text = (ROOT / "README.md").read_text()
+    for name in cli.commands:
+        if name == "folds":  # documented with the folds benchmark
+            continue
+        assert f"`rlsac {name}" in text, f"rlsac {name} missing from the README's command table"
+    assert "--method oracle" in text
+
+
+def test_help_examples_are_accepted():
+    seen = 0
+    for command, text in help_texts():
+        for m in re.finditer(r"--set\s+([\w.]+=\S+?)(?=[.,;)]?(?:\s|$))", text):
+            check_sets(command, [m.group(1)])
+            seen += 1
+        for m in re.finditer(r"`(rlsac [^`]+)`", text):
+            check_rlsac(shlex.split(m.group(1)), complete=False)
+    assert seen >= 1
+
+
+DEFAULT = re.compile(r"\[default: ([^\]]+)\]")
+HELP_CONF = {"synth-lines": LineDataConf, "import-scenes": ImportConf, "prepare-cvpr2020": PrepareConf}
+
+
+@pytest.mark.parametrize("command", list(HELP_CONF))
+def test_help_defaults_are_the_real_ones(command):
+    """A literal ``[default: X]`` in an option's help is the configuration's default for that field."""
+    conf = HELP_CONF[command]()
+    checked = 0
+    for p in cli.commands[command].params:
+        m = DEFAULT.search(getattr(p, "help", None) or "")
+        if not m or not hasattr(conf, p.name):
+            continue
+        shown, real = m.group(1).strip(), getattr(conf, p.name)
+        if isinstance(real, bool):
+            if shown in ("on", "off"):
+                assert shown == ("on" if real else "off"), f"{command} --{p.name}: help {shown}, real {real}"
+                checked += 1
+        elif isinstance(real, (int, float)):
+            try:
+                value = float(shown)
+            except ValueError:
+                continue
+            assert value == real, f"{command} {p.opts[0]}: help says {shown}, the default is {real}"
+            checked += 1
+        elif isinstance(real, str) and "/" in shown:
+            assert shown == real, f"{command} {p.opts[0]}: help says {shown}, the default is {real}"
+            checked += 1
+    assert checked >= 2
+
+
+def test_checker_rejects_what_the_issue_found():
+    """The examples the issue reported as rejected are rejected by these checks (the checks bite)."""
+    with pytest.raises(Exception, match="lr"):
+        check_sets("train", ["sac.lr=1e-4"])
+    with pytest.raises(Exception, match="optim"):
+        check_sets("train", ["optim.lr=1e-4"])
+    with pytest.raises(click.UsageError):
+        check_rlsac(["rlsac", "evaluate", "--task", "line", "--method", "nope", "--data", "x.h5"])
+    with pytest.raises(AssertionError):
+        check_dvc(["dvc", "repro", "-s", "no_such_stage"])
+    with pytest.raises(AssertionError):
+        check_dvc(["dvc", "metrics", "show", "--no-such-option"])
+    with pytest.raises(AssertionError):
+        check_other(["pip", "install", "torch"], "pip install torch")
+
+
+if __name__ == "__main__":  # print what is checked
+    for doc in DOCS:
+        for line, argv in block_commands(doc.read_text()):
+            print(doc.name, shlex.join(argv), file=sys.stdout)
