@@ -39,10 +39,10 @@ from rlsac.tracking import start_run
 OPENCV_METHODS = ("opencv_ransac", "usac", "usac_accurate", "magsac")
 OPENCV_FLAG = {"opencv_ransac": "ransac", "usac": "usac", "usac_accurate": "usac_accurate", "magsac": "magsac"}
 METHODS = ("ransac", "rlsac", "uniform", "oracle") + OPENCV_METHODS
-DEFAULT_ITERATIONS = {"line": 150, "fundamental": 1000}
 # not in the paper: the same samplers with local optimisation and the `lo` options' score (rlsac.lo)
 LO_METHODS = ("ransac-lo", "uniform-lo", "rlsac-lo")
 METHODS = METHODS + LO_METHODS
+DEFAULT_ITERATIONS = {"line": 150, "fundamental": 1000}
 EXPERIMENT = {"line": "lines", "fundamental": "fundamental"}
 DEFAULTS: dict[str, Any] = {
     "checkpoint": None,
@@ -54,8 +54,8 @@ DEFAULTS: dict[str, Any] = {
     "out_dir": None,
     "sampling": "max",  # RLSAC test-time sampling: max (paper) or prob (ablation)
     "tags": None,  # extra MLflow run tags, e.g. {"ablation": "sampling", "variant": "full"} (rlsac.ablate)
-}
     "lo": None,  # *-lo methods: rlsac.lo.LOConf options (params.yaml evaluate.<task>.lo); ignored by the others
+}
 
 
 def resolve_device(device: str | None) -> str:
@@ -154,11 +154,6 @@ def make_estimator(o: dict[str, Any], device: str, lo=None
     """-> (task, estimate(batch, generator) -> {hyp, valid, inliers} torch tensors, extra run params).
     ``lo``: the rlsac.lo.LOConf of a ``*-lo`` method, passed to its base method's sampler."""
     method, iterations = o["method"], o["iterations"]
-    if method == "ransac":
-        from rlsac.baselines import ransac
-
-        task = task_from(o["task"])
-        return task, lambda batch, g: ransac(task, batch, iterations, g, lo=lo), {}
     if method in LO_METHODS:  # the base method with LO; its budget summed into the summary (CountingEstimate)
         from dataclasses import asdict
 
@@ -167,6 +162,11 @@ def make_estimator(o: dict[str, Any], device: str, lo=None
         lo = conf_for_method(method, o["lo"])
         task, estimate, extra = make_estimator({**o, "method": method.removesuffix("-lo")}, device, lo)
         return task, CountingEstimate(estimate), {**extra, "lo": asdict(lo)}
+    if method == "ransac":
+        from rlsac.baselines import ransac
+
+        task = task_from(o["task"])
+        return task, lambda batch, g: ransac(task, batch, iterations, g, lo=lo), {}
     if method == "oracle":
         from rlsac.baselines import oracle
 
@@ -202,11 +202,6 @@ def make_estimator(o: dict[str, Any], device: str, lo=None
     return task, estimate, {"steps_per_episode": env.steps_per_episode}
 
 
-def pair_seed(seed: int, scene: str, pair: str) -> int:
-    """A pair's own random seed from (seed, scene, pair key): its result does not depend on the file's
-    order or on the other pairs in it (a stable hash, unlike Python's salted ``hash``)."""
-    digest = hashlib.sha256(f"{int(seed)}/{scene}/{pair}".encode()).digest()
-    return int.from_bytes(digest[:8], "little") & (2**63 - 1)
 def _with_lo(env, lo):
     """The environment conf with LO ``lo`` (rlsac.lo.LOConf), or unchanged when ``lo`` is None."""
     from dataclasses import replace
@@ -214,6 +209,11 @@ def _with_lo(env, lo):
     return env if lo is None else replace(env, lo=lo)
 
 
+def pair_seed(seed: int, scene: str, pair: str) -> int:
+    """A pair's own random seed from (seed, scene, pair key): its result does not depend on the file's
+    order or on the other pairs in it (a stable hash, unlike Python's salted ``hash``)."""
+    digest = hashlib.sha256(f"{int(seed)}/{scene}/{pair}".encode()).digest()
+    return int.from_bytes(digest[:8], "little") & (2**63 - 1)
 
 
 def run_method(task: Task, estimate: Callable, data: dict, to_batch: Callable, n: int, seed: int,
@@ -278,6 +278,8 @@ def evaluate(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
         summary.update(task=o["task"], method=o["method"], iterations=o["iterations"], data=str(o["data"]),
                        checkpoint=o["checkpoint"], seed=o["seed"], device=device, n_instances=n,
                        seconds=seconds, seconds_per_instance=seconds / n, **extra)
+        if hasattr(estimate, "summary"):  # *-lo methods: the LO budget actually spent (rlsac.lo.CountingEstimate)
+            summary.update(estimate.summary(n, seconds))
         ids = {k: data[k] for k in ("scene", "pair") if k in data and len(data[k]) == n}  # fundamental pairs
         frame = pd.DataFrame({"instance": np.arange(n), **ids, **errors, "n_inliers": counts})
         csv_path, json_path = out_dir / "errors.csv", out_dir / "summary.json"
@@ -286,8 +288,6 @@ def evaluate(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
         write_json(json_path, summary)
         summary["out_dir"] = str(out_dir)
         run.metrics({k: v for k, v in summary.items() if isinstance(v, (int, float)) and not isinstance(v, bool)
-        if hasattr(estimate, "summary"):  # *-lo methods: the LO budget actually spent (rlsac.lo.CountingEstimate)
-            summary.update(estimate.summary(n, seconds))
                      and k not in ("iterations", "seed", "steps_per_episode")})
         run.artifact(csv_path)
         run.artifact(json_path)

@@ -51,14 +51,33 @@ F_HEADERS = {"mAA_R": "mAA@10° R", "mAA_t": "mAA@10° t", "median_R": "median �
 
 
 def read_summary(path: str | Path) -> dict[str, Any] | None:
-    """summary.json -> dict, or None when the file is missing or unreadable."""
+    """summary.json -> dict, None when the file is missing; an empty or invalid one is an error naming it
+    (a table would otherwise show its cells as missing)."""
     path = Path(path)
     if not path.is_file():
         return None
     try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError):
+        s = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise RlsacError(f"{path}: not a valid summary.json ({e.__class__.__name__}); re-run its evaluation "
+                         "or remove it") from None
+    if not isinstance(s, dict):
+        raise RlsacError(f"{path}: not a valid summary.json (holds a {type(s).__name__}, not a mapping)")
+    return s
+
+
+def read_errors(path: Path, column: str = "err_deg"):
+    """Column ``column`` of an evaluation's errors.csv, None when the file is missing; a file without
+    the column (or not a CSV) is an error naming it."""
+    if not path.is_file():
         return None
+    try:
+        frame = pd.read_csv(path)
+    except (OSError, ValueError) as e:
+        raise RlsacError(f"{path}: not a readable errors.csv ({e.__class__.__name__})") from None
+    if column not in frame:
+        raise RlsacError(f"{path}: no '{column}' column (columns: {', '.join(map(str, frame.columns))})")
+    return pd.to_numeric(frame[column], errors="coerce").to_numpy()
 
 
 def _get(summary: dict | None, key: str) -> float:
@@ -242,7 +261,7 @@ def _paired_vs_ransac(root: Path, rates) -> pd.DataFrame | None:
     """Ours / Ours-0.5 minus RANSAC per rate from the per-instance errors; None if nothing to pair."""
     def errors(d: str, r: float):
         path = root / d / f"o{r:g}" / "errors.csv"
-        return pd.read_csv(path)["err_deg"].to_numpy() if path.is_file() else None
+        return read_errors(path)
 
     ransac = {r: errors("ransac", r) for r in rates}
     rows = []
@@ -395,7 +414,8 @@ def build(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
 
     -> {"which", "files", "missing", "run_id"}
     """
-    from rlsac.tracking import start_run
+    from rlsac.io import check_writable
+    from rlsac.tracking import check_store, start_run
 
     which = str(options.get("which") or "all")
     if which not in WHICH:
@@ -405,6 +425,13 @@ def build(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
     builders = {"1": table1, "2": table2, "3": table3}
     files: list[str] = []
     missing: list[str] = []
+    # inputs and outputs checked before anything is written (a bad result file is named, not shown as -)
+    for path in sorted(eval_root.glob("**/summary.json")):
+        read_summary(path)
+    for path in sorted(eval_root.glob("lines/*/o*/errors.csv")):
+        read_errors(path)
+    check_writable(out_dir / "metrics.json")
+    check_store(track)
     with start_run("reports", f"table {which}", params={"which": which, "eval_root": str(eval_root),
                                                         "out_dir": str(out_dir)},
                    tags={"command": "table"}, enabled=track) as run:

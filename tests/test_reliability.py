@@ -1,0 +1,425 @@
+"""Issue #15: every bad input is a one-line ``error: ...`` with exit 2 and nothing written.
+
+The matrix runs every subcommand through click's CliRunner in an empty working directory, with
+inputs prepared once per module outside it: bad files (text, HDF5 with the wrong keys or shapes),
+NaN / inf, too few points, degenerate data, unwritable outputs (a path under a regular file, /proc)
+and bad ``--set`` / params.yaml values. Each case asserts exit code 2, one stderr line starting with
+``error:`` that contains the expected fragment, no traceback, and an unchanged working directory.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from rlsac import config
+from rlsac.cli import cli
+from rlsac.data.lines import LineDataConf, generate, write
+from rlsac.errors import RlsacError
+from rlsac.sac import SACConf
+from rlsac.train import TrainConf
+
+PROC = "/proc/rlsac-no-such-dir"  # cannot be created, not even by root
+
+
+def _lines(path, n=6, n_points=20, seed=1, **edit):
+    conf = LineDataConf(outlier_rate=0.3, n_instances=max(n, 1), n_points=n_points, seed=seed)
+    data = generate(conf) if n > 0 else {"points": np.zeros((0, n_points, 2), np.float32),
+                                         "line": np.zeros((0, 3)), "inlier_mask": np.zeros((0, n_points), bool)}
+    for k, fn in edit.items():
+        data[k] = fn(data[k])
+    write(path, data, conf)
+    return path
+
+
+def _nan(a):
+    a = a.copy()
+    a[0, 0, 0] = np.nan
+    return a
+
+
+def _inf(a):
+    a = a.copy()
+    a[1, 3, 1] = np.inf
+    return a
+
+
+def _identical(a):
+    a = a.copy()
+    a[2] = a[2, 0]
+    return a
+
+
+def _fundamental(root: Path) -> Path:
+    """A small prepared fundamental file (test_tutorial's synthetic scene)."""
+    from test_tutorial import N_POINTS, make_scene  # tests/ is on sys.path (pytest prepend mode)
+
+    from rlsac.data.tutorial import PrepareConf, prepare
+
+    make_scene(root / "raw")
+    out = root / "fund.h5"
+    prepare(PrepareConf(root=str(root / "raw"), split="val", scenes="s1", n_points=N_POINTS, out=str(out)),
+            track=False, progress=False)
+    return out
+
+
+def _copy_h5(src: Path, dst: Path, **edit) -> Path:
+    with h5py.File(src) as f, h5py.File(dst, "w") as g:
+        for k in f:
+            v = f[k][()]
+            g[k] = edit[k](v) if k in edit else v
+        g.attrs.update(dict(f.attrs))
+    return dst
+
+
+def _zero_first(a):
+    a = a.copy()
+    a[0] = 0
+    return a
+
+
+def _same_coords(a):
+    a = a.copy()
+    a[1] = a[1, 0]
+    return a
+
+
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory):
+    d = tmp_path_factory.mktemp("inputs")
+    f = {"dir": d}
+    f["lines"] = _lines(d / "lines.h5")
+    f["lines_nan"] = _lines(d / "lines_nan.h5", points=_nan)
+    f["lines_inf"] = _lines(d / "lines_inf.h5", points=_inf)
+    f["lines_empty"] = _lines(d / "lines_empty.h5", n=0)
+    f["lines_degenerate"] = _lines(d / "lines_degenerate.h5", points=_identical)
+    f["lines_one_point"] = d / "lines_one_point.h5"
+    with h5py.File(f["lines_one_point"], "w") as h:
+        h["points"], h["line"], h["inlier_mask"] = np.ones((3, 1, 2)), np.ones((3, 3)), np.ones((3, 1), bool)
+    f["lines_shape"] = d / "lines_shape.h5"
+    with h5py.File(f["lines_shape"], "w") as h:
+        h["points"], h["line"], h["inlier_mask"] = np.ones((3, 20, 3)), np.ones((3, 3)), np.ones((3, 20), bool)
+    f["lines_wrong_key"] = d / "lines_wrong_key.h5"
+    with h5py.File(f["lines_wrong_key"], "w") as h:
+        h["pts"] = np.ones((3, 20, 2))
+    f["text"] = d / "notes.txt"
+    f["text"].write_text("not a checkpoint, not hdf5\n")
+    f["text_h5"] = d / "text.h5"
+    f["text_h5"].write_text("not hdf5\n")
+    f["blocker"] = d / "blocker"  # a regular file: nothing can be written under it
+    f["blocker"].write_text("x")
+    f["fund"] = _fundamental(d)
+    f["fund_singular"] = _copy_h5(f["fund"], d / "fund_singular.h5", K1=_zero_first)
+    f["fund_degenerate"] = _copy_h5(f["fund"], d / "fund_degenerate.h5", coords=_same_coords)
+    f["fund_nan"] = _copy_h5(f["fund"], d / "fund_nan.h5", coords=_nan)
+    params = {
+        "p_missing": None,
+        "p_list": "- a\n- b\n",
+        "p_scalar": "3\n",
+        "p_yaml": "train: [unclosed\n",
+        "p_lines_key": "lines_data:\n  bogus: 1\n",
+        "p_lines_band": "lines_data:\n  band: abc\n",
+        "p_lines_section": "lines_data: 5\n",
+        "p_train_steps": "train:\n  line:\n    sac: {total_steps: abc}\n",
+        "p_train_sac": "train:\n  line:\n    sac: 5\n",
+        "p_eval_iter": "evaluate:\n  line:\n    iterations: abc\n",
+        "p_lines_n": "lines:\n  n_train: -4\n",
+    }
+    for name, text in params.items():
+        f[name] = d / f"{name}.yaml"
+        if text is not None:
+            f[name].write_text(text)
+    for name, content in {"ev_empty": "", "ev_invalid": "{not json", "ev_list": "[1, 2]"}.items():
+        p = d / name / "lines" / "ransac" / "o0.5" / "summary.json"
+        p.parent.mkdir(parents=True)
+        p.write_text(content)
+        f[name] = p.parents[3]
+    p = d / "ev_nocol" / "lines" / "ransac" / "o0.5"
+    p.mkdir(parents=True)
+    (p / "summary.json").write_text(json.dumps({"mAA": 0.5, "median_deg": 0.1}))
+    (p / "errors.csv").write_text("instance,err\n0,0.1\n")
+    f["ev_nocol"] = p.parents[2]
+    f["state_text"] = d / "state_text.pt"
+    f["state_text"].write_text("not a torch file")
+    # a source scene whose images cannot be read: import-scenes fails after creating its folders
+    src = d / "src_bad" / "mini"
+    (src / "images").mkdir(parents=True)
+    (src / "cameras").mkdir()
+    camera = "100 0 50\n0 100 40\n0 0 1\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n0 0 0\n100 80\n"
+    for i in ("0001", "0002"):
+        (src / "images" / f"{i}.jpg").write_bytes(b"junk")
+        (src / "cameras" / f"{i}.jpg.camera").write_text(camera)
+    f["src_bad"] = src.parent
+    return f
+
+
+def _tree(root: Path) -> set[str]:
+    return {str(p.relative_to(root)) for p in root.rglob("*")}
+
+
+def _arg(value, f):
+    """'{name}' in an argument -> the path of input ``name``."""
+    if isinstance(value, str) and "{" in value:
+        return value.format(**{k: str(v) for k, v in f.items()}, proc=PROC)
+    return str(value)
+
+
+def train(*extra, data="{lines}", out="ck/m.pt", params=""):
+    # a 1-step budget first (a case that wrongly passed validation would not train for minutes), except
+    # where a params file is under test: --set would override it
+    safety = [] if params else ["--set", "sac.total_steps=1"]
+    return ["train", *safety, "--task", "line", "--data", data, "--out", out, "--params", params, *extra]
+
+
+def evaluate(*extra, task="line", data="{lines}", out="ev", params=""):
+    budget = [] if params else ["--iterations", "5"]  # a flag would override the params file under test
+    return ["evaluate", "--task", task, "--method", "ransac", "--data", data, "--out-dir", out, "--params", params,
+            *budget, *extra]
+
+
+def rlsac_eval(checkpoint):
+    return ["evaluate", "--task", "line", "--method", "rlsac", "--checkpoint", checkpoint, "--data", "{lines}",
+            "--out-dir", "ev", "--params", ""]
+
+
+def synth(*extra, out="d/x.h5", params=""):
+    return ["synth-lines", "--n-instances", "3", "--out", out, "--params", params, *extra]
+
+
+def cal(*extra, out="rep/cal", params=""):
+    return ["calibrate-lines", "--n-instances", "5", "--n-seeds", "1", "--iterations", "5", "--out", out,
+            "--params", params, *extra]
+
+
+def lines_data(*extra, rate="0.3", out="lines", params=""):
+    return ["lines-data", "--rate", rate, "--out-dir", out, "--params", params, *extra]
+
+
+def imp(*extra, src="{src_bad}", out="raw"):
+    return ["import-scenes", "--src", src, "--out", out, *extra]
+
+
+def prep(*extra, root="{dir}/raw", out="f/val.h5"):
+    return ["prepare-cvpr2020", "--root", root, "--split", "val", "--out", out, *extra]
+
+
+EVAL_F = {"task": "fundamental"}
+
+# (id, argv, fragment of the one-line message)
+CASES = [
+    # --- synth-lines: NaN / inf / range, unwritable output, params
+    ("synth-band-nan", synth("--band", "nan"), "band must be a finite number"),
+    ("synth-picture-inf", synth("--picture-size", "inf"), "picture_size must be a finite number"),
+    ("synth-picture-0", synth("--picture-size", "0"), "picture_size must be in (0, inf)"),
+    ("synth-band-neg", synth("--band", "-1"), "band must be in [0, inf)"),
+    ("synth-seed-neg", synth("--seed", "-1"), "seed must be in [0, 4294967295]"),
+    ("synth-outlier-1", synth("--outlier", "1"), "outlier rate must be in [0, 1)"),
+    ("synth-outlier-nan", synth("--outlier", "nan"), "outlier_rate must be a finite number"),
+    ("synth-too-few-points", synth("--n-points", "1"), "fewer than 2 inliers"),
+    ("synth-out-under-file", synth(out="{blocker}/x.h5"), "is not a folder"),
+    ("synth-out-proc", synth(out="{proc}/x.h5"), "cannot write output"),
+    ("synth-params-missing", synth(params="{p_missing}"), "no such params file"),
+    ("synth-params-list", synth(params="{p_list}"), "must be a mapping of sections, got list"),
+    ("synth-params-scalar", synth(params="{p_scalar}"), "must be a mapping of sections, got int"),
+    ("synth-params-yaml", synth(params="{p_yaml}"), "invalid YAML"),
+    ("synth-params-key", synth(params="{p_lines_key}"), "unknown config key(s) ['bogus'] in lines_data"),
+    ("synth-params-type", synth(params="{p_lines_band}"), "lines_data.band must be a number, got 'abc'"),
+    ("synth-params-section", synth(params="{p_lines_section}"), "params section lines_data must be a mapping"),
+    # --- lines-data: every argument checked before the first file is written
+    ("lines-data-bogus-split", lines_data("--splits", "train,bogus"),
+     "unknown split 'bogus'"),
+    ("lines-data-rate", lines_data(rate="1.5"), "rate must be in [0, 1)"),
+    ("lines-data-rate-nan", lines_data(rate="nan"), "finite"),
+    ("lines-data-out", lines_data(out="{blocker}/lines"), "is not a folder"),
+    ("lines-data-params-missing", lines_data(params="{p_missing}"), "no such params file"),
+    ("lines-data-params-n", lines_data(params="{p_lines_n}"), "lines.n_train must be in [1, inf)"),
+    # --- import-scenes
+    ("import-max-features", imp("--max-features", "-5"), "max_features must be in [1, inf)"),
+    ("import-max-features-0", imp("--max-features", "0"), "max_features must be in [1, inf)"),
+    ("import-min-matches", imp("--min-matches", "-1"), "min_matches must be in [0, inf)"),
+    ("import-set-type", imp("--set", "keep_snn=abc"), "keep_snn must be a number, got 'abc'"),
+    ("import-set-nan", imp("--set", "keep_snn=.nan"), "keep_snn must be a finite number"),
+    ("import-set-bool", imp("--set", "rootsift=3"), "rootsift must be true or false"),
+    ("import-set-unknown", imp("--set", "bogus=1"), "unknown config key(s) ['bogus']"),
+    ("import-out-under-file", imp(out="{blocker}/raw"), "is not a folder"),
+    ("import-src-missing", imp(src="nowhere"), "no such source folder"),
+    ("import-unreadable-image", imp(), "unreadable image"),  # fails mid-import: its folders are removed
+    # --- prepare-cvpr2020
+    ("prepare-max-pairs", prep("--max-pairs-per-scene", "-1"), "max_pairs_per_scene must be in [0, inf)"),
+    ("prepare-n-points", prep("--n-points", "3"), "n_points must be at least 8"),
+    ("prepare-n-points-type", prep("--set", "n_points=abc"), "n_points must be an integer, got 'abc'"),
+    ("prepare-gt-nan", prep("--set", "gt_threshold=.inf"), "gt_threshold must be a finite number"),
+    ("prepare-out-under-file", prep(out="{blocker}/val.h5"), "is not a folder"),
+    ("prepare-out-proc", prep(out="{proc}/val.h5"), "cannot write output"),
+    ("prepare-root-missing", prep(root="nowhere"),
+     "nowhere"),
+    # --- train: --set types and ranges, bad files, unwritable output, params
+    ("train-actor-lr-abc", train("--set", "sac.actor_lr=abc"), "train.sac.actor_lr must be a number, got 'abc'"),
+    ("train-actor-lr-neg", train("--set", "sac.actor_lr=-1"), "train.sac.actor_lr must be in (0, inf), got -1.0"),
+    ("train-actor-lr-nan", train("--set", "sac.actor_lr=.nan"), "train.sac.actor_lr must be a finite number"),
+    ("train-total-steps-abc", train("--set", "sac.total_steps=abc"), "sac.total_steps must be an integer"),
+    ("train-total-steps-0", train("--set", "sac.total_steps=0"), "sac.total_steps must be in [1, inf)"),
+    ("train-total-steps-frac", train("--set", "sac.total_steps=2.5"), "sac.total_steps must be an integer"),
+    ("train-ckpt-every-0", train("--set", "ckpt_every=0"), "train.ckpt_every must be in [1, inf)"),
+    ("train-val-every-0", train("--set", "val_every=0"), "train.val_every must be in [1, inf)"),
+    ("train-steps-per-episode-0", train("--set", "env.steps_per_episode=0"), "env.steps_per_episode must be in"),
+    ("train-num-envs-0", train("--set", "sac.num_envs=0"), "sac.num_envs must be in [1, inf)"),
+    ("train-batch-size-0", train("--set", "sac.batch_size=0"), "sac.batch_size must be in [1, inf)"),
+    ("train-val-instances-0", train("--set", "val_instances=0"), "train.val_instances must be in [1, inf)"),
+    ("train-sac-scalar", train("--set", "sac=5"), "train.sac must be a mapping of SACConf options, got 5"),
+    ("train-gamma", train("--set", "sac.gamma=2"), "sac.gamma must be in [0, 1]"),
+    ("train-sampling", train("--set", "sac.train_sampling=greedy"), "sac.train_sampling must be one of prob, max"),
+    ("train-widths", train("--set", "policy.widths=[32,0]"), "policy.widths[1] must be in [1, inf)"),
+    ("train-resume-type", train("--set", "resume=3"), "train.resume must be true or false"),
+    ("train-unknown", train("--set", "sac.bogus=1"), "unknown config key(s) ['bogus'] in train.sac"),
+    ("train-seed", train("--seed", "-1"), "train.seed must be in"),
+    ("train-data-text", train(data="{text_h5}"), "not a readable HDF5 file"),
+    ("train-data-missing", train(data="nope.h5"), "no such file"),
+    ("train-data-empty", train(data="{lines_empty}"), "holds no instances"),
+    ("train-data-degenerate", train(data="{lines_degenerate}"),
+     "degenerate data: all 20 points of instance 2 are identical"),
+    ("train-data-nan", train(data="{lines_nan}"), "contains NaN or inf"),
+    ("train-data-shape", train(data="{lines_shape}"), "has shape (3, 20, 3)"),
+    ("train-val-data-text", train("--val-data", "{text_h5}"), "not a readable HDF5 file"),
+    ("train-out-under-file", train(out="{blocker}/m.pt"), "cannot write checkpoint"),
+    ("train-out-proc", train(out="{proc}/m.pt"), "cannot write checkpoint"),
+    ("train-params-missing", train(params="{p_missing}"), "no such params file"),
+    ("train-params-type", train(params="{p_train_steps}"), "train.sac.total_steps must be an integer, got 'abc'"),
+    ("train-params-sac", train(params="{p_train_sac}"), "train.sac must be a mapping"),
+    ("train-resume-nothing", train("--resume"), "nothing to resume from"),
+    # --- evaluate
+    ("eval-data-text", evaluate(data="{text_h5}"), "not a readable HDF5 file"),
+    ("eval-data-wrong-key", evaluate(data="{lines_wrong_key}"), "missing key 'points'"),
+    ("eval-data-shape", evaluate(data="{lines_shape}"), "has shape (3, 20, 3)"),
+    ("eval-data-nan", evaluate(data="{lines_nan}"), "key 'points' contains NaN or inf"),
+    ("eval-data-inf", evaluate(data="{lines_inf}"), "key 'points' contains NaN or inf"),
+    ("eval-data-empty", evaluate(data="{lines_empty}"), "holds no instances"),
+    ("eval-data-one-point", evaluate(data="{lines_one_point}"), "at least 2 points"),
+    ("eval-data-degenerate", evaluate(data="{lines_degenerate}"), "degenerate data"),
+    ("eval-ckpt-text", rlsac_eval("{text}"), "not an rlsac checkpoint (UnpicklingError"),
+    ("eval-ckpt-h5", rlsac_eval("{lines}"), "not an rlsac checkpoint"),
+    ("eval-ckpt-unused", evaluate("--checkpoint", "{text}"), "--checkpoint is used by --method rlsac only"),
+    ("eval-iterations-0", evaluate("--iterations", "0"), "iterations must be positive"),
+    ("eval-batch-0", evaluate("--batch-size", "0"), "batch_size must be positive"),
+    ("eval-steps-0", evaluate("--steps-per-episode", "0"), "steps_per_episode must be positive"),
+    ("eval-seed", evaluate("--seed", "-1"), "seed must be in"),
+    ("eval-out-under-file", evaluate(out="{blocker}/ev"), "is not a folder"),
+    ("eval-out-proc", evaluate(out="{proc}/ev"), "cannot write output"),
+    ("eval-params-missing", evaluate(params="{p_missing}"), "no such params file"),
+    ("eval-params-list", evaluate(params="{p_list}"), "must be a mapping"),
+    ("eval-params-type", evaluate(params="{p_eval_iter}"), "iterations must be an integer, got 'abc'"),
+    ("eval-f-singular", evaluate(data="{fund_singular}", **EVAL_F), "key 'K1' row 0 (im-0-im1) is a singular matrix"),
+    ("eval-f-degenerate", evaluate(data="{fund_degenerate}", **EVAL_F), "degenerate data: all valid correspondences"),
+    ("eval-f-nan", evaluate(data="{fund_nan}", **EVAL_F), "key 'coords' contains NaN or inf"),
+    ("eval-f-lines-file", evaluate(data="{lines}", **EVAL_F), "not a prepared file"),
+    # --- calibrate-lines
+    ("cal-seed", cal("--seed", "-1"), "seed must be in [0, 4294967295]"),
+    ("cal-n-seeds", cal("--n-seeds", "0"), "n_seeds must be in [1, inf)"),
+    ("cal-iterations", cal("--iterations", "0"), "iterations must be in [1, inf)"),
+    ("cal-n-instances", cal("--n-instances", "0"), "counts must be positive"),
+    ("cal-out-under-file", cal(out="{blocker}/cal"), "is not a folder"),
+    ("cal-out-proc", cal(out="{proc}/cal"), "cannot write output"),
+    ("cal-params-missing", cal(params="{p_missing}"), "no such params file"),
+    ("cal-params-band", cal(params="{p_lines_band}"), "lines_data.band must be a number"),
+    # --- table
+    ("table-empty-summary", ["table", "--eval-root", "{ev_empty}", "--out-dir", "rep"],
+     "ransac/o0.5/summary.json: not a valid summary.json (JSONDecodeError)"),
+    ("table-invalid-summary", ["table", "--eval-root", "{ev_invalid}", "--out-dir", "rep"], "not a valid summary.json"),
+    ("table-list-summary", ["table", "--eval-root", "{ev_list}", "--out-dir", "rep"], "holds a list, not a mapping"),
+    ("table-no-error-column", ["table", "--eval-root", "{ev_nocol}", "--out-dir", "rep"],
+     "errors.csv: no 'err_deg' column"),
+    ("table-out-under-file", ["table", "--eval-root", "nowhere", "--out-dir", "{blocker}/rep"], "is not a folder"),
+    # --- plot, ablate
+    ("plot-unknown", ["plot", "--set", "bogus=1"], "unknown plot option"),
+    ("plot-set-syntax", ["plot", "--set", "novalue"], "key=value"),
+    ("ablate-train-steps", ["ablate", "--what", "sampling", "--train-steps", "0", "--params", ""],
+     "train_steps must be positive"),
+    ("ablate-params-missing", ["ablate", "--what", "sampling", "--params", "{p_missing}"], "no such params file"),
+    ("ablate-unknown", ["ablate", "--what", "sampling", "--params", "", "--set", "bogus=1"], "unknown ablate option"),
+]
+
+
+@pytest.mark.parametrize("argv, fragment", [c[1:] for c in CASES], ids=[c[0] for c in CASES])
+def test_bad_input_is_one_line_error_and_writes_nothing(workdir, inputs, argv, fragment):
+    before = _tree(workdir)
+    inputs_before = _tree(inputs["dir"])
+    r = CliRunner().invoke(cli, [_arg(a, inputs) for a in argv] + ["--no-tracking"])
+    assert r.exit_code == 2, (r.exit_code, r.output, r.exception)
+    err = r.stderr.strip()
+    assert err.startswith("error: ") and "\n" not in err, err
+    assert "Traceback" not in r.output
+    assert fragment in err, err
+    assert _tree(workdir) == before  # nothing written, no empty folders either
+    assert _tree(inputs["dir"]) == inputs_before
+
+
+@pytest.mark.parametrize("argv", [synth(), evaluate(), train(), cal(), lines_data(),
+                                  ["table", "--eval-root", "nowhere", "--out-dir", "rep"]],
+                         ids=["synth-lines", "evaluate", "train", "calibrate-lines", "lines-data", "table"])
+@pytest.mark.parametrize("store", ["{proc}/mlflow.db", "{blocker}/mlflow.db"], ids=["proc", "under-file"])
+def test_unwritable_tracking_store_is_one_line_error(workdir, inputs, monkeypatch, argv, store):
+    """Tracking on with a store that cannot be written (as in a read-only working directory)."""
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", "sqlite:///" + _arg(store, inputs))
+    r = CliRunner().invoke(cli, [_arg(a, inputs) for a in argv])
+    assert r.exit_code == 2, r.output
+    err = r.stderr.strip()
+    assert err.startswith("error: cannot write the MLflow store") and "\n" not in err, err
+    assert "--no-tracking" in err
+    assert _tree(workdir) == set()
+
+
+# ------------------------------------------------------------------------------------------- config
+
+
+def test_build_coerces_and_checks_every_field():
+    c = config.build(TrainConf, {"sac": {"actor_lr": "1e-4", "total_steps": 1e3, "gamma": 1}, "seed": "3"})
+    assert c.sac.actor_lr == 1e-4 and isinstance(c.sac.actor_lr, float)
+    assert c.sac.total_steps == 1000 and isinstance(c.sac.total_steps, int)
+    assert c.sac.gamma == 1.0 and isinstance(c.sac.gamma, float) and c.seed == 3
+    for bad, message in [({"sac": {"batch_size": True}}, "must be an integer"),
+                         ({"threads": -1}, "train.threads must be in [0, inf)"),
+                         ({"tags": 3}, "train.tags must be a mapping"),
+                         ({"policy": {"widths": 32}}, "train.policy.widths must be a list"),
+                         ({"data": ["a"]}, "train.data must be a string")]:
+        with pytest.raises(RlsacError) as e:
+            config.build(TrainConf, bad, "train")
+        assert message in str(e.value)
+    with pytest.raises(RlsacError, match=r"SACConf must be a mapping"):
+        config.build(SACConf, [1, 2])
+
+
+def test_every_range_names_a_field():
+    """A typo in a ``ranges`` key would silently check nothing."""
+    import dataclasses
+
+    from rlsac.data.lines import LineDataConf
+    from rlsac.data.scenes import ImportConf
+    from rlsac.data.tutorial import PrepareConf
+    from rlsac.env import EnvConf
+    from rlsac.policy import PolicyConf
+
+    for cls in (TrainConf, SACConf, EnvConf, PolicyConf, LineDataConf, ImportConf, PrepareConf):
+        names = {f.name for f in dataclasses.fields(cls)}
+        assert set(cls.ranges) <= names, (cls.__name__, set(cls.ranges) - names)
+        config.build(cls, {})  # the defaults pass their own checks
+        for name, spec in cls.ranges.items():
+            config.check_range(name, getattr(cls(), name), spec)
+
+
+def test_import_failure_leaves_no_empty_folders(workdir, inputs):
+    r = CliRunner().invoke(cli, ["import-scenes", "--src", str(inputs["src_bad"]), "--out", "a/b/raw",
+                                 "--no-tracking"])
+    assert r.exit_code == 2 and "unreadable image" in r.stderr
+    assert not (workdir / "a").exists()
+
+
+def test_lines_data_writes_nothing_when_a_later_split_is_bad(workdir):
+    r = CliRunner().invoke(cli, ["lines-data", "--rate", "0.3", "--splits", "train,bogus", "--out-dir", "lines",
+                                 "--params", "", "--no-tracking"])
+    assert r.exit_code == 2 and "unknown split 'bogus'" in r.stderr
+    assert not (workdir / "lines").exists()
