@@ -30,11 +30,12 @@ import numpy as np
 import pandas as pd
 import torch
 
+from rlsac.config import SEED_RANGE, check_value
 from rlsac.errors import RlsacError
-from rlsac.io import atomic_path, write_json
+from rlsac.io import atomic_path, check_writable, write_json
 from rlsac.progress import tqdm  # no bars unless a person watches (not under CI, not redirected)
 from rlsac.tasks import TASK_NAMES, Task, get_task
-from rlsac.tracking import start_run
+from rlsac.tracking import check_store, start_run
 
 OPENCV_METHODS = ("opencv_ransac", "usac", "usac_accurate", "magsac")
 OPENCV_FLAG = {"opencv_ransac": "ransac", "usac": "usac", "usac_accurate": "usac_accurate", "magsac": "magsac"}
@@ -132,11 +133,15 @@ def check_options(options: dict[str, Any]) -> dict[str, Any]:
     if o["iterations"] is None:
         o["iterations"] = DEFAULT_ITERATIONS[o["task"]]
     for key in ("iterations", "batch_size"):
-        if int(o[key]) <= 0:
+        o[key] = check_value(key, o[key], int)
+        if o[key] <= 0:
             raise RlsacError(f"{key} must be positive, got {o[key]}")
-        o[key] = int(o[key])
-    if o["steps_per_episode"] is not None and int(o["steps_per_episode"]) <= 0:
-        raise RlsacError(f"steps_per_episode must be positive, got {o['steps_per_episode']}")
+    if o["steps_per_episode"] is not None:
+        o["steps_per_episode"] = check_value("steps_per_episode", o["steps_per_episode"], int)
+        if o["steps_per_episode"] <= 0:
+            raise RlsacError(f"steps_per_episode must be positive, got {o['steps_per_episode']}")
+    o["seed"] = check_value("seed", o["seed"], int, SEED_RANGE)
+    o["sampling"] = check_value("sampling", o["sampling"], str, ("max", "prob"))
     if not Path(o["data"]).is_file():
         raise RlsacError(f"{o['data']}: no such file")
     if o["out_dir"] is None:
@@ -257,6 +262,9 @@ def _n_instances(data: dict) -> int:
 def evaluate(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
     """Evaluate ``options['method']`` on ``options['data']``; write CSV + JSON; -> the summary dict."""
     o = check_options(options)
+    for f in ("errors.csv", "summary.json"):  # before any work: an unwritable output fails now, not at the end
+        check_writable(Path(o["out_dir"]) / f)
+    check_store(track)
     device = resolve_device(o["device"])
     mod = data_module(o["task"])
     data, attrs = mod.read(o["data"])
