@@ -67,6 +67,44 @@ def test_edgeconv_output_changes_only_with_its_neighbours():
     assert torch.allclose(conv(moved, idx)[0, i], base)
 
 
+def naive_pointnet(net, state, mask, graph):
+    """The network written out edge by edge: EdgeConv layers, global max pool over valid points, head."""
+    x, feats = state, []
+    for conv in net.convs:
+        xi = x[:, :, None, :].expand(-1, -1, graph.shape[-1], -1)
+        xj = torch.stack([x[r][graph[r]] for r in range(x.shape[0])])
+        edge = conv.centre(xi) + (xj - xi) @ conv.neigh.weight.T
+        x = torch.nn.functional.leaky_relu(edge, 0.2).amax(dim=2)
+        feats.append(x)
+    local = torch.cat(feats, -1)
+    g = net.glob(local).masked_fill(~mask[..., None], float("-inf")).amax(1, keepdim=True)
+    out = net.head(torch.cat([local, g.expand(-1, local.shape[1], -1)], -1)).squeeze(-1)
+    return out.masked_fill(~mask, float("-inf")) if isinstance(net, Actor) else out
+
+
+@pytest.mark.parametrize("cls", [Actor, Critic])
+def test_every_forward_path_is_the_edge_by_edge_network(cls):
+    """forward (training), reference_forward, and precompute + forward_memory (test-time rollouts)."""
+    net = make_actor(cls=cls)
+    s = states(r=4)
+    mask = torch.ones(4, 12, dtype=torch.bool)
+    mask[1, 9:] = False
+    graph = net.graph(s, mask)
+    ref = naive_pointnet(net, s, mask, graph)
+    valid = mask if cls is Actor else torch.ones_like(mask)
+    for out in (net(s, mask, graph), net.reference_forward(s, mask, graph)):
+        assert torch.allclose(out[valid], ref[valid], atol=1e-5) and torch.equal(out.isinf(), ref.isinf())
+    # rollout layout: 2 instances x 2 episodes sharing data channels and graph, memory per row
+    s[1, ..., :2], s[3, ..., :2] = s[0, ..., :2], s[2, ..., :2]
+    mask[1] = mask[0]
+    graph = net.graph(s, mask)
+    prep = net.precompute(s[::2, ..., :2], mask[::2], episodes=2)
+    out = net.forward_memory(prep, s[..., 2:])
+    ref = naive_pointnet(net, s, mask, graph)
+    valid = mask if cls is Actor else torch.ones_like(mask)
+    assert torch.allclose(out[valid], ref[valid], atol=1e-5)
+
+
 def test_knn_graph_uses_coordinates_and_skips_masked_points():
     x = torch.tensor([[[0.0, 0.0], [1.0, 0.0], [0.1, 0.0], [5.0, 0.0]]])
     mask = torch.tensor([[True, True, False, True]])
@@ -117,24 +155,46 @@ def line_batch(n_inst=10, n_points=30, seed=5):
     return to_batch(generate(LineDataConf(outlier_rate=0.5, n_instances=n_inst, n_points=n_points, seed=seed)))
 
 
-def spy(actor):
-    """Record every (state, logits) the actor sees through a forward hook (the real network runs)."""
-    calls = []
+class Spy:
+    """Records the full state (data + memory channels) and the logits of every actor evaluation of a
+    rollout, on whichever path it takes (forward, reference_forward, precompute + forward_memory);
+    the real network computes every value."""
 
-    def hook(module, args, kwargs, out):
-        calls.append((args[0] if args else kwargs["state"], out))
+    def __init__(self, monkeypatch):
+        self.calls, self.feats = [], None
+        fwd, ref, pre, mem = Actor.forward, Actor.reference_forward, Actor.precompute, Actor.forward_memory
 
-    return calls, actor.register_forward_hook(hook, with_kwargs=True)
+        def forward(net, state, mask=None, graph=None):
+            out = fwd(net, state, mask, graph)
+            self.calls.append((state.clone(), out.clone()))
+            return out
+
+        def reference_forward(net, state, mask=None, graph=None):
+            out = ref(net, state, mask, graph)
+            self.calls.append((state.clone(), out.clone()))
+            return out
+
+        def precompute(net, features, mask=None, episodes=1, *args, **kwargs):
+            self.feats = features.repeat_interleave(int(episodes), 0)
+            return pre(net, features, mask, episodes, *args, **kwargs)
+
+        def forward_memory(net, prep, memory):
+            out = mem(net, prep, memory)
+            self.calls.append((torch.cat([self.feats, memory], -1), out.clone()))
+            return out
+
+        for name, f in (("forward", forward), ("reference_forward", reference_forward),
+                        ("precompute", precompute), ("forward_memory", forward_memory)):
+            monkeypatch.setattr(Actor, name, f)
 
 
-def run(sampling=None, seed=0, iterations=15):
+def run(monkeypatch, sampling=None, seed=0, iterations=15):
     actor, task, batch = make_actor(), LineTask(), line_batch()
-    calls, handle = spy(actor)
+    spy = Spy(monkeypatch)
     kw = {} if sampling is None else {"sampling": sampling}
     out = rlsac_estimate(task, batch, actor, iterations, generator=torch.Generator().manual_seed(seed),
                          record=True, **kw)
-    handle.remove()
-    return task, batch, calls, out
+    return task, batch, spy.calls, out
 
 
 def chosen_vs_top(calls, steps):
@@ -151,27 +211,28 @@ def chosen_vs_top(calls, steps):
     return torch.stack(unused_top), torch.stack(took_top)
 
 
-def test_max_sampling_takes_the_top_m_logits():
+def test_max_sampling_takes_the_top_m_logits(monkeypatch):
     """Default test-time sampling (the paper's max): whenever the top-2 logits form an unused set, that
     set is the next hypothesis; used sets fall back to other candidates."""
-    _, _, calls, out = run()
+    _, _, calls, out = run(monkeypatch)
     assert len(calls) == 14 and out["hypotheses"] == 150
     free, took = chosen_vs_top(calls, out["steps"])
     assert free.sum() >= 10 and took[free].all()
     assert not took[~free].any()  # a used set is never repeated (de-duplication)
 
 
-def test_prob_sampling_draws_from_the_softmax():
-    _, _, calls, out = run("prob")
+def test_prob_sampling_draws_from_the_softmax(monkeypatch):
+    _, _, calls, out = run(monkeypatch, "prob")
     free, took = chosen_vs_top(calls, out["steps"])
     assert took[free].float().mean() < 0.5  # the top-2 logits are one plausible set among many
     assert len({tuple(sorted(r)) for s in out["steps"][1:] for r in s["minimal_set"].tolist()}) > 100
 
 
-def test_rollout_feeds_the_actor_the_current_memory_channels():
+def test_rollout_feeds_the_actor_the_current_memory_channels(monkeypatch):
     """At call t the state holds the set and hypothesis of step t (action +1 on its 2 points, residuals
     to its line clipped at 5 thresholds), the history of all t + 1 sets, and the data features."""
-    task, batch, calls, out = run()
+    task, batch, calls, out = run(monkeypatch)
+    assert len(calls) == 14
     coords = batch["coords"]
     for t, (state, _) in enumerate(calls):
         step = out["steps"][t]
@@ -183,13 +244,12 @@ def test_rollout_feeds_the_actor_the_current_memory_channels():
         assert torch.equal(state[..., 4].sum(-1), torch.full((10,), 2.0 * (t + 1)))
 
 
-def test_uniform_control_runs_the_same_environment_without_the_actor():
-    actor, task, batch = make_actor(), LineTask(), line_batch()
-    calls, handle = spy(actor)
+def test_uniform_control_runs_the_same_environment_without_the_actor(monkeypatch):
+    task, batch = LineTask(), line_batch()
+    spy = Spy(monkeypatch)
     g = torch.Generator().manual_seed(0)
     uni = rlsac_estimate(task, batch, None, 40, generator=g, record=True)
-    handle.remove()
-    assert calls == [] and uni["hypotheses"] == 10 * 40 and uni["valid"].all()
+    assert spy.calls == [] and uni["hypotheses"] == 10 * 40 and uni["valid"].all()
     assert (uni["inliers"].sum(-1) >= 2).all()
 
 
@@ -213,7 +273,7 @@ def residual_clip_seen(state: torch.Tensor) -> float:
     return float((r[keep] / ch[keep]).median())
 
 
-def test_checkpoint_env_settings_drive_the_real_test_time_rollout(workdir):
+def test_checkpoint_env_settings_drive_the_real_test_time_rollout(workdir, monkeypatch):
     """Two checkpoints with the same actor and different env sections, evaluated by `evaluate` through the
     real rollout: psi sets the actor calls per episode, residual_clip the residual channel it sees."""
     conf = LineDataConf(outlier_rate=0.5, n_instances=6, n_points=30, seed=9)
@@ -225,14 +285,10 @@ def test_checkpoint_env_settings_drive_the_real_test_time_rollout(workdir):
     for name in ("a", "b"):
         loaded, ck = load_actor(workdir / f"{name}.pt")
         assert checkpoint_env(ck).steps_per_episode == (5 if name == "a" else 15)
-        calls = []
-        hook = torch.nn.modules.module.register_module_forward_hook(
-            lambda m, args, out, calls=calls: calls.append(args[0]) if isinstance(m, Actor) else None)
-        try:
+        with monkeypatch.context() as mp:
+            spy = Spy(mp)
             s = evaluate({"task": "line", "method": "rlsac", "data": "d.h5", "checkpoint": f"{name}.pt",
                           "iterations": 20, "device": "cpu", "out_dir": f"ev_{name}"}, track=False)
-        finally:
-            hook.remove()
-        seen[name] = (s["steps_per_episode"], len(calls), [residual_clip_seen(c) for c in calls])
+        seen[name] = (s["steps_per_episode"], len(spy.calls), [residual_clip_seen(c) for c, _ in spy.calls])
     assert seen["a"][:2] == (5, 4) and seen["b"][:2] == (15, 14)
     assert np.allclose(seen["a"][2], 2.0, rtol=1e-3) and np.allclose(seen["b"][2], 5.0, rtol=1e-3)
