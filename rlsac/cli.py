@@ -168,6 +168,8 @@ def train(task: str, tracking: bool, params_path: str, sets: tuple[str, ...], **
 @click.option("--sampling", type=click.Choice(["max", "prob"]), help="RLSAC test-time sampling [default: max].")
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--batch-size", type=int, default=256, show_default=True)
+@click.option("--threads", type=int, help="torch CPU threads on cpu, 0 = torch's default [default: 1, the fastest "
+                                          "here: rlsac.evaluate.THREADS].")
 @click.option("--out-dir", type=click.Path(file_okay=False), help="[default: reports/eval/<name>]")
 @click.option("--params", "params_path", default="params.yaml", show_default=True,
               help="params.yaml; its evaluate.<task> section gives the defaults.")

@@ -13,6 +13,7 @@ have defaults):
     iterations  hypotheses per instance (default 150 for lines, 1000 for fundamental)
     steps_per_episode  RLSAC only; default: the checkpoint's value, else 15
     seed, device ("auto" | "cpu" | "cuda"), batch_size, out_dir (default reports/eval/<name>)
+    threads     torch CPU threads while the method runs (default 1, see THREADS; 0 = leave torch's setting)
     sampling    RLSAC test-time sampling, "max" (paper) or "prob"; tags: extra MLflow run tags (dict)
 
 The random stream is one seeded ``torch.Generator`` consumed batch after batch, so results are
@@ -44,6 +45,11 @@ METHODS = ("ransac", "rlsac", "uniform", "oracle") + OPENCV_METHODS
 LO_METHODS = ("ransac-lo", "uniform-lo", "rlsac-lo")
 METHODS = METHODS + LO_METHODS
 DEFAULT_ITERATIONS = {"line": 150, "fundamental": 1000}
+# torch CPU threads for the evaluation loop. One thread: per-step tensors are small (one instance, or
+# chunks of ~8k points), so a second thread mostly adds synchronisation, and on a shared machine it
+# competes with the other jobs. Measured on the 2-core machine (issue #17, one vs two threads): RLSAC
+# 2-8x and our RANSAC 3-5x faster with one; benchmarks/line_rollout.py --threads 1,2 re-measures it.
+THREADS = 1
 EXPERIMENT = {"line": "lines", "fundamental": "fundamental"}
 DEFAULTS: dict[str, Any] = {
     "checkpoint": None,
@@ -55,6 +61,7 @@ DEFAULTS: dict[str, Any] = {
     "out_dir": None,
     "sampling": "max",  # RLSAC test-time sampling: max (paper) or prob (ablation)
     "tags": None,  # extra MLflow run tags, e.g. {"ablation": "sampling", "variant": "full"} (rlsac.ablate)
+    "threads": None,  # None = THREADS
     "lo": None,  # *-lo methods: rlsac.lo.LOConf options (params.yaml evaluate.<task>.lo); ignored by the others
 }
 
@@ -132,6 +139,9 @@ def check_options(options: dict[str, Any]) -> dict[str, Any]:
         raise RlsacError(f"{o['checkpoint']}: no such checkpoint file")
     if o["iterations"] is None:
         o["iterations"] = DEFAULT_ITERATIONS[o["task"]]
+    o["threads"] = THREADS if o["threads"] is None else int(o["threads"])
+    if o["threads"] < 0:
+        raise RlsacError(f"threads must be >= 0, got {o['threads']}")
     for key in ("iterations", "batch_size"):
         o[key] = check_value(key, o[key], int)
         if o[key] <= 0:
@@ -278,10 +288,16 @@ def evaluate(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
               "data_attrs": {k: _plain(v) for k, v in attrs.items()}}
     tags = {"command": "evaluate", "method": o["method"], **{k: str(v) for k, v in (o["tags"] or {}).items()}}
     with start_run(EXPERIMENT[o["task"]], f"evaluate {name}", params=params, tags=tags, enabled=track) as run:
-        t0 = time.perf_counter()
-        errors, counts = run_method(task, estimate, data, mod.to_batch, n, o["seed"], device, o["batch_size"],
-                                    desc=f"{o['method']} {Path(o['data']).name}")
-        seconds = time.perf_counter() - t0
+        torch_threads = torch.get_num_threads()
+        if device == "cpu" and o["threads"] > 0:
+            torch.set_num_threads(o["threads"])
+        try:
+            t0 = time.perf_counter()
+            errors, counts = run_method(task, estimate, data, mod.to_batch, n, o["seed"], device, o["batch_size"],
+                                        desc=f"{o['method']} {Path(o['data']).name}")
+            seconds = time.perf_counter() - t0
+        finally:
+            torch.set_num_threads(torch_threads)
         summary = {k: _plain(v) for k, v in task.summarize(errors).items()}
         summary.update(task=o["task"], method=o["method"], iterations=o["iterations"], data=str(o["data"]),
                        checkpoint=o["checkpoint"], seed=o["seed"], device=device, n_instances=n,
