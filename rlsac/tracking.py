@@ -185,6 +185,14 @@ def start_run(experiment: str, run_name: str, params: dict[str, Any] | None = No
     run = Run(mlflow)
     run.run_id = active.info.run_id
     status = "FAILED"
+    if old is not None:  # the earlier attempt's end, kept as "interrupted"; the error tags are for this one
+        was = old.data.tags.get("error") or (f"process ended while {old.info.status} (killed)"
+                                             if old.info.status == "RUNNING" else old.info.status)
+        with contextlib.suppress(Exception):
+            run.tags({"interrupted": was[:5000]})
+            for key in ("error", "error_type"):
+                if key in old.data.tags:
+                    mlflow.delete_tag(key)
     try:
         if params:
             if old is not None:

@@ -423,3 +423,171 @@ def test_lines_data_writes_nothing_when_a_later_split_is_bad(workdir):
                                  "--params", "", "--no-tracking"])
     assert r.exit_code == 2 and "unknown split 'bogus'" in r.stderr
     assert not (workdir / "lines").exists()
+
+
+# ---------------------------------------------------------------------------------- kill and resume
+
+RESUME_SETS = {"threads": 1, "seed": 7, "val_instances": 8, "val_every": 10, "ckpt_every": 10, "sac.total_steps": 40,
+               "sac.num_envs": 4, "sac.batch_size": 8, "sac.learning_starts": 16}
+
+
+@pytest.fixture(scope="module")
+def resume_data(tmp_path_factory):
+    d = tmp_path_factory.mktemp("resume")
+    return str(_lines(d / "train.h5", n=24, n_points=30, seed=1)), str(_lines(d / "val.h5", n=8, n_points=30, seed=2))
+
+
+def _train_argv(data, out, *extra):
+    argv = ["train", "--task", "line", "--data", data[0], "--val-data", data[1], "--out", out, "--device", "cpu",
+            "--params", ""]
+    for k, v in RESUME_SETS.items():
+        argv += ["--set", f"{k}={v}"]
+    return argv + list(extra)
+
+
+def _weights(path, key):
+    import torch
+
+    ckpt = torch.load(path, weights_only=False)
+    return ckpt[key], ckpt["step"]
+
+
+def _same(a: dict, b: dict) -> bool:
+    import torch
+
+    return a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
+@pytest.fixture(scope="module")
+def reference(resume_data, tmp_path_factory):
+    """The uninterrupted run: final agent (state file) and kept actor (checkpoint)."""
+    d = tmp_path_factory.mktemp("reference")
+    r = CliRunner().invoke(cli, _train_argv(resume_data, str(d / "m.pt"), "--no-tracking"))
+    assert r.exit_code == 0, r.output
+    agent, step = _weights(d / "m.state.pt", "agent")
+    kept, kept_step = _weights(d / "m.pt", "actor")
+    assert step == 40 and 0 < kept_step <= 40
+    return {"agent": agent, "kept": kept, "kept_step": kept_step}
+
+
+def _runs():
+    import os
+
+    import mlflow
+
+    mlflow.set_tracking_uri(os.environ["MLFLOW_TRACKING_URI"])  # this test's store (the URI is process-global)
+    return mlflow.search_runs(experiment_names=["lines"], output_format="list")
+
+
+def _assert_resumed_exactly(workdir, reference):
+    agent, step = _weights(workdir / "ck/m.state.pt", "agent")
+    kept, kept_step = _weights(workdir / "ck/m.pt", "actor")
+    assert step == 40
+    assert _same(agent, reference["agent"])  # the same final model as the uninterrupted run
+    assert kept_step == reference["kept_step"] and _same(kept, reference["kept"])  # and the same kept model
+
+
+def test_sigterm_saves_state_ends_run_killed_and_resume_is_exact(workdir, resume_data, reference, monkeypatch):
+    import os
+    import signal
+
+    from rlsac import train as train_mod
+
+    real_loop = train_mod.train_loop
+    sent = []
+
+    def loop_with_sigterm(*args, log, **kw):
+        def log_and_signal(metrics, step):
+            if step >= 12 and not sent:  # at a fixed step: deterministic
+                sent.append(step)
+                os.kill(os.getpid(), signal.SIGTERM)
+            return log(metrics, step)
+        return real_loop(*args, log=log_and_signal, **kw)
+
+    monkeypatch.setattr(train_mod, "train_loop", loop_with_sigterm)
+    r = CliRunner().invoke(cli, _train_argv(resume_data, "ck/m.pt"))
+    assert r.exit_code == 128 + signal.SIGTERM, r.output
+    err = r.stderr.strip().splitlines()[-1]
+    assert err.startswith("error: interrupted by SIGTERM at step ") and "continue with --resume" in err
+    stopped_at, _ = _weights(workdir / "ck/m.state.pt", "agent")
+    import torch
+
+    step = torch.load(workdir / "ck/m.state.pt", weights_only=False)["step"]
+    assert sent and sent[0] < step < 40  # stopped at the end of the running episode, state saved there
+    runs = _runs()
+    assert len(runs) == 1 and runs[0].info.status == "KILLED"
+    assert "interrupted by SIGTERM" in runs[0].data.tags["error"] and runs[0].data.tags["command"] == "train"
+    run_id = runs[0].info.run_id
+
+    monkeypatch.setattr(train_mod, "train_loop", real_loop)
+    r = CliRunner().invoke(cli, _train_argv(resume_data, "ck/m.pt", "--resume"))
+    assert r.exit_code == 0, r.output
+    _assert_resumed_exactly(workdir, reference)
+    runs = _runs()
+    assert [x.info.run_id for x in runs] == [run_id] and runs[0].info.status == "FINISHED"  # the same run, closed
+    assert "error" not in runs[0].data.tags and "SIGTERM" in runs[0].data.tags["interrupted"]
+
+
+KILL_DURING_SAVE = """
+import os, signal, sys
+import torch
+real_save, saves = torch.save, []
+def save(obj, f, *a, **k):
+    real_save(obj, f, *a, **k)
+    if ".m.state.pt." in str(f):  # the state's temporary file: written, not yet renamed into place
+        saves.append(f)
+        if len(saves) == 2:
+            os.kill(os.getpid(), signal.SIGKILL)
+torch.save = save
+from rlsac.cli import main
+main(sys.argv[1:])
+"""
+
+
+def test_sigkill_during_a_save_then_resume_is_exact_and_closes_the_run(workdir, resume_data, reference):
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-c", KILL_DURING_SAVE, *_train_argv(resume_data, "ck/m.pt")],
+                       capture_output=True, text=True, cwd=workdir, env={**__import__("os").environ,
+                                                                         "OMP_NUM_THREADS": "1"})
+    assert r.returncode == -9, r.stderr[-2000:]
+    stale = list((workdir / "ck").glob(".m.state.pt.*.tmp"))
+    assert len(stale) == 1  # what a kill during a save leaves
+    runs = _runs()
+    assert len(runs) == 1 and runs[0].info.status == "RUNNING"
+    run_id = runs[0].info.run_id
+    # and a kill between the two writes of a save: an actor file from another step than the state's kept actor
+    import torch
+
+    torch.save({"actor": {}, "step": 30, "conf": {}}, workdir / "ck/m.pt")
+
+    res = CliRunner().invoke(cli, _train_argv(resume_data, "ck/m.pt", "--resume"))
+    assert res.exit_code == 0, res.output
+    assert not list((workdir / "ck").glob(".*.tmp"))  # cleaned on the next start
+    _assert_resumed_exactly(workdir, reference)
+    runs = _runs()
+    assert [x.info.run_id for x in runs] == [run_id] and runs[0].info.status == "FINISHED"
+
+
+def test_failed_run_records_its_error(workdir):
+    from rlsac.tracking import start_run
+
+    with pytest.raises(RlsacError):
+        with start_run("lines", "boom"):
+            raise RlsacError("the reason")
+    with pytest.raises(KeyboardInterrupt):
+        with start_run("lines", "stopped"):
+            raise KeyboardInterrupt
+    runs = {r.info.run_name: r for r in _runs()}
+    assert runs["boom"].info.status == "FAILED" and runs["boom"].data.tags["error"] == "the reason"
+    assert runs["stopped"].info.status == "KILLED" and "KeyboardInterrupt" in runs["stopped"].data.tags["error"]
+
+
+def test_run_names_and_command_tags(workdir):
+    for out in ("a.h5", "b.h5"):
+        r = CliRunner().invoke(cli, ["synth-lines", "--n-instances", "3", "--out", out, "--params", ""])
+        assert r.exit_code == 0, r.output
+    runs = _runs()
+    assert len({r.info.run_name for r in runs}) == 2  # the output name tells the runs apart
+    assert {r.data.tags["command"] for r in runs} == {"synth-lines"}
