@@ -230,8 +230,9 @@ def folds(tracking: bool, **options) -> None:
 
 
 @cli.command()
-@click.option("--which", type=click.Choice(["1", "2", "3", "iterations", "all"]), default="all", show_default=True,
-              help="Table 1 (lines), 2 (fundamental), 3 (ablations), the iterations CSV, or all.")
+@click.option("--which", type=click.Choice(["1", "2", "3", "iterations", "folds", "all"]), default="all",
+              show_default=True, help="Table 1 (lines), 2 (fundamental), 3 (ablations), the iterations CSV, "
+                                      "Table 2 over the leave-one-building-out folds, or all.")
 @click.option("--eval-root", default="reports/eval", show_default=True, type=click.Path(file_okay=False),
               help="Root of the evaluation summaries (lines/, fundamental/, ablation/).")
 @click.option("--out-dir", default="reports", show_default=True, type=click.Path(file_okay=False))

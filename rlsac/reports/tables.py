@@ -406,7 +406,7 @@ def metrics(eval_root: str | Path = "reports/eval", out_dir: str | Path = "repor
 
 # ------------------------------------------------------------------------------------------- command
 
-WHICH = ("1", "2", "3", "iterations", "all")
+WHICH = ("1", "2", "3", "iterations", "folds", "all")
 
 
 def build(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
@@ -435,10 +435,16 @@ def build(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
     with start_run("reports", f"table {which}", params={"which": which, "eval_root": str(eval_root),
                                                         "out_dir": str(out_dir)},
                    tags={"command": "table"}, enabled=track) as run:
-        for key in ("1", "2", "3", "iterations"):
+        for key in ("1", "2", "3", "iterations", "folds"):
             if which not in (key, "all"):
                 continue
-            if key == "iterations":
+            if key == "folds":  # Table 2 over the leave-one-building-out folds (rlsac.reports.folds)
+                from rlsac.reports import folds
+
+                got = folds.build(eval_root, out_dir, Path(out_dir) / "folds" / "data")
+                files += got["files"]
+                missing += got["missing"]
+            elif key == "iterations":
                 df = iterations_csv(eval_root, out_dir)
                 files.append(df.attrs["path"])
             else:

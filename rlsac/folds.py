@@ -1,0 +1,240 @@
+"""Leave-one-building-out benchmark for the fundamental matrix (``rlsac folds``, params.yaml ``folds``).
+
+The six Strecha scenes show four buildings. Fold ``b`` tests on every pair of building ``b`` and trains
+on the other buildings, validating on a held-out ``val_fraction`` of their pairs (a stable hash of the
+pair key), so every co-visible pair is a test pair exactly once and no test building is seen in
+training. Each fold is prepared in every *regime* (``pool``: 0 = the N lowest-SNN matches, P > N = N
+drawn from the P lowest-SNN ones, a tutorial-like inlier ratio) and evaluated with every method at every
+budget, including ``uniform`` (the RLSAC environment with uniform minimal sets: RLSAC - uniform is the
+learned sampler alone) and each RLSAC model of ``models`` (train overrides over ``train.fundamental``).
+
+Stages (one DVC stage per regime x fold, per model for training):
+    data      data/folds/<regime>/<fold>/{train,val,test}.h5
+    train     checkpoints/folds/<regime>/<fold>/<model>.pt
+    evaluate  reports/eval/folds/<regime>/<fold>/<method>/i<iterations>/{errors.csv,summary.json}
+The data stage also writes reports/folds/data/<regime>/<fold>.json (pairs, dropped pairs and why, ground-truth
+inlier-ratio distribution per split): the tables read that record, never data/ itself.
+"""
+
+from __future__ import annotations
+
+import copy
+import time
+from pathlib import Path
+from typing import Any
+
+from rlsac.errors import RlsacError
+from rlsac.io import write_json
+
+STAGES = ("data", "train", "evaluate")
+DEFAULTS: dict[str, Any] = {
+    "test": ["castle", "herzjesu", "fountain", "entry"],
+    "scenes": {"castle": "castle-P19,castle-P30", "herzjesu": "Herz-Jesus-P8,Herz-Jesus-P25",
+               "fountain": "fountain-P11", "entry": "entry-P10"},
+    "val_fraction": 0.2,
+    "regimes": ["easy", "hard"],
+    "pool": {"easy": 0, "hard": 600},
+    "methods": ["uniform", "ransac", "opencv_ransac", "usac", "usac_accurate", "magsac"],
+    "models": ["rlsac"],
+    "train": {"rlsac": {}},
+    "iterations": [10, 100, 1000],
+    "seed": 0,
+}
+OPTIONS: dict[str, Any] = {"stage": None, "regime": None, "fold": None, "model": None, "params": "params.yaml",
+                           "device": "auto", "threads": 1}
+
+
+def protocol(params: dict[str, Any]) -> dict[str, Any]:
+    """``DEFAULTS`` with each key replaced by params.yaml ``folds``'s, checked for consistency."""
+    from rlsac.commands import _section
+
+    given = _section(params, "folds")
+    unknown = sorted(set(given) - set(DEFAULTS))
+    if unknown:
+        raise RlsacError(f"unknown params key(s) folds.{unknown}; known: {sorted(DEFAULTS)}")
+    p = {**copy.deepcopy(DEFAULTS), **copy.deepcopy(given)}
+    if not p["test"] or not set(p["test"]) <= set(p["scenes"]) or len(p["scenes"]) < 2:
+        raise RlsacError(f"folds.test {p['test']} must name buildings of folds.scenes {sorted(p['scenes'])} "
+                         "(at least two buildings: one to test, one to train)")
+    all_scenes = [s for b in p["scenes"] for s in scene_list(p["scenes"][b])]
+    if len(all_scenes) != len(set(all_scenes)):
+        raise RlsacError("folds.scenes: a scene belongs to two buildings")
+    if set(p["regimes"]) != set(p["pool"]):
+        raise RlsacError(f"folds.regimes {p['regimes']} and the keys of folds.pool {sorted(p['pool'])} differ")
+    if set(p["models"]) != set(p["train"]):
+        raise RlsacError(f"folds.models {p['models']} and the keys of folds.train {sorted(p['train'])} differ")
+    if not 0 < float(p["val_fraction"]) < 1:
+        raise RlsacError(f"folds.val_fraction must be in (0, 1), got {p['val_fraction']}")
+    if not p["iterations"] or any(int(i) <= 0 for i in p["iterations"]):
+        raise RlsacError(f"folds.iterations must be positive budgets, got {p['iterations']}")
+    from rlsac.evaluate import METHODS
+
+    bad = [m for m in p["methods"] if m not in METHODS or m in ("rlsac", "oracle")]
+    if bad:
+        raise RlsacError(f"folds.methods {bad}: not a baseline of `rlsac evaluate` (RLSAC models go in folds.models)")
+    clash = sorted(set(p["models"]) & set(METHODS))
+    if clash and clash != ["rlsac"]:
+        raise RlsacError(f"folds.models {clash}: a model may not share a method's name")
+    return p
+
+
+def scene_list(scenes: str) -> list[str]:
+    return [s.strip() for s in str(scenes).split(",") if s.strip()]
+
+
+def split_scenes(p: dict[str, Any], fold: str) -> tuple[str, str]:
+    """-> (training scenes, test scenes) of fold ``fold`` as comma-separated lists."""
+    if fold not in p["test"]:
+        raise RlsacError(f"unknown fold {fold!r} (known: {', '.join(p['test'])})")
+    train = [s for b in p["scenes"] if b != fold for s in scene_list(p["scenes"][b])]
+    return ",".join(train), ",".join(scene_list(p["scenes"][fold]))
+
+
+def data_dir(regime: str, fold: str) -> Path:
+    return Path("data") / "folds" / regime / fold
+
+
+def checkpoint(regime: str, fold: str, model: str) -> Path:
+    return Path("checkpoints") / "folds" / regime / fold / f"{model}.pt"
+
+
+def eval_dir(regime: str, fold: str, method: str, iterations: int) -> Path:
+    return Path("reports") / "eval" / "folds" / regime / fold / method / f"i{int(iterations)}"
+
+
+def check_options(options: dict[str, Any], p: dict[str, Any] | None = None) -> dict[str, Any]:
+    unknown = sorted(set(options) - set(OPTIONS))
+    if unknown:
+        raise RlsacError(f"unknown folds option(s) {unknown}; known: {sorted(OPTIONS)}")
+    o = {**OPTIONS, **{k: v for k, v in options.items() if v is not None}}
+    if o["stage"] not in STAGES:
+        raise RlsacError(f"folds --stage must be one of {', '.join(STAGES)}, got {o['stage']!r}")
+    if p is not None:
+        if o["regime"] not in p["regimes"]:
+            raise RlsacError(f"unknown regime {o['regime']!r} (known: {', '.join(p['regimes'])})")
+        split_scenes(p, o["fold"] or "")
+        if o["stage"] == "train" and o["model"] is not None and o["model"] not in p["models"]:
+            raise RlsacError(f"unknown model {o['model']!r} (known: {', '.join(p['models'])})")
+    return o
+
+
+def data_record(regime: str, fold: str) -> Path:
+    return Path("reports") / "folds" / "data" / regime / f"{fold}.json"
+
+
+def make_data(p: dict, fundamental: dict, regime: str, fold: str, track: bool) -> dict[str, Any]:
+    """The fold's three files through ``rlsac prepare-cvpr2020`` (same descriptors, seeded selection)."""
+    from rlsac.data.tutorial import PrepareConf, prepare
+
+    train_scenes, test_scenes = split_scenes(p, fold)
+    d = data_dir(regime, fold)
+    common = {"root": fundamental.get("raw", "data/raw/strecha"), "split": "all",
+              "n_points": int(fundamental.get("n_points", 150)),
+              "max_pairs_per_scene": int(fundamental.get("max_pairs_per_scene", 0)),
+              "pool": int(p["pool"][regime]), "val_fraction": float(p["val_fraction"])}
+    out = {}
+    for split, scenes, holdout in (("train", train_scenes, "train"), ("val", train_scenes, "val"),
+                                   ("test", test_scenes, "all")):
+        conf = PrepareConf(**common, scenes=scenes, holdout=holdout, out=str(d / f"{split}.h5"))
+        conf.check()
+        out[split] = prepare(conf, track=track, progress=False)
+    record = {"regime": regime, "fold": fold, "pool": int(p["pool"][regime]), "train_scenes": train_scenes,
+              "test_scenes": test_scenes, "splits": {k: {key: v[key] for key in (
+                  "out", "pairs", "pairs_per_scene", "skipped", "skip_reasons", "mean_gt_inlier_ratio_sampson_2px",
+                  "gt_inlier_ratio_quantiles")} for k, v in out.items()},
+              "import": _import_record(common["root"])}
+    write_json(data_record(regime, fold), record)
+    return out
+
+
+def _import_record(root: str) -> dict[str, Any]:
+    """What the import kept and dropped (its summary.json beside the layout), if present."""
+    import json
+
+    for path in (Path(root) / "import_summary.json", Path(root) / "all" / "import_summary.json"):
+        if path.is_file():
+            s = json.loads(path.read_text())
+            return {k: s[k] for k in ("pairs", "kept", "dropped", "drop_rule", "per_scene") if k in s}
+    return {}
+
+
+def train_model(p: dict, params: dict, regime: str, fold: str, model: str, o: dict, track: bool) -> dict:
+    from rlsac.commands import _section, deep_update
+    from rlsac.train import train
+
+    d = data_dir(regime, fold)
+    for split in ("train", "val"):
+        if not (d / f"{split}.h5").is_file():
+            raise RlsacError(f"{d / f'{split}.h5'}: no such file (run `rlsac folds --stage data` first)")
+    base = _section(params, "train", "fundamental")
+    opts = deep_update(deep_update(base, copy.deepcopy(p["train"][model] or {})), {
+        "task": "fundamental", "data": str(d / "train.h5"), "val_data": str(d / "val.h5"),
+        "out": str(checkpoint(regime, fold, model)), "device": o["device"], "threads": int(o["threads"]),
+        "run_name": f"train folds {regime} {fold} {model}",
+        "tags": {"command": "folds", "benchmark": "folds", "regime": regime, "fold": fold, "model": model}})
+    return train(opts, track=track)
+
+
+def evaluate_fold(p: dict, regime: str, fold: str, o: dict, track: bool) -> list[dict]:
+    """Every method and every model at every budget on the fold's test file."""
+    from rlsac.evaluate import evaluate
+
+    test = data_dir(regime, fold) / "test.h5"
+    if not test.is_file():
+        raise RlsacError(f"{test}: no such file (run `rlsac folds --stage data` first)")
+    missing = [str(checkpoint(regime, fold, m)) for m in p["models"] if not checkpoint(regime, fold, m).is_file()]
+    if missing:
+        raise RlsacError(f"no checkpoint {missing[0]} (run `rlsac folds --stage train` first)")
+    runs = [(m, None) for m in p["methods"]] + [(m, checkpoint(regime, fold, m)) for m in p["models"]]
+    out = []
+    for method, ckpt in runs:
+        for it in p["iterations"]:
+            tags = {"benchmark": "folds", "regime": regime, "fold": fold, "model": method}
+            s = evaluate({"task": "fundamental", "method": "rlsac" if ckpt else method, "data": str(test),
+                          "checkpoint": str(ckpt) if ckpt else None, "iterations": int(it), "seed": int(p["seed"]),
+                          "device": o["device"], "out_dir": str(eval_dir(regime, fold, method, it)), "tags": tags},
+                         track=track)
+            out.append({"method": method, "iterations": int(it), "mAA_R": s["mAA_R"], "mAA_t": s["mAA_t"],
+                        "seconds": round(s["seconds"], 1)})
+    return out
+
+
+def folds(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
+    """Run one stage of one (regime, fold); -> a summary of what was written where."""
+    from rlsac.commands import _params, _section
+
+    o = check_options(options)
+    params = _params(o["params"])
+    p = protocol(params)
+    o = check_options(options, p)
+    if int(o["threads"]) > 0:
+        import torch
+
+        torch.set_num_threads(int(o["threads"]))
+    t0 = time.time()
+    regime, fold = o["regime"], o["fold"]
+    result: dict[str, Any] = {"stage": o["stage"], "regime": regime, "fold": fold}
+    if o["stage"] == "data":
+        made = make_data(p, _section(params, "fundamental"), regime, fold, track)
+        result["files"] = {k: {"out": v["out"], "pairs": v["pairs"], "skipped": v["skip_reasons"],
+                               "mean_gt_inlier_ratio": v["mean_gt_inlier_ratio_sampson_2px"]}
+                           for k, v in made.items()}
+    elif o["stage"] == "train":
+        models = [o["model"]] if o["model"] else p["models"]
+        result["models"] = {m: train_model(p, params, regime, fold, m, o, track) for m in models}
+    else:
+        result["evaluations"] = evaluate_fold(p, regime, fold, o, track)
+    result["seconds"] = round(time.time() - t0, 1)
+    return result
+
+
+def format_summary(s: dict[str, Any]) -> str:
+    head = f"folds {s['stage']} {s['regime']}/{s['fold']} ({s['seconds']} s): "
+    if s["stage"] == "data":
+        return head + "; ".join(f"{k} {v['pairs']} pairs, inlier ratio {v['mean_gt_inlier_ratio']:.2f} -> {v['out']}"
+                                for k, v in s["files"].items())
+    if s["stage"] == "train":
+        return head + "; ".join(f"{m} -> {v['checkpoint']} (best {v['selection']} {v['best_score']:.3f} at step "
+                                f"{v['best_step']})" for m, v in s["models"].items())
+    return head + "; ".join(f"{e['method']}@{e['iterations']} R {e['mAA_R']:.3f} t {e['mAA_t']:.3f}"
+                            for e in s["evaluations"]) + f" -> {Path('reports/eval/folds') / s['regime'] / s['fold']}"

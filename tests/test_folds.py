@@ -1,0 +1,232 @@
+"""The leave-one-building-out benchmark: fold partition, hold-out and pool selection, per-pair seeding, the
+uniform control, the fold table on known errors, and `rlsac folds` end to end on two small real scenes."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+import yaml
+from click.testing import CliRunner
+
+from rlsac import folds
+from rlsac.cli import cli
+from rlsac.config import load_params
+from rlsac.data import fundamental
+from rlsac.data.scenes import ImportConf, import_scenes
+from rlsac.data.tutorial import PrepareConf, prepare
+from rlsac.errors import RlsacError
+from rlsac.evaluate import evaluate, pair_seed
+from rlsac.metrics import mAA
+from rlsac.reports import folds as fold_table
+
+ROOT = Path(__file__).resolve().parents[1]
+STRECHA = Path(os.environ.get("RLSAC_STRECHA", ROOT / "data" / "strecha"))
+
+
+# ------------------------------------------------------------------------------------------ protocol
+
+
+@pytest.mark.parametrize("params", ["params.yaml", "experiments/quick/params.yaml"])
+def test_every_test_building_is_tested_once_and_never_trained_on(params):
+    p = folds.protocol(load_params(ROOT / params))
+    every = {s for b in p["scenes"] for s in folds.scene_list(p["scenes"][b])}
+    tested = []
+    for fold in p["test"]:
+        train, test = (set(folds.scene_list(x)) for x in folds.split_scenes(p, fold))
+        assert test == set(folds.scene_list(p["scenes"][fold])) and not train & test
+        assert train | test == every  # the other buildings are the training set
+        tested += sorted(test)
+    assert len(tested) == len(set(tested))
+    if params == "params.yaml":  # the paper profile tests all six scenes, grouped into four buildings
+        assert sorted(tested) == sorted(every) and len(every) == 6 and len(p["test"]) == 4
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"scenes": {"a": "x,y", "b": "y"}, "test": ["a"]}, "two buildings"),
+    ({"test": ["moon"]}, "folds.test"),
+    ({"models": ["rlsac", "other"]}, "folds.models"),
+    ({"methods": ["rlsac"]}, "not a baseline"),
+    ({"pool": {"easy": 0}}, "folds.pool"),
+    ({"val_fraction": 1.0}, "val_fraction"),
+    ({"bogus": 1}, "unknown params key"),
+])
+def test_protocol_rejects_inconsistent_folds(change, message):
+    with pytest.raises(RlsacError, match=message):
+        folds.protocol({"folds": change})
+
+
+def test_unknown_fold_and_regime_are_user_errors():
+    p = folds.protocol({})
+    with pytest.raises(RlsacError, match="unknown fold"):
+        folds.check_options({"stage": "data", "regime": "easy", "fold": "moon"}, p)
+    with pytest.raises(RlsacError, match="unknown regime"):
+        folds.check_options({"stage": "data", "regime": "medium", "fold": "castle"}, p)
+
+
+# ------------------------------------------------------------------------------- data: two real scenes
+
+
+@pytest.fixture(scope="module")
+def imported(tmp_path_factory):
+    """fountain-P11 and entry-P10 imported once (1000 features: a few seconds)."""
+    out = tmp_path_factory.mktemp("raw")
+    import_scenes(ImportConf(src=str(STRECHA), out=str(out), scenes="fountain-P11,entry-P10", max_features=1000,
+                             min_matches=30), track=False, progress=False)
+    return out
+
+
+def _prep(root, tmp_path, name, **kw):
+    kw.setdefault("max_pairs_per_scene", 10)  # keeps the SIFT descriptor work of each prepare small
+    conf = PrepareConf(root=str(root), split="all", n_points=40, out=str(tmp_path / f"{name}.h5"), **kw)
+    conf.check()
+    prepare(conf, track=False, progress=False)
+    return fundamental.read(tmp_path / f"{name}.h5")[0]
+
+
+def test_holdout_splits_are_disjoint_and_complete(imported, tmp_path):
+    every = _prep(imported, tmp_path, "all", scenes="fountain-P11")
+    tr = _prep(imported, tmp_path, "tr", scenes="fountain-P11", holdout="train", val_fraction=0.3)
+    va = _prep(imported, tmp_path, "va", scenes="fountain-P11", holdout="val", val_fraction=0.3)
+    assert set(tr["pair"]).isdisjoint(va["pair"]) and set(tr["pair"]) | set(va["pair"]) == set(every["pair"])
+    assert 0 < len(va["pair"]) < len(tr["pair"])
+
+
+def test_pool_draws_from_lower_ranked_matches_with_the_pairs_own_seed(imported, tmp_path):
+    top = _prep(imported, tmp_path, "top", scenes="fountain-P11")
+    pool = _prep(imported, tmp_path, "pool", scenes="fountain-P11", pool=400)
+    ratio = lambda d: fundamental.gt_inliers(d, 2.0).sum(1) / d["mask"].sum(1)  # noqa: E731
+    assert ratio(pool).mean() < ratio(top).mean() - 0.05  # lower-ranked matches: more outliers
+    assert np.median(pool["features"][..., 4]) > np.median(top["features"][..., 4])  # higher SNN ratios
+    # a pair's drawn subset does not depend on what else is in the file (scenes, order, hold-out)
+    both = _prep(imported, tmp_path, "both", scenes="entry-P10,fountain-P11", pool=400)
+    key = pool["pair"][3]
+    i, j = 3, int(np.flatnonzero((both["pair"] == key) & (both["scene"] == "fountain-P11"))[0])
+    np.testing.assert_array_equal(pool["coords"][i], both["coords"][j])
+
+
+def test_a_pairs_result_does_not_depend_on_the_other_pairs(imported, tmp_path):
+    _prep(imported, tmp_path, "f", scenes="fountain-P11")
+    _prep(imported, tmp_path, "ef", scenes="entry-P10,fountain-P11")
+    runs = {}
+    for name in ("f", "ef"):
+        for method in ("ransac", "uniform", "magsac"):
+            evaluate({"task": "fundamental", "method": method, "data": str(tmp_path / f"{name}.h5"), "iterations": 30,
+                      "device": "cpu", "out_dir": str(tmp_path / "ev" / name / method)}, track=False)
+            runs[name, method] = pd.read_csv(tmp_path / "ev" / name / method / "errors.csv")
+    for method in ("ransac", "uniform", "magsac"):
+        a = runs["f", method].set_index("pair")
+        b = runs["ef", method][runs["ef", method]["scene"] == "fountain-P11"].set_index("pair")
+        pd.testing.assert_frame_equal(a[["err_R", "err_t"]], b.loc[a.index, ["err_R", "err_t"]])
+    # and the seed is the pair's: another seed gives other random streams
+    assert pair_seed(0, "fountain-P11", "0001-0005") != pair_seed(1, "fountain-P11", "0001-0005")
+    assert pair_seed(0, "fountain-P11", "0001-0005") != pair_seed(0, "entry-P10", "0001-0005")
+
+
+def test_uniform_control_uses_the_rlsac_environment(imported, tmp_path):
+    """actor=None: the environment's episodes and de-duplication with uniform sets; no set is used twice."""
+    from rlsac.rollout import rlsac_estimate
+    from rlsac.sampling import set_keys
+    from rlsac.tasks.fundamental import FundamentalTask
+
+    d = _prep(imported, tmp_path, "u", scenes="fountain-P11")
+    batch = fundamental.to_batch(d, [0, 1])
+    out = rlsac_estimate(FundamentalTask(), batch, None, 45, generator=torch.Generator().manual_seed(0), record=True)
+    assert out["hypotheses"] == 2 * 45 and len(out["steps"]) == 15  # 2 pairs x 3 episodes x psi=15
+    keys = torch.stack([set_keys(s["minimal_set"], 40) for s in out["steps"]]).view(15, 2, 3)  # (t, B, E)
+    for b in range(2):
+        assert keys[:, b].unique().numel() == 45
+    assert out["valid"].all()
+
+
+# ------------------------------------------------------------------------------------ table, known values
+
+
+def _write_errors(root: Path, regime: str, fold: str, method: str, it: int, err_R, err_t):
+    d = root / "folds" / regime / fold / method / f"i{it}"
+    d.mkdir(parents=True)
+    n = len(err_R)
+    pd.DataFrame({"instance": range(n), "scene": fold, "pair": [f"p{i}" for i in range(n)], "err_R": err_R,
+                  "err_t": err_t}).to_csv(d / "errors.csv", index=False)
+
+
+def test_fold_table_pools_pairs_and_pairs_methods(tmp_path):
+    ev = tmp_path / "eval"
+    # fold a: 2 pairs, fold b: 4 pairs; rlsac gets every pair within 0.5 deg, uniform misses half of them
+    _write_errors(ev, "hard", "a", "rlsac", 100, [0.5, 0.5], [0.5, 0.5])
+    _write_errors(ev, "hard", "b", "rlsac", 100, [0.5] * 4, [0.5] * 4)
+    _write_errors(ev, "hard", "a", "uniform", 100, [0.5, 20.0], [0.5, 20.0])
+    _write_errors(ev, "hard", "b", "uniform", 100, [0.5, 20.0, 0.5, 20.0], [5.5, 20.0, 5.5, 20.0])
+    rec = tmp_path / "rec" / "hard"
+    rec.mkdir(parents=True)
+    (rec / "a.json").write_text(json.dumps({"splits": {"test": {
+        "pairs": 2, "skipped": 0, "mean_gt_inlier_ratio_sampson_2px": 0.4, "gt_inlier_ratio_quantiles": {}}}}))
+    got = fold_table.build(ev, tmp_path / "out", tmp_path / "rec")
+    df = pd.read_csv(tmp_path / "out" / "table2_folds.csv")
+    u = df[df["method"] == "uniform"].iloc[0]
+    assert u["n"] == 6
+    assert u["mAA_R"] == pytest.approx(mAA(np.array([0.5, 20, 0.5, 20, 0.5, 20]), 10.0)) == pytest.approx(0.5)
+    assert u["mAA_t"] == pytest.approx((1 + 0 + 0.5 + 0 + 0.5 + 0) / 6, abs=1e-4)  # CSV keeps 4 decimals
+    assert u["a R"] == pytest.approx(0.5) and u["b t"] == pytest.approx(0.25)
+    assert u["dR"] == pytest.approx(-0.5) and u["dR_hi"] < 0  # paired against rlsac: uniform is worse
+    md = (tmp_path / "out" / "table2_folds.md").read_text()
+    assert "6 test pairs pooled over 2 folds" in md and "one pair moves a pooled mAA by 0.1667" in md
+    assert "RLSAC − uniform" in md and "+0.500" in md
+    it = pd.read_csv(tmp_path / "out" / "folds_iterations.csv")
+    assert set(it["method"]) == {"rlsac", "uniform"} and (it["n_pairs"] == 6).all()
+    assert got["files"] and not got["missing"]
+
+
+def test_fold_table_without_results_writes_nothing(tmp_path):
+    got = fold_table.build(tmp_path / "none", tmp_path / "out", tmp_path / "rec")
+    assert got["files"] == [] and not (tmp_path / "out").exists()
+
+
+# ------------------------------------------------------------------------------------------ end to end
+
+
+def test_folds_command_end_to_end(imported, tmp_path, monkeypatch):
+    """data -> train (both models) -> evaluate -> table for one tiny fold, through the CLI."""
+    monkeypatch.chdir(tmp_path)
+    params = {
+        "fundamental": {"raw": str(imported), "n_points": 40, "max_pairs_per_scene": 8},
+        "train": {"fundamental": {"threads": 1, "val_instances": 2, "val_iterations": 15, "val_every": 4,
+                                  "ckpt_every": 4, "policy": {"graph_dims": 4},
+                                  "sac": {"total_steps": 8, "num_envs": 2, "batch_size": 4, "learning_starts": 4}}},
+        "folds": {"test": ["fountain"], "scenes": {"fountain": "fountain-P11", "entry": "entry-P10"},
+                  "val_fraction": 0.3, "regimes": ["hard"], "pool": {"hard": 100},
+                  "methods": ["uniform", "ransac"], "models": ["rlsac", "rlsac-ws"],
+                  "train": {"rlsac": {}, "rlsac-ws": {"sac": {"warm_start_updates": 2}, "selection": "val_mAA"}},
+                  "iterations": [15], "seed": 0},
+    }
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
+    run = CliRunner()
+    base = ["folds", "--regime", "hard", "--fold", "fountain", "--device", "cpu", "--no-tracking"]
+    r = run.invoke(cli, base + ["--stage", "evaluate"])
+    assert r.exit_code == 2 and "run `rlsac folds --stage data` first" in r.output
+    r = run.invoke(cli, base + ["--stage", "data"])
+    assert r.exit_code == 0, r.output
+    rec = json.loads((tmp_path / "reports/folds/data/hard/fountain.json").read_text())
+    assert rec["test_scenes"] == "fountain-P11" and rec["train_scenes"] == "entry-P10"
+    assert rec["splits"]["train"]["pairs"] + rec["splits"]["val"]["pairs"] == 8
+    r = run.invoke(cli, base + ["--stage", "train"])
+    assert r.exit_code == 0, r.output
+    ws = torch.load(tmp_path / "checkpoints/folds/hard/fountain/rlsac-ws.pt", weights_only=False)
+    paper = torch.load(tmp_path / "checkpoints/folds/hard/fountain/rlsac.pt", weights_only=False)
+    assert ws["selection"] == "val_mAA" and ws["conf"]["sac"]["warm_start_updates"] == 2
+    assert paper["selection"] == "inlier_ratio" and paper["conf"]["sac"]["warm_start_updates"] == 0
+    assert [h["step"] for h in paper["history"]][:2] == [4, 8]
+    r = run.invoke(cli, base + ["--stage", "evaluate"])
+    assert r.exit_code == 0, r.output
+    for m in ("uniform", "ransac", "rlsac", "rlsac-ws"):
+        s = json.loads((tmp_path / f"reports/eval/folds/hard/fountain/{m}/i15/summary.json").read_text())
+        assert s["n_instances"] == 8 and s["iterations"] == 15
+    r = run.invoke(cli, ["table", "--which", "folds", "--no-tracking"])
+    assert r.exit_code == 0, r.output
+    md = (tmp_path / "reports/table2_folds.md").read_text()
+    assert "8 test pairs pooled over 1 folds" in md and "RLSAC + warm start" in md
