@@ -591,3 +591,21 @@ def test_run_names_and_command_tags(workdir):
     runs = _runs()
     assert len({r.info.run_name for r in runs}) == 2  # the output name tells the runs apart
     assert {r.data.tags["command"] for r in runs} == {"synth-lines"}
+
+
+@pytest.mark.parametrize("signame", ["SIGINT", "SIGTERM"])
+def test_stop_on_signal_defers_the_first_signal_and_restores_the_handlers(signame):
+    import os
+    import signal
+
+    from rlsac.train import _StopOnSignal
+
+    sig = getattr(signal, signame)
+    before = signal.getsignal(sig)
+    stop = _StopOnSignal()
+    with stop:
+        assert not stop()
+        os.kill(os.getpid(), sig)  # handled: no KeyboardInterrupt, no exit
+        assert stop() and stop.signum == sig
+        assert signal.getsignal(sig) == before  # a second signal would act at once
+    assert signal.getsignal(sig) == before
