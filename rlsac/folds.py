@@ -5,7 +5,8 @@ on the other buildings, validating on a held-out ``val_fraction`` of their pairs
 pair key), so every co-visible pair is a test pair exactly once and no test building is seen in
 training. Each fold is prepared in every *regime* (``pool``: 0 = the N lowest-SNN matches, P > N = N
 drawn from the P lowest-SNN ones, a tutorial-like inlier ratio) and evaluated with every method at every
-budget, including ``uniform`` (the RLSAC environment with uniform minimal sets: RLSAC - uniform is the
+budget (RLSAC models are trained once per fold, on the ``model_regime`` data, and evaluated in every regime),
+including ``uniform`` (the RLSAC environment with uniform minimal sets: RLSAC - uniform is the
 learned sampler alone) and each RLSAC model of ``models`` (train overrides over ``train.fundamental``).
 
 Stages (one DVC stage per regime x fold, per model for training):
@@ -39,6 +40,7 @@ DEFAULTS: dict[str, Any] = {
     "train": {"rlsac": {}},
     "iterations": [10, 100, 1000],
     "seed": 0,
+    "model_regime": "hard",
 }
 OPTIONS: dict[str, Any] = {"stage": None, "regime": None, "fold": None, "model": None, "params": "params.yaml",
                            "device": "auto", "threads": 1}
@@ -63,6 +65,8 @@ def protocol(params: dict[str, Any]) -> dict[str, Any]:
         raise RlsacError(f"folds.regimes {p['regimes']} and the keys of folds.pool {sorted(p['pool'])} differ")
     if set(p["models"]) != set(p["train"]):
         raise RlsacError(f"folds.models {p['models']} and the keys of folds.train {sorted(p['train'])} differ")
+    if p["model_regime"] not in p["regimes"]:
+        raise RlsacError(f"folds.model_regime {p['model_regime']!r} is not one of folds.regimes {p['regimes']}")
     if not 0 < float(p["val_fraction"]) < 1:
         raise RlsacError(f"folds.val_fraction must be in (0, 1), got {p['val_fraction']}")
     if not p["iterations"] or any(int(i) <= 0 for i in p["iterations"]):
@@ -113,6 +117,8 @@ def check_options(options: dict[str, Any], p: dict[str, Any] | None = None) -> d
         if o["regime"] not in p["regimes"]:
             raise RlsacError(f"unknown regime {o['regime']!r} (known: {', '.join(p['regimes'])})")
         split_scenes(p, o["fold"] or "")
+        if o["stage"] == "train" and o["regime"] != p["model_regime"]:
+            raise RlsacError(f"models are trained on regime {p['model_regime']!r} only (folds.model_regime)")
         if o["stage"] == "train" and o["model"] is not None and o["model"] not in p["models"]:
             raise RlsacError(f"unknown model {o['model']!r} (known: {', '.join(p['models'])})")
     return o
@@ -182,10 +188,11 @@ def evaluate_fold(p: dict, regime: str, fold: str, o: dict, track: bool) -> list
     test = data_dir(regime, fold) / "test.h5"
     if not test.is_file():
         raise RlsacError(f"{test}: no such file (run `rlsac folds --stage data` first)")
-    missing = [str(checkpoint(regime, fold, m)) for m in p["models"] if not checkpoint(regime, fold, m).is_file()]
+    trained = p["model_regime"]  # every regime is evaluated with the models trained on this one's data
+    missing = [str(checkpoint(trained, fold, m)) for m in p["models"] if not checkpoint(trained, fold, m).is_file()]
     if missing:
         raise RlsacError(f"no checkpoint {missing[0]} (run `rlsac folds --stage train` first)")
-    runs = [(m, None) for m in p["methods"]] + [(m, checkpoint(regime, fold, m)) for m in p["models"]]
+    runs = [(m, None) for m in p["methods"]] + [(m, checkpoint(trained, fold, m)) for m in p["models"]]
     out = []
     for method, ckpt in runs:
         for it in p["iterations"]:

@@ -58,15 +58,18 @@ from matplotlib.lines import Line2D  # noqa: E402
 from rlsac.errors import RlsacError  # noqa: E402
 from rlsac.io import atomic_path  # noqa: E402
 
-FIGURES = ("fundamental_iterations", "line_steps", "fundamental_pair", "fundamental_steps")
+FIGURES = ("fundamental_iterations", "line_steps", "fundamental_pair", "fundamental_steps", "folds_iterations",
+           "learning_curves")
 SHORT = {"iterations": "fundamental_iterations", "line": "line_steps", "pair": "fundamental_pair",
-         "steps": "fundamental_steps"}
+         "steps": "fundamental_steps", "folds": "folds_iterations", "curves": "learning_curves"}
 DEFAULTS: dict[str, Any] = {
     "which": "all",
     "out_dir": "reports/figures",
     "eval_root": "reports/eval",
     "reports_dir": "reports",
     "iterations_csv": None,
+    "folds_iterations_csv": "reports/folds_iterations.csv",  # rlsac table --which folds
+    "folds_checkpoints": "checkpoints/folds",  # <regime>/<fold>/<model>.pt with their validation history
     "line_data": "data/lines/test_o0.7.h5",
     "line_checkpoint": "checkpoints/line_o0.7.pt",
     "line_index": "auto",
@@ -425,6 +428,10 @@ def check_inputs(o: dict[str, Any]) -> list[str]:
     problems = []
     if "fundamental_iterations" in o["which"] and o["iterations_csv"] and not Path(o["iterations_csv"]).is_file():
         problems.append(f"{o['iterations_csv']}: no such iterations CSV")
+    if "folds_iterations" in o["which"] and not Path(o["folds_iterations_csv"]).is_file():
+        problems.append(f"{o['folds_iterations_csv']}: no such file (rlsac table --which folds)")
+    if "learning_curves" in o["which"] and not list(Path(o["folds_checkpoints"]).glob("*/*/*.pt")):
+        problems.append(f"{o['folds_checkpoints']}: no fold checkpoints (rlsac folds --stage train)")
     if "line_steps" in o["which"]:
         if not Path(o["line_data"]).is_file() and lock_stage(o["line_data"]) is None:
             problems.append(f"{o['line_data']}: no such line file, and dvc.lock records no stage that makes it")
@@ -547,6 +554,12 @@ def plot(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
 
                         df = iterations_csv(o["eval_root"], tmp)  # rebuilt, not written over reports/
                     paths, note = plot_iterations(df, Path(tmp))
+                elif name in ("folds_iterations", "learning_curves"):
+                    from rlsac.reports import fold_figures
+
+                    paths, note = (fold_figures.plot_folds_iterations(o["folds_iterations_csv"], Path(tmp))
+                                   if name == "folds_iterations"
+                                   else fold_figures.plot_learning_curves(o["folds_checkpoints"], Path(tmp)))
                 elif name == "line_steps":
                     paths, note = plot_line_steps(o, Path(tmp))
                 elif name == "fundamental_pair":

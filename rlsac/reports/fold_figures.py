@@ -1,0 +1,93 @@
+"""Figures of the fold benchmark: pooled mAA against the budget, and the models' learning curves.
+
+* ``folds_iterations``: reports/folds_iterations.csv (``rlsac table --which folds``), one panel per regime and
+  error (R, t), every method's pooled mAA@10° against the iteration budget (log x).
+* ``learning_curves``: the validation history every fold checkpoint carries (``history``: validation mAA and
+  mean inlier ratio of the final hypotheses per SAC step, the same values MLflow logs as ``charts/val_*``),
+  one line per fold, one column per model; the kept step is marked.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import pandas as pd  # noqa: E402
+import torch  # noqa: E402
+
+from rlsac.errors import RlsacError  # noqa: E402
+
+STYLE = {"uniform": ("tab:blue", "x"), "ransac": ("tab:purple", "o"), "opencv_ransac": ("tab:gray", "s"),
+         "usac": ("tab:orange", "^"), "usac_accurate": ("tab:brown", "v"), "magsac": ("tab:green", "D"),
+         "rlsac": ("tab:red", "*"), "rlsac-ws": ("darkred", "P"), "ransac-lo": ("violet", "h"),
+         "rlsac-lo": ("crimson", "p")}
+
+
+def _save(fig, out_dir: Path, name: str) -> list[str]:
+    paths = []
+    for ext in ("png", "pdf"):
+        p = out_dir / f"{name}.{ext}"
+        fig.savefig(p, dpi=130 if ext == "png" else None, bbox_inches="tight")
+        paths.append(str(p))
+    plt.close(fig)
+    return paths
+
+
+def plot_folds_iterations(csv: str | Path, out_dir: Path) -> tuple[list[str], str]:
+    csv = Path(csv)
+    if not csv.is_file():
+        raise RlsacError(f"{csv}: no such file (run `rlsac table --which folds` first)")
+    df = pd.read_csv(csv)
+    if df.empty:
+        raise RlsacError(f"{csv}: no results to plot")
+    regimes = sorted(df["regime"].unique())
+    fig, axes = plt.subplots(len(regimes), 2, figsize=(11, 4 * len(regimes)), squeeze=False)
+    for r, regime in enumerate(regimes):
+        d = df[df["regime"] == regime]
+        for c, (col, what) in enumerate((("mAA_R", "rotation"), ("mAA_t", "translation"))):
+            ax = axes[r, c]
+            for m, g in d.groupby("method", sort=False):
+                g = g.sort_values("iterations")
+                colour, marker = STYLE.get(m, ("black", "."))
+                ax.plot(g["iterations"], g[col], marker=marker, color=colour, label=m)
+            ax.set_xscale("log")
+            ax.set_xlabel("iterations (hypotheses per pair)")
+            ax.set_ylabel(f"pooled mAA@10° ({what})")
+            ax.set_title(f"{regime} regime, {int(d['n_pairs'].max())} test pairs over all folds")
+            ax.grid(alpha=0.3)
+    axes[0, 1].legend(loc="lower right", fontsize=8)
+    return _save(fig, out_dir, "folds_iterations"), ""
+
+
+def plot_learning_curves(ckpt_root: str | Path, out_dir: Path) -> tuple[list[str], str]:
+    root = Path(ckpt_root)
+    ckpts = sorted(root.glob("*/*/*.pt")) if root.is_dir() else []
+    ckpts = [p for p in ckpts if not p.name.endswith(".state.pt")]
+    if not ckpts:
+        raise RlsacError(f"{root}: no fold checkpoints (run `rlsac folds --stage train` first)")
+    models = sorted({p.stem for p in ckpts})
+    fig, axes = plt.subplots(2, len(models), figsize=(5.5 * len(models), 7), squeeze=False)
+    for c, model in enumerate(models):
+        for p in (q for q in ckpts if q.stem == model):
+            ck = torch.load(p, map_location="cpu", weights_only=False)
+            hist = pd.DataFrame(ck.get("history") or [])
+            if hist.empty:
+                continue
+            label = f"{p.parent.parent.name}/{p.parent.name}"
+            for r, key in enumerate(("charts/val_mAA", "charts/val_inlier_ratio")):
+                if key not in hist:
+                    continue
+                line, = axes[r, c].plot(hist["step"], hist[key], marker=".", label=label)
+                kept = hist[hist["step"] == ck.get("step")]
+                axes[r, c].plot(kept["step"], kept[key], "o", mfc="none", ms=10, color=line.get_color())
+        axes[0, c].set_title(f"{model} (kept actor circled; selection: {ck.get('selection', 'val_mAA')})")
+        axes[0, c].set_ylabel("validation mAA@10°")
+        axes[1, c].set_ylabel("validation mean inlier ratio")
+        for r in range(2):
+            axes[r, c].set_xlabel("SAC step")
+            axes[r, c].grid(alpha=0.3)
+        axes[0, c].legend(fontsize=8)
+    return _save(fig, out_dir, "learning_curves"), ""
