@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from rlsac.data import load
 from rlsac.data.lines import LineDataConf, generate, write
 from rlsac.env import EnvConf
 from rlsac.policy import PolicyConf
@@ -20,53 +21,72 @@ from rlsac.train import train, validation_metrics
 SEL = {"inlier_ratio": "charts/val_inlier_ratio", "val_mAA": "charts/val_mAA"}
 
 
+# scripted validation scores (6 validations at steps 5..30): the rule picks a different step per key,
+# and the inlier-ratio maximum is tied (the first one is kept)
+SCRIPT = {"charts/val_inlier_ratio": [0.2, 0.6, 0.3, 0.6, 0.1, 0.4], "charts/val_mAA": [0.9, 0.1, 0.95, 0.2, 0.3, 0.1]}
+EXPECT_STEP = {"inlier_ratio": 10, "val_mAA": 15}
+
+
 @pytest.fixture(scope="module")
-def selection_runs(tmp_path_factory):
-    """One tiny training (6 validations) per selection rule; training does not depend on the rule."""
+def data_files(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("sel")
     for name, seed, n in (("tr", 1, 32), ("va", 2, 12)):
         conf = LineDataConf(outlier_rate=0.6, n_instances=n, n_points=40, seed=seed)
         write(tmp / f"{name}.h5", generate(conf), conf)
-    runs = {}
-    for sel in ("inlier_ratio", "val_mAA"):
-        opts = {"data": str(tmp / "tr.h5"), "val_data": str(tmp / "va.h5"), "out": str(tmp / f"{sel}.pt"),
-                "device": "cpu", "seed": 3, "threads": 1, "selection": sel, "val_instances": 12,
-                "val_iterations": 30, "val_every": 5, "ckpt_every": 5,
-                "policy": {"k": 8, "widths": [16, 16], "global_width": 16, "head_width": 16},
-                "sac": {"total_steps": 30, "num_envs": 4, "batch_size": 16, "learning_starts": 16,
-                        "actor_lr": 3e-3, "critic_lr": 3e-3}}
-        summary = train(opts, track=False)
-        ckpt = torch.load(tmp / f"{sel}.pt", weights_only=False)
-        state = torch.load(tmp / f"{sel}.state.pt", weights_only=False)
-        runs[sel] = (opts, summary, ckpt, state["history"])
-    return runs
+    return tmp
 
 
-def test_every_selection_sees_the_same_validations(selection_runs):
-    hists = [h for *_, h in selection_runs.values()]
-    assert [e["step"] for e in hists[0]] == [5, 10, 15, 20, 25, 30]
-    assert hists[0] == hists[1]
+def tiny_options(tmp, sel):
+    return {"data": str(tmp / "tr.h5"), "val_data": str(tmp / "va.h5"), "out": str(tmp / f"{sel}.pt"),
+            "device": "cpu", "seed": 3, "threads": 1, "selection": sel, "val_instances": 12,
+            "val_iterations": 30, "val_every": 5, "ckpt_every": 5,
+            "policy": {"k": 8, "widths": [16, 16], "global_width": 16, "head_width": 16},
+            "sac": {"total_steps": 30, "num_envs": 4, "batch_size": 16, "learning_starts": 16,
+                    "actor_lr": 3e-3, "critic_lr": 3e-3}}
 
 
 @pytest.mark.parametrize("sel", ["inlier_ratio", "val_mAA"])
-def test_kept_actor_is_the_best_validated_one(selection_runs, sel):
-    opts, summary, ckpt, hist = selection_runs[sel]
-    scores = [e[SEL[sel]] for e in hist]
-    best = int(np.argmax(scores))  # the first of equal bests
-    assert len(set(scores)) > 1 and best < len(scores) - 1  # this run tells best from last
-    assert ckpt["step"] == hist[best]["step"] == summary["best_step"]
-    assert ckpt["val"][SEL[sel]] == scores[best] == summary["best_score"]
-    # the weights on disk are the ones validated then: validating them again gives the same numbers
+def test_kept_actor_is_the_best_validated_one(data_files, monkeypatch, sel):
+    """Real training, validation scores scripted: the checkpoint holds the weights of the first best
+    validation under the selection's key (not the latest, not the other key's best)."""
+    import rlsac.train as train_mod
+
+    real, seen = train_mod.validation_metrics, []
+
+    def scripted(task, val, agent, conf, device):
+        summ = real(task, val, agent, conf, device)
+        i = len(seen)
+        seen.append({k: v.detach().clone() for k, v in agent.actor.state_dict().items()})
+        return {**summ, **{k: v[i] for k, v in SCRIPT.items()}}
+
+    monkeypatch.setattr(train_mod, "validation_metrics", scripted)
+    opts = tiny_options(data_files, sel)
+    summary = train(opts, track=False)
+    ckpt = torch.load(opts["out"], weights_only=False)
+    hist = torch.load(data_files / f"{sel}.state.pt", weights_only=False)["history"]
+    assert [e["step"] for e in hist] == [5, 10, 15, 20, 25, 30] and len(seen) == 6
+    step = EXPECT_STEP[sel]
+    assert ckpt["step"] == step == summary["best_step"]
+    assert ckpt["val"][SEL[sel]] == SCRIPT[SEL[sel]][step // 5 - 1] == summary["best_score"]
+    kept = seen[step // 5 - 1]
+    assert all(torch.equal(ckpt["actor"][k], kept[k]) for k in kept)
+    assert not all(torch.equal(ckpt["actor"][k], seen[-1][k]) for k in kept)  # training did move on
+
+
+def test_kept_checkpoint_revalidates_to_its_recorded_score(data_files):
+    """Unscripted: the kept checkpoint is the history's best, and validating it again gives that score."""
+    opts = tiny_options(data_files, "inlier_ratio")
+    opts["out"] = str(data_files / "real.pt")
+    summary = train(opts, track=False)
+    ckpt = torch.load(opts["out"], weights_only=False)
+    hist = torch.load(data_files / "real.state.pt", weights_only=False)["history"]
+    scores = [e[SEL["inlier_ratio"]] for e in hist]
+    assert ckpt["step"] == hist[int(np.argmax(scores))]["step"] == summary["best_step"]
     actor, conf = load_actor(opts["out"])
-    again = validation_metrics(LineTask(), _val(opts), types.SimpleNamespace(actor=actor),
+    again = validation_metrics(LineTask(), load("line", opts["val_data"]), types.SimpleNamespace(actor=actor),
                                types.SimpleNamespace(val_iterations=30, env=checkpoint_env(conf)), "cpu")
-    assert again[SEL[sel]] == pytest.approx(scores[best], abs=1e-6)
-
-
-def _val(opts):
-    from rlsac.data import load
-
-    return load("line", opts["val_data"])
+    assert again[SEL["inlier_ratio"]] == pytest.approx(max(scores), abs=1e-6)
+    assert ckpt["val"][SEL["inlier_ratio"]] == max(scores)
 
 
 # ---------------------------------------------------------------- learning

@@ -1,0 +1,64 @@
+#!/usr/bin/env bash
+# Mutation testing of the learning core (issue #13) with mutmut 3: every mutant of rlsac/sac.py,
+# rlsac/policy.py and rlsac/rollout.py (SAC update, replay buffer, training loop, EdgeConv networks,
+# test-time rollout) against the fast learning-core tests. Not part of CI.
+#
+#   .venv/bin/pip install 'mutmut>=3.8'      # once; deliberately not a project dependency
+#   OMP_NUM_THREADS=1 bash benchmarks/mutation.sh [MAX_CHILDREN]     # default 2 workers
+#
+# Runs in a temporary copy of the repository (the working tree is never touched; MUTATION_DIR keeps
+# it elsewhere, and an existing one resumes). Prints mutmut's per-mutant results and the kill rate
+# per file; the slower tests (tests/test_learning.py, whose 400-step learning test and training runs
+# also kill mutants here, test_train.py, test_speed_equivalence.py) are left out to keep it to about
+# an hour on 2 cores. benchmarks/mutation_faults.py runs the issue's hand-made faults against all of them.
+set -euo pipefail
+ROOT=$(cd "$(dirname "$0")/.." && pwd)
+MUTMUT=${MUTMUT:-$ROOT/.venv/bin/mutmut}
+PY=${PYTHON:-$ROOT/.venv/bin/python}
+WORK=${MUTATION_DIR:-$(mktemp -d /tmp/rlsac-mutation.XXXXXX)}
+CHILDREN=${1:-2}
+export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
+
+mkdir -p "$WORK/tests"
+rm -rf "$WORK/rlsac"
+cp -r "$ROOT/rlsac" "$WORK/rlsac"
+find "$WORK/rlsac" -name __pycache__ -prune -exec rm -rf {} +
+cp "$ROOT"/tests/{conftest.py,test_sac.py,test_policy.py,test_env.py} "$WORK/tests/"
+cat > "$WORK/setup.cfg" <<'EOF'
+[mutmut]
+source_paths = rlsac
+only_mutate =
+    rlsac/sac.py
+    rlsac/policy.py
+    rlsac/rollout.py
+pytest_add_cli_args_test_selection =
+    tests/test_sac.py
+    tests/test_policy.py
+    tests/test_env.py
+pytest_add_cli_args =
+    -p
+    no:cacheprovider
+process_isolation = forkserver
+EOF
+echo "mutation run in $WORK"
+cd "$WORK"
+"$MUTMUT" run --max-children "$CHILDREN" || true
+"$MUTMUT" results --all true > results.txt 2>&1 || "$MUTMUT" results > results.txt 2>&1 || true
+"$PY" - <<'EOF'
+import collections, re
+rows = collections.defaultdict(collections.Counter)
+for line in open("results.txt"):
+    m = re.match(r"\s*(rlsac\.\w+)\.\S+: (.+)$", line)
+    if m:
+        rows[m.group(1)][m.group(2).strip()] += 1
+total = collections.Counter()
+for mod, c in sorted(rows.items()):
+    total.update(c)
+    n = sum(c.values())
+    print(f"{mod:16s} {n:5d} mutants  killed {c['killed']:5d} ({c['killed'] / n:.0%})  " + ", ".join(
+        f"{k} {v}" for k, v in sorted(c.items()) if k != "killed"))
+n = sum(total.values())
+if n:
+    print(f"{'all':16s} {n:5d} mutants  killed {total['killed']:5d} ({total['killed'] / n:.0%})")
+EOF
+echo "survivors: cd $WORK && $MUTMUT show <name>   (listed in $WORK/results.txt)"
