@@ -272,3 +272,59 @@ def test_kappa_varsigma_stops_stay_terminal_with_bootstrap_truncation():
     n = len(runs[0])
     assert n == len(runs[1]) and runs[0].done[:n].sum() >= 4
     assert torch.equal(runs[0].done[:n], runs[1].done[:n])
+
+
+def test_replay_buffer_state_dict_round_trip():
+    src = ReplayBuffer(size=4, n=3, m=2, device=torch.device("cpu"))
+    mem = torch.arange(18.0).view(2, 3, 3) / 4
+    src.add(torch.tensor([7, 8]), mem, -mem, torch.tensor([[0, 1], [1, 2]]), torch.tensor([0.5, 0.25]),
+            torch.tensor([False, True]))
+    st = src.state_dict()
+    assert st["inst"].tolist() == [7, 8] and st["ptr"] == 2 and st["full"] is False  # the filled part only
+    dst = ReplayBuffer(size=4, n=3, m=2, device=torch.device("cpu"))
+    dst.load_state_dict(st)
+    assert len(dst) == 2 and dst.ptr == 2 and not dst.full
+    for k in ("inst", "mem", "mem2", "action", "reward", "done"):
+        assert torch.equal(getattr(dst, k), getattr(src, k)), k
+    src.add(torch.tensor([1, 2, 3]), mem[[0, 1, 0]], mem[[0, 1, 0]], torch.tensor([[0, 2]] * 3), torch.zeros(3),
+            torch.zeros(3, dtype=torch.bool))  # wraps: full
+    dst = ReplayBuffer(size=4, n=3, m=2, device=torch.device("cpu"))
+    dst.load_state_dict(src.state_dict())
+    assert len(dst) == 4 and dst.full and dst.ptr == 1 and torch.equal(dst.inst, src.inst)
+    for size, n, m in ((5, 3, 2), (4, 2, 2), (4, 3, 3)):
+        with pytest.raises(ValueError, match="does not fit"):
+            ReplayBuffer(size=size, n=n, m=m, device=torch.device("cpu")).load_state_dict(src.state_dict())
+
+
+def test_warm_start_actor_step_is_cross_entropy_on_true_inliers():
+    """With labels the actor step minimises the mean over rows with inliers of -mean log pi over them."""
+    agent = make_agent(actor_lr=1e-3)
+    s, s2, mask, graph, action, reward, done = make_batch(agent)
+    labels = torch.zeros(4, 10, dtype=torch.bool)
+    labels[0, [0, 2]] = labels[1, [1, 4, 5]] = labels[3, 9] = True  # row 2 has none: left out
+    actor = copy.deepcopy(agent.actor)
+    logp = torch.log_softmax(torch.where(mask, actor(s, mask, graph), torch.tensor(-1e9)), -1)
+    rows = [logp[0, [0, 2]].mean(), logp[1, [1, 4, 5]].mean(), logp[3, [9]].mean()]
+    loss = -torch.stack(rows).mean()
+    grads = torch.autograd.grad(loss, list(actor.parameters()))
+    before = snapshot(actor)
+    out = agent.update(s, s2, mask, graph, action, reward, done, labels)
+    assert out["losses/actor"] == pytest.approx(loss.item(), rel=1e-5)
+    assert_adam_first_step(before, snapshot(agent.actor), grads, 1e-3)
+
+
+def test_training_loop_warm_starts_the_first_updates_then_counts_on():
+    task, data = line_data()
+    data["labels"] = task.true_inliers(data)
+    agent = make_agent(total_steps=6, num_envs=4, learning_starts=8, batch_size=8, updates_per_step=2,
+                       warm_start_updates=3)
+    supervised, real = [], agent.update
+
+    def update(*args):
+        supervised.append(args[7] is not None)
+        return real(*args)
+
+    agent.update = update
+    train_loop(agent, task, data, EnvConf(), 0, torch.Generator().manual_seed(0), log=lambda m, step: None)
+    n = len(supervised)
+    assert n >= 6 and supervised == [True] * 3 + [False] * (n - 3) and int(agent.n_updates) == n
