@@ -1,34 +1,46 @@
-"""Per-pair wall time of RLSAC vs OpenCV MAGSAC++ for fundamental matrices at the paper's 1k budget.
+"""Per-pair time of RLSAC vs OpenCV MAGSAC++ (and our RANSAC) for fundamental matrices at the 1k budget.
 
-    python benchmarks/fundamental.py [--data data/fundamental/test.h5] [--pairs 16] [--iterations 1000]
-                                     [--checkpoint CKPT] [--batch-pairs 8] [--device auto|cpu|cuda] [--threads 1]
+    python benchmarks/fundamental.py [--data data/fundamental/test.h5] [--pairs 12] [--iterations 1000]
+                                     [--checkpoint checkpoints/fundamental.pt] [--batch-pairs 1,4]
+                                     [--threads 1] [--device cpu] [--no-reference]
 
-RLSAC runs batched over pairs and episodes (``--batch-pairs`` pairs x ceil(iterations / 15) episodes per
-forward pass); MAGSAC++ is OpenCV's ``USAC_MAGSAC`` through ``rlsac.baselines.opencv_fundamental``, one
-pair at a time on one core. Both see the same first ``--pairs`` pairs of the prepared file (or synthetic
-pairs when the file is missing). The reference (MAGSAC++) is measured in the same run; nothing is asserted.
-Without ``--checkpoint`` the actor is randomly initialised: timing is representative, accuracy is not.
+All methods see the same first ``--pairs`` pairs of the prepared file (synthetic pairs when it is
+missing), in one process:
+
+* RLSAC after: the default ``rlsac_estimate`` path, one pair per call (what ``rlsac evaluate`` does
+  for named pairs), each pair seeded as ``rlsac evaluate`` seeds it;
+* RLSAC before: ``reference=True``, the original per-step path, same pairs and seeds; the final
+  hypotheses of the two are compared (they must be identical);
+* OpenCV MAGSAC++ (``USAC_MAGSAC``, confidence 0.999, maxIters = ``--iterations``) and our batched
+  RANSAC at the same budget, one pair at a time.
+
+The methods run interleaved pair by pair at ``--threads`` torch and OpenCV threads; times are the
+process's CPU time (wall time beside it; see ``timing.CLOCK``). Printed: ms per pair, hypotheses per
+pair (RLSAC and RANSAC: counted; OpenCV: estimated from its termination rule, see
+``timing.opencv_hypotheses``), the ratios to MAGSAC++, where RLSAC's time goes (model / selection /
+solver+scoring / state / refinement / other) and how RLSAC's per-pair time scales with the pairs per
+call (``--batch-pairs``). Nothing is asserted; all ratios come from this one run.
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
-import time
+from contextlib import nullcontext
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 
-from rlsac.baselines import opencv_fundamental
-from rlsac.evaluate import checkpoint_task_options, resolve_device, task_from
-from rlsac.policy import Actor, PolicyConf
-from rlsac.rollout import checkpoint_env, in_channels, load_actor, rlsac_estimate
+sys.path.insert(0, str(Path(__file__).parent))
 
+from timing import Clocks, Split, format_split, opencv_hypotheses  # noqa: E402
 
-def _sync(device: str) -> None:
-    if device == "cuda":
-        torch.cuda.synchronize()
+from rlsac.baselines import opencv_fundamental, ransac  # noqa: E402
+from rlsac.evaluate import checkpoint_task_options, pair_seed, resolve_device, task_from  # noqa: E402
+from rlsac.policy import Actor, PolicyConf  # noqa: E402
+from rlsac.rollout import checkpoint_env, in_channels, load_actor, rlsac_estimate  # noqa: E402
 
 
 def _data(path: str, pairs: int):
@@ -39,7 +51,6 @@ def _data(path: str, pairs: int):
         data, attrs = fundamental.read(path)
         data = {k: v[:pairs] for k, v in data.items()}
         return data, f"{path} ({attrs.get('scenes', '?')}), first {len(data['pair'])} pairs"
-    sys.path.insert(0, str(Path(__file__).parent))
     from fundamental_solvers import synthetic_batch
 
     b = synthetic_batch(pairs)
@@ -55,14 +66,17 @@ def _data(path: str, pairs: int):
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--data", default="data/fundamental/test.h5")
-    ap.add_argument("--pairs", type=int, default=16)
+    ap.add_argument("--pairs", type=int, default=12)
     ap.add_argument("--iterations", type=int, default=1000)
-    ap.add_argument("--checkpoint", default=None)
-    ap.add_argument("--batch-pairs", type=int, default=8, help="pairs per RLSAC forward batch")
-    ap.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto")
+    ap.add_argument("--checkpoint", default="checkpoints/fundamental.pt",
+                    help="'' = a randomly initialised actor (same cost, meaningless accuracy)")
+    ap.add_argument("--batch-pairs", default="1,4", help="pairs per RLSAC call for the scaling table")
+    ap.add_argument("--device", choices=["auto", "cpu", "cuda"], default="cpu")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--no-reference", action="store_true", help="skip the reference (before) path")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
+    cv2.setNumThreads(args.threads)
     device = resolve_device(args.device)
     from rlsac.data import fundamental
 
@@ -77,48 +91,96 @@ def main() -> None:
         task = task_from("fundamental")
         torch.manual_seed(0)
         actor = Actor(in_channels(task), PolicyConf(graph_dims=4)).to(device).eval()
-        env_conf, who = checkpoint_env({}), "randomly initialised actor (no --checkpoint)"
+        env_conf, who = checkpoint_env({}), "randomly initialised actor"
     episodes = -(-args.iterations // env_conf.steps_per_episode)
-    print(f"device {device}, {torch.get_num_threads()} thread(s); data: {what}; {args.iterations} iterations; "
-          f"actor: {who}")
+    print(f"device {device}, {torch.get_num_threads()} thread(s); data: {what}; {args.iterations} iterations "
+          f"({episodes} episodes x {env_conf.steps_per_episode} steps per pair); actor: {who}")
 
-    def run_rlsac(idx, seed=0):
+    def sync():
+        if device == "cuda":
+            torch.cuda.synchronize()
+
+    def gen(p):
+        return torch.Generator(device=device).manual_seed(pair_seed(0, data["scene"][p], data["pair"][p]))
+
+    def run_rlsac(idx, reference, split=None):
         batch = fundamental.to_batch(data, idx, device=device)
-        return rlsac_estimate(task, batch, actor, args.iterations, env_conf,
-                              generator=torch.Generator(device=device).manual_seed(seed)), batch
+        with split.timed() if split else nullcontext():
+            out = rlsac_estimate(task, batch, actor, args.iterations, env_conf, generator=gen(idx[0]),
+                                 reference=reference)
+            sync()
+        return out, batch
 
-    run_rlsac(list(range(min(2, P))))  # warm-up
-    _sync(device)
-    errs = {"rlsac": [], "magsac": []}
-    t0 = time.perf_counter()
-    for s in range(0, P, args.batch_pairs):
-        idx = list(range(s, min(s + args.batch_pairs, P)))
-        out, batch = run_rlsac(idx)
-        _sync(device)
-        errs["rlsac"].append((out, batch))
-    t_rl = time.perf_counter() - t0
+    def run_magsac(p):
+        batch = fundamental.to_batch(data, [p])
+        return opencv_fundamental(batch, "magsac", args.iterations, seed=0), batch
 
-    t0 = time.perf_counter()
-    for s in range(0, P, args.batch_pairs):
-        idx = list(range(s, min(s + args.batch_pairs, P)))
-        batch = fundamental.to_batch(data, idx)
-        errs["magsac"].append((opencv_fundamental(batch, "magsac", args.iterations, seed=0), batch))
-    t_mg = time.perf_counter() - t0
+    def run_ransac(p):
+        batch = fundamental.to_batch(data, [p], device=device)
+        out = ransac(task, batch, args.iterations, gen(p))
+        sync()
+        return out, batch
 
-    print(f"\n{'method':10s} {'ms/pair':>9s} {'total s':>8s} {'mAA_R':>6s} {'mAA_t':>6s}")
-    for name, t in (("rlsac", t_rl), ("magsac++", t_mg)):
-        parts = errs["rlsac" if name == "rlsac" else "magsac"]
+    run_rlsac([0], False)  # warm-up
+    run_rlsac([0], True)
+    run_magsac(0)
+    run_ransac(0)
+    names = ["rlsac after", "rlsac before", "opencv magsac++", "ransac (ours)"]
+    if args.no_reference:
+        names.remove("rlsac before")
+    clocks = {k: Clocks() for k in names}
+    outs = {k: [] for k in names}
+    splits = {k: Split(actor) for k in names[:2] if k.startswith("rlsac")}
+    for p in range(P):  # methods interleaved pair by pair: they share the machine's load
+        for name in names:
+            with clocks[name]:
+                if name.startswith("rlsac"):
+                    with splits[name]:
+                        outs[name].append(run_rlsac([p], name == "rlsac before", splits[name]))
+                elif name.startswith("opencv"):
+                    outs[name].append(run_magsac(p))
+                else:
+                    outs[name].append(run_ransac(p))
+    hyps = {k: float(np.mean([o["hypotheses"] for o, _ in outs[k]])) for k in splits}
+    hyps["opencv magsac++"] = float(np.mean([opencv_hypotheses(o["inliers"], b["mask"].numpy(), args.iterations)[0]
+                                             for o, b in outs["opencv magsac++"]]))
+    hyps["ransac (ours)"] = float(args.iterations)
+
+    def maa(outs):
         e = {"err_R": [], "err_t": []}
-        for out, batch in parts:
+        for out, batch in outs:
             np_batch = {k: (v.cpu().numpy() if torch.is_tensor(v) else v) for k, v in batch.items()}
             r = task.errors(*(x.cpu().numpy() if torch.is_tensor(x) else x
                               for x in (out["hyp"], out["valid"], out["inliers"])), np_batch)
-            e["err_R"].append(r["err_R"])
-            e["err_t"].append(r["err_t"])
-        s = task.summarize({k: np.concatenate(v) for k, v in e.items()})
-        print(f"{name:10s} {1e3 * t / P:9.2f} {t:8.3f} {s['mAA_R']:6.3f} {s['mAA_t']:6.3f}")
-    print(f"ratio rlsac / magsac++ time per pair: {t_rl / t_mg:.1f}x "
-          f"(rlsac: {args.batch_pairs} pairs x {episodes} episodes per batch; pose-error evaluation excluded)")
+            for k in e:
+                e[k].append(r[k])
+        return task.summarize({k: np.concatenate(v) for k, v in e.items()})
+
+    ref = clocks["opencv magsac++"]
+    print(f"\n{'method (1 pair/call)':22s} {'CPU ms/pair':>12s} {'x magsac++':>11s} {'wall ms/pair':>13s} "
+          f"{'x magsac++':>11s} {'hyps/pair':>10s} {'mAA_R':>6s} {'mAA_t':>6s}")
+    for name in names:
+        c, s = clocks[name], maa(outs[name])
+        print(f"{name:22s} {1e3 * c.cpu / P:12.2f} {c.cpu / ref.cpu:11.1f} {1e3 * c.wall / P:13.2f} "
+              f"{c.wall / ref.wall:11.1f} {hyps[name]:10.0f} {s['mAA_R']:6.3f} {s['mAA_t']:6.3f}")
+    print("(opencv hyps/pair: estimated from its confidence-0.999 termination bound and final inlier ratio; "
+          f"it stops early and never spends the {args.iterations} budget on these pairs)")
+    if "rlsac before" in outs:
+        same = sum(torch.equal(a["hyp"], b["hyp"]) for (a, _), (b, _) in
+                   zip(outs["rlsac after"], outs["rlsac before"], strict=True))
+        print(f"rlsac after vs before: {clocks['rlsac before'].cpu / clocks['rlsac after'].cpu:.2f}x less CPU time; "
+              f"identical final hypothesis on {same}/{P} pairs")
+    print()
+    print(format_split(splits, P, "pair"))
+
+    print(f"\nrlsac after, pairs per call (scaling; {episodes} rows per pair):")
+    print(f"{'pairs/call':>10s} {'CPU ms/pair':>9s} {'x magsac++':>11s}")
+    for bp in [int(x) for x in args.batch_pairs.split(",") if x]:
+        c = Clocks()
+        with c:
+            for s in range(0, P, bp):
+                run_rlsac(list(range(s, min(s + bp, P))), False)
+        print(f"{bp:10d} {1e3 * c.cpu / P:9.2f} {c.cpu / ref.cpu:11.1f}")
 
 
 if __name__ == "__main__":

@@ -1,127 +1,202 @@
-"""RLSAC test-time cost on lines vs our RANSAC, and SAC training throughput.
+"""RLSAC test-time cost on lines vs our RANSAC (before / after the issue #17 speed-ups), and training speed.
 
-    python benchmarks/line_rollout.py [--instances 256] [--iterations 150] [--checkpoint CKPT]
-                                      [--device auto|cpu|cuda] [--threads 1] [--train-steps 60]
+    python benchmarks/line_rollout.py [--instances 128] [--iterations 150] [--checkpoint checkpoints/line_o0.7.pt]
+                                      [--batch 1,16,128] [--threads 1] [--compare-threads 1,2]
+                                      [--train-steps 12] [--no-reference] [--device cpu]
 
-1. Evaluation: ``--instances`` synthetic line instances (outlier rate 0.5, N = 100) in one batch,
-   RLSAC at ``--iterations`` hypotheses (15-step episodes, so 10 episodes per instance at 150) and
-   our batched RANSAC at the same budget on the same instances; per-instance wall time and the ratio.
-2. Training: a short ``rlsac.sac.train_loop`` run (``--train-steps`` vector-env steps of
-   ``--num-envs`` episodes, updates from step ``--learning-starts`` on): env transitions/s and
-   SAC updates/s.
+1. Evaluation: ``--instances`` synthetic line instances (outlier rate ``--outlier-rate``, N = 100), run
+   ``b`` instances per call for every ``b`` in ``--batch``: RLSAC after (the default ``rlsac_estimate``
+   path), RLSAC before (``reference=True``: the original per-step path; same seeds, and the final
+   hypotheses are compared) and our batched RANSAC at the same budget; ms per instance and the ratios.
+   Then where RLSAC's time goes (model / selection / solver+scoring / state / refinement / other) at
+   the smallest and largest batch, and RLSAC after / RANSAC at each of ``--compare-threads``.
+2. Training: ``rlsac.sac.train_loop`` for ``--train-steps`` vector-env steps with an update every step
+   (lines: 32 envs, SAC batch 64; fundamental: synthetic pairs, N = 150, 264 channels, 16 envs, batch
+   32, as in params.yaml), once with the networks' original forward pass (``reference_forward``) and
+   once with the current one: steps/s before and after.
 
-The reference (RANSAC) is measured in the same run; no timing is asserted anywhere. Without
-``--checkpoint`` the actor is randomly initialised (the cost of a forward pass does not depend on
-the weights, so the timing is representative; the accuracy is not).
+Every ratio is measured in this one run; nothing is asserted. Without ``--checkpoint`` ('') the
+actor is randomly initialised (timing representative, accuracy not).
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 import time
+from contextlib import nullcontext
+from pathlib import Path
 
 import torch
 
-from rlsac.baselines import ransac
-from rlsac.data import lines
-from rlsac.env import EnvConf
-from rlsac.evaluate import resolve_device
-from rlsac.policy import Actor, PolicyConf
-from rlsac.rollout import in_channels, load_actor, rlsac_estimate
-from rlsac.sac import SACAgent, SACConf, train_loop
-from rlsac.tasks.line import LineTask
+sys.path.insert(0, str(Path(__file__).parent))
 
+from timing import Clocks, Split, format_split  # noqa: E402
 
-def _sync(device: str) -> None:
-    if device == "cuda":
-        torch.cuda.synchronize()
-
-
-def _time(fn, device: str, repeats: int) -> float:
-    fn()  # warm-up (allocations, kernels)
-    _sync(device)
-    t0 = time.perf_counter()
-    for _ in range(repeats):
-        fn()
-    _sync(device)
-    return (time.perf_counter() - t0) / repeats
+from rlsac.baselines import ransac  # noqa: E402
+from rlsac.data import lines  # noqa: E402
+from rlsac.env import EnvConf  # noqa: E402
+from rlsac.evaluate import resolve_device  # noqa: E402
+from rlsac.policy import Actor, PointNet, PolicyConf  # noqa: E402
+from rlsac.rollout import checkpoint_env, in_channels, load_actor, rlsac_estimate  # noqa: E402
+from rlsac.sac import SACAgent, SACConf, train_loop  # noqa: E402
+from rlsac.tasks.fundamental import FundamentalTask  # noqa: E402
+from rlsac.tasks.line import LineTask  # noqa: E402
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--instances", type=int, default=256)
+    ap.add_argument("--instances", type=int, default=128)
     ap.add_argument("--iterations", type=int, default=150)
-    ap.add_argument("--steps-per-episode", type=int, default=15)
     ap.add_argument("--outlier-rate", type=float, default=0.5)
-    ap.add_argument("--checkpoint", default=None)
-    ap.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto")
+    ap.add_argument("--checkpoint", default="checkpoints/line_o0.7.pt")
+    ap.add_argument("--batch", default="1,16,128", help="instances per rlsac_estimate / ransac call")
+    ap.add_argument("--device", choices=["auto", "cpu", "cuda"], default="cpu")
     ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--repeats", type=int, default=2)
-    ap.add_argument("--train-steps", type=int, default=60)
-    ap.add_argument("--num-envs", type=int, default=32)
-    ap.add_argument("--batch-size", type=int, default=64)
-    ap.add_argument("--learning-starts", type=int, default=200, help="transitions before the first update")
+    ap.add_argument("--compare-threads", default="1,2", help="'' skips the thread comparison")
+    ap.add_argument("--train-steps", type=int, default=12, help="0 skips the training benchmark")
+    ap.add_argument("--no-reference", action="store_true")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     device = resolve_device(args.device)
     task = LineTask()
-    conf = lines.LineDataConf(outlier_rate=args.outlier_rate, n_instances=args.instances, seed=7)
-    data = lines.generate(conf)
-    batch = lines.to_batch(data, device=device)
+    n = args.instances
+    data = lines.generate(lines.LineDataConf(outlier_rate=args.outlier_rate, n_instances=n, seed=7))
     if args.checkpoint:
-        actor, _ = load_actor(args.checkpoint, device)
-        what = args.checkpoint
+        actor, conf = load_actor(args.checkpoint, device)
+        env_conf, what = checkpoint_env(conf), args.checkpoint
     else:
         torch.manual_seed(0)
         actor = Actor(in_channels(task), PolicyConf()).to(device).eval()
-        what = "randomly initialised actor (no --checkpoint)"
-    episodes = -(-args.iterations // args.steps_per_episode)
-    print(f"device {device}, {torch.get_num_threads()} thread(s); {args.instances} instances x N={conf.n_points}, "
-          f"outlier rate {args.outlier_rate}; {args.iterations} iterations; actor: {what}")
+        env_conf, what = EnvConf(), "randomly initialised actor"
+    episodes = -(-args.iterations // env_conf.steps_per_episode)
+    batches = [int(b) for b in args.batch.split(",") if b]
+    print(f"device {device}, {torch.get_num_threads()} thread(s); {n} instances x N=100, outlier rate "
+          f"{args.outlier_rate}; {args.iterations} iterations ({episodes} episodes per instance); actor: {what}")
 
-    def run_rlsac():
-        return rlsac_estimate(task, batch, actor, args.iterations, EnvConf(steps_per_episode=args.steps_per_episode),
-                              generator=torch.Generator(device=device).manual_seed(0))
+    def sync():
+        if device == "cuda":
+            torch.cuda.synchronize()
 
-    def run_ransac():
-        return ransac(task, batch, args.iterations, torch.Generator(device=device).manual_seed(0))
+    def chunks(b):
+        for s in range(0, n, b):
+            yield s, lines.to_batch(data, slice(s, min(s + b, n)), device=device)
 
-    t_rl = _time(run_rlsac, device, args.repeats)
-    t_ra = _time(run_ransac, device, args.repeats)
-    errs = {name: task.summarize(task.errors(o["hyp"].cpu().numpy(), o["valid"].cpu().numpy(), None, data))
-            for name, o in (("rlsac", run_rlsac()), ("ransac", run_ransac()))}
-    n = args.instances
-    print(f"\n== evaluation ({n} instances x {episodes} episodes = {n * episodes} rows batched)")
-    print(f"{'method':8s} {'ms/instance':>12s} {'batch s':>8s} {'mAA@0.5':>8s}")
-    print(f"{'rlsac':8s} {1e3 * t_rl / n:12.3f} {t_rl:8.3f} {errs['rlsac']['mAA']:8.3f}")
-    print(f"{'ransac':8s} {1e3 * t_ra / n:12.3f} {t_ra:8.3f} {errs['ransac']['mAA']:8.3f}")
-    print(f"ratio rlsac / ransac time: {t_rl / t_ra:.1f}x")
+    def after(batch, g):
+        return rlsac_estimate(task, batch, actor, args.iterations, env_conf, generator=g)
 
-    # ---- training throughput
-    sconf = SACConf(total_steps=args.train_steps, num_envs=args.num_envs, batch_size=args.batch_size,
-                    learning_starts=args.learning_starts, buffer_size=20_000)
-    agent = SACAgent(in_channels(task), PolicyConf(), sconf).to(device)
-    tdata = {"coords": batch["coords"], "mask": batch["mask"], "features": task.features(batch)}
-    n_upd = [0]
-    update = agent.update
+    def before(batch, g):
+        return rlsac_estimate(task, batch, actor, args.iterations, env_conf, generator=g, reference=True)
 
-    def counted_update(*a, **k):
-        n_upd[0] += 1
-        return update(*a, **k)
+    def ours_ransac(batch, g):
+        return ransac(task, batch, args.iterations, g)
 
-    agent.update = counted_update
-    gen = torch.Generator(device=device).manual_seed(0)
-    _sync(device)
-    t0 = time.perf_counter()
-    buf = train_loop(agent, task, tdata, EnvConf(steps_per_episode=args.steps_per_episode), 0, gen,
-                     log=lambda *a, **k: None)
-    _sync(device)
-    dt = time.perf_counter() - t0
-    trans = len(buf)
-    print(f"\n== training ({args.train_steps} vector-env steps x {args.num_envs} envs, SAC batch {args.batch_size}, "
-          f"updates after {args.learning_starts} transitions)")
-    print(f"{trans} transitions, {n_upd[0]} updates in {dt:.2f} s: {trans / dt:.0f} transitions/s, "
-          f"{n_upd[0] / dt:.1f} updates/s (collection and updates interleaved, as in training)")
+    b0 = lines.to_batch(data, slice(0, 2), device=device)  # warm-up
+    for fn in (after, before, ours_ransac):
+        fn(b0, torch.Generator(device=device).manual_seed(0))
+
+    print(f"\n== evaluation, CPU ms per instance ({n} instances, b per call; wall ms in brackets)")
+    print(f"{'b':>5s} {'after':>17s} {'before':>17s} {'ransac':>15s} {'after/ransac':>13s} {'before/ransac':>14s} "
+          f"{'before/after':>13s} {'same final hyp':>15s}")
+    methods = {"after": after, "ransac": ours_ransac}
+    if not args.no_reference:
+        methods["before"] = before
+    splits, final = {}, {}
+    for b in batches:
+        clocks = {k: Clocks() for k in methods}
+        sp = {k: Split(actor) for k in ("after", "before") if k in methods}
+        outs = {k: [] for k in methods}
+        for s, batch in chunks(b):  # interleaved call by call: the methods share the machine's load
+            for name, fn in methods.items():
+                g = torch.Generator(device=device).manual_seed(s)
+                split = sp.get(name)
+                with clocks[name], split or nullcontext(), split.timed() if split else nullcontext():
+                    outs[name].append(fn(batch, g))
+                    sync()
+        c = {k: v.cpu for k, v in clocks.items()}
+        w = {k: v.wall for k, v in clocks.items()}
+        c.setdefault("before", float("nan"))
+        w.setdefault("before", float("nan"))
+        same = "-"
+        if "before" in outs:
+            pairs = zip(outs["after"], outs["before"], strict=True)
+            same = f"{sum(int((x['hyp'] == y['hyp']).all(-1).sum()) for x, y in pairs)}/{n}"
+        cell = {k: f"{1e3 * c[k] / n:.2f} ({1e3 * w[k] / n:.1f})" for k in c}
+        print(f"{b:5d} {cell['after']:>17s} {cell['before']:>17s} {cell['ransac']:>15s} "
+              f"{c['after'] / c['ransac']:13.1f} {c['before'] / c['ransac']:14.1f} {c['before'] / c['after']:13.2f} "
+              f"{same:>15s}")
+        if b in (min(batches), max(batches)):
+            splits.update({f"{k}, b={b}": v for k, v in sp.items()})
+        final = outs
+    errs = {}
+    for name in ("after", "ransac"):
+        hyp = torch.cat([o["hyp"] for o in final[name]]).cpu().numpy()
+        valid = torch.cat([o["valid"] for o in final[name]]).cpu().numpy()
+        errs[name] = task.summarize(task.errors(hyp, valid, None, data))["mAA"]
+    print(f"mAA@0.5: rlsac {errs['after']:.3f}, ransac {errs['ransac']:.3f} (hypotheses per instance: "
+          f"{args.iterations} for both)")
+    print()
+    print(format_split(splits, n, "instance"))
+
+    threads = [int(t) for t in args.compare_threads.split(",") if t]
+    if threads and device == "cpu":
+        b = max(batches)
+        print(f"\n== torch threads (b={b}), wall ms per instance (CPU time counts every thread)")
+        print(f"{'threads':>7s} {'rlsac after':>12s} {'ransac':>8s}")
+        for t in threads:
+            torch.set_num_threads(t)
+            clocks = {"after": Clocks(), "ransac": Clocks()}
+            for s, batch in chunks(b):
+                for name in clocks:
+                    with clocks[name]:
+                        methods[name](batch, torch.Generator(device=device).manual_seed(s))
+            print(f"{t:7d} {1e3 * clocks['after'].wall / n:12.3f} {1e3 * clocks['ransac'].wall / n:8.3f}")
+        torch.set_num_threads(args.threads)
+
+    if args.train_steps > 0:
+        print(f"\n== training: {args.train_steps} vector-env steps, one SAC update per step")
+        print(f"{'task':12s} {'envs':>5s} {'batch':>6s} {'before steps/s':>15s} {'after steps/s':>14s} "
+              f"{'after/before':>13s}")
+        for name, tdata, tk, c, envs, bs in _train_setups(device):
+            rate = {}
+            for label, fwd in (("before", PointNet.reference_forward), ("after", PointNet.forward)):
+                rate[label] = _train_rate(tk, tdata, c, envs, bs, args.train_steps, fwd, device)
+            print(f"{name:12s} {envs:5d} {bs:6d} {rate['before']:15.2f} {rate['after']:14.2f} "
+                  f"{rate['after'] / rate['before']:13.2f}")
+
+
+def _train_setups(device):
+    lt = LineTask()
+    ld = lines.to_batch(lines.generate(lines.LineDataConf(outlier_rate=0.5, n_instances=64, seed=11)), device=device)
+    yield "line", {"coords": ld["coords"], "mask": ld["mask"], "features": lt.features(ld)}, lt, PolicyConf(), 32, 64
+    from fundamental_solvers import synthetic_batch
+
+    fb = synthetic_batch(32)
+    fb["features"][..., :4] = fb["coords"]
+    g = torch.Generator().manual_seed(0)
+    fb["features"][..., 4:] = torch.rand(fb["features"][..., 4:].shape, generator=g) * 0.2  # SIFT-like scale
+    ft = FundamentalTask()
+    fdata = {"coords": fb["coords"].to(device), "mask": fb["mask"].to(device), "features": ft.features(fb).to(device)}
+    yield "fundamental", fdata, ft, PolicyConf(graph_dims=4), 16, 32
+
+
+def _train_rate(task, tdata, pconf, envs, batch_size, steps, forward, device) -> float:
+    """Vector-env steps per second of train_loop with PointNet.forward replaced by ``forward``."""
+    saved = PointNet.forward
+    PointNet.forward = forward
+    try:
+        torch.manual_seed(0)
+        sconf = SACConf(total_steps=steps + 1, num_envs=envs, batch_size=batch_size, learning_starts=envs,
+                        buffer_size=20_000)
+        agent = SACAgent(task.feature_dim + 3, pconf, sconf).to(device)
+        gen = torch.Generator(device=device).manual_seed(0)
+        buf = train_loop(agent, task, tdata, EnvConf(), 0, gen, log=lambda *a, **k: None)  # fills, first update
+        t0 = time.perf_counter()
+        agent.conf.total_steps = 2 * steps + 1
+        train_loop(agent, task, tdata, EnvConf(), steps + 1, gen, log=lambda *a, **k: None, buffer=buf)
+        return steps / (time.perf_counter() - t0)
+    finally:
+        PointNet.forward = saved
 
 
 if __name__ == "__main__":

@@ -34,9 +34,13 @@ import torch.nn.functional as F
 from torch import nn
 
 MEMORY_CHANNELS = 3  # the environment's memory channels, appended after the data channels (rlsac.env.MEMORY_DIM)
-# Row x point pairs per chunk of the rollout path: per-step tensors stay at ~8192 x 64 floats (2 MB).
-# Measured on the 2-core machine (fundamental N = 150, one thread): 4096-16384 within noise of each other.
-CHUNK_POINTS = 8192
+# Row x point pairs per chunk of the rollout path: per-step tensors stay at ~4096 x 128 floats (2 MB) and
+# the neighbour max's three (points, episodes x 32) buffers fit the 2 MB L2. CPU ms per instance and
+# forward call on the 2-core machine (one thread) at 1024 / 2048 / 4096 / 8192 / 16384:
+# lines, 16 instances x 10 episodes: 1.36 / 1.20 / 1.15 / 1.56 / 2.11; fundamental, one pair x 67
+# episodes: 13.3 / 12.4 / 12.2 / 12.3 / 24.4.
+CHUNK_POINTS = 4096
+GATHER_AT_ONCE = 1 << 19  # neighbour gathers up to this many floats (2 MB) are done in one op
 
 
 @dataclass
@@ -95,15 +99,21 @@ def _edge_max(a: torch.Tensor, b: torch.Tensor, nbr: torch.Tensor,
     """EdgeConv output act(a_i + max_j b_j). b (P, Q): rows P = (instances x N) points, Q = (episodes x
     C) contiguous; nbr (k, P) neighbour rows; scratch two (P, Q) buffers; a (numel of b) used in place.
 
-    One neighbour at a time: k gathers of contiguous (episodes x C) blocks, each the size of b and so
-    cache-resident, instead of one (P, k, Q) tensor (19 MB per fundamental pair, 5x slower at batch 256).
+    Large chunks: one neighbour at a time, k gathers of contiguous (episodes x C) blocks, each the size
+    of b and so cache-resident, instead of one (k, P, Q) tensor (19 MB per fundamental pair, 5x slower
+    at batch 256). Small chunks (gather under GATHER_AT_ONCE floats): one gather and one max, 2 ops
+    instead of 2k (at one line instance per call the op count, not the bytes, is the cost).
     """
-    buf, tmp = scratch
-    torch.index_select(b, 0, nbr[0], out=buf)
-    for j in range(1, nbr.shape[0]):
-        torch.maximum(buf, torch.index_select(b, 0, nbr[j], out=tmp), out=buf)
-    a.view(b.shape).add_(buf)
-    return _leaky(a)
+    k = nbr.shape[0]
+    if b.numel() * k <= GATHER_AT_ONCE:
+        nb = b.index_select(0, nbr.view(-1)).view(k, *b.shape).amax(dim=0)
+    else:
+        nb, tmp = scratch
+        torch.index_select(b, 0, nbr[0], out=nb)
+        for j in range(1, k):
+            torch.maximum(nb, torch.index_select(b, 0, nbr[j], out=tmp), out=nb)
+    a.view(b.shape).add_(nb)
+    return F.leaky_relu_(a, 0.2)
 
 
 class _NeighbourMax(torch.autograd.Function):
@@ -279,7 +289,7 @@ class PointNet(nn.Module):
             m = mem[g0:g1, e0:e1].permute(0, 2, 1, 3).reshape(G * N * e, -1)  # point-major (G, N, e)
             b = torch.mm(m, mb).view(G, N, e, -1).add_(pb[g0:g1, :, None])
             a = torch.mm(m, ma).view(G, N, e, -1).add_(pa[g0:g1, :, None])
-            x = _edge_max(a, b.view(G * N, -1), nbr, prep.scratch(G * N, b.numel() // (G * N), b))
+            x = _edge_max(a, b.view(G * N, -1), nbr, prep.scratch(G * N, e * b.shape[-1], b))
             feats = [x]
             for w2t, wdt, bias in prep.layers:
                 x2 = x.view(-1, x.shape[-1])
