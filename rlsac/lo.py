@@ -55,10 +55,16 @@ class LOConf:
     sigma_scale: float = 1.0  # magsac: sigma_max = sigma_scale * threshold (as a distance), as OpenCV's MAGSAC++
     dof: int | None = None  # magsac: residual degrees of freedom (None: 2 for lines, 4 for F as OpenCV)
     final: bool = True  # one more LO call on the output, instead of the unconditional least-squares refit
+    # when LO runs: "best" = a candidate beats the best-so-far score, LO-improved (LO-RANSAC, USAC); "minimal" =
+    # it beats the best *unoptimised* candidate so far (more calls: a sampler's later, better minimal sets are
+    # optimised too instead of having to beat a polished score); the result is kept only if it beats the best
+    trigger: str = "best"
 
     def __post_init__(self) -> None:
         if self.score not in SCORES:
             raise RlsacError(f"unknown LO score {self.score!r} (known: {', '.join(SCORES)})")
+        if self.trigger not in ("best", "minimal"):
+            raise RlsacError(f"unknown LO trigger {self.trigger!r} (known: best, minimal)")
         if self.weighting not in ("auto", "inliers", "magsac"):
             raise RlsacError(f"unknown LO weighting {self.weighting!r} (known: auto, inliers, magsac)")
         if self.inner_samples < 0 or self.iterations < 0 or self.sample_factor < 1:
@@ -243,12 +249,14 @@ class Best:
     lo_calls: torch.Tensor  # (B,) long: LO steps run
     lo_fits: torch.Tensor  # (B,) long: non-minimal fits spent by them
     lo_seconds: float = 0.0  # wall time inside the LO steps (benchmarks/lo.py)
+    raw: torch.Tensor | None = None  # (B,) float64: best unoptimised candidate score (LOConf.trigger="minimal")
 
     @classmethod
     def empty(cls, B: int, device) -> Best:
         return cls(None, torch.full((B,), -1, dtype=torch.long, device=device),
                    torch.full((B,), -math.inf, dtype=torch.float64, device=device),
-                   torch.zeros(B, dtype=torch.long, device=device), torch.zeros(B, dtype=torch.long, device=device))
+                   torch.zeros(B, dtype=torch.long, device=device), torch.zeros(B, dtype=torch.long, device=device),
+                   raw=torch.full((B,), -math.inf, dtype=torch.float64, device=device))
 
     def stats(self) -> dict[str, torch.Tensor | float]:
         return {"lo_calls": self.lo_calls, "lo_fits": self.lo_fits, "lo_seconds": self.lo_seconds}
@@ -277,28 +285,30 @@ def update_best(task: Task, conf: LOConf | None, coords: torch.Tensor, mask: tor
         better = c > best.count
         hyp = h if best.hyp is None else _rows(best.hyp, better, h)
         return Best(hyp, torch.where(better, c, best.count), torch.where(better, c.double(), best.score),
-                    best.lo_calls, best.lo_fits, best.lo_seconds)
+                    best.lo_calls, best.lo_fits, best.lo_seconds, best.raw)
     if res is None or res.shape[:2] != (B, k):
         raise RlsacError("update_best with LO needs the candidates' residuals res (B, k, N)")
     s = score(task, conf, res, mask[:, None]).masked_fill(count < 0, -math.inf)
     smax, j = s.max(dim=1)
     h = hyps[rows, j]
-    better = smax > best.score
-    hyp = h if best.hyp is None else _rows(best.hyp, better, h)
-    sc = torch.where(better, smax, best.score)
-    calls, fits, seconds = best.lo_calls, best.lo_fits, best.lo_seconds
-    idx = better.nonzero().squeeze(1)
+    raw = best.raw if best.raw is not None else torch.full_like(best.score, -math.inf)
+    trig = smax > (raw if conf.trigger == "minimal" else best.score)  # rows whose candidate gets LO
+    hyp = h if best.hyp is None else best.hyp
+    sc, calls, fits, seconds = best.score, best.lo_calls, best.lo_fits, best.lo_seconds
+    idx = trig.nonzero().squeeze(1)
     if idx.numel():
         t0 = time.perf_counter()
-        h2, s2, n = local_optimization(task, conf, coords[idx], mask[idx], hyp[idx], sc[idx], generator)
-        hyp, sc = hyp.index_copy(0, idx, h2), sc.index_copy(0, idx, s2)
+        h2, s2, n = local_optimization(task, conf, coords[idx], mask[idx], h[idx], smax[idx], generator)
+        take = s2 > sc[idx]  # always true for trigger "best" (LO never lowers a score that beat the best)
+        keep = idx[take]
+        hyp, sc = hyp.index_copy(0, keep, h2[take]), sc.index_copy(0, keep, s2[take])
         calls = calls.index_add(0, idx, torch.ones_like(idx))
         fits = fits.index_add(0, idx, torch.full_like(idx, n))
         seconds += time.perf_counter() - t0
     cnt = inlier_count(task, hyp, coords, mask)
     # rows that never had a competing candidate keep count -1 (no hypothesis yet)
     cnt = torch.where(sc > -math.inf, cnt, best.count)
-    return Best(hyp, cnt, sc, calls, fits, seconds)
+    return Best(hyp, cnt, sc, calls, fits, seconds, torch.maximum(raw, smax))
 
 
 def inlier_count(task: Task, hyp: torch.Tensor, coords: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:

@@ -274,3 +274,27 @@ def test_evaluate_lo_methods_report_their_budget(workdir):
         evaluate({"task": "line", "method": "ransac-lo", "data": str(path), "lo": {"bogus": 1}}, track=False)
     with pytest.raises(RlsacError, match="needs --checkpoint"):
         evaluate({"task": "line", "method": "rlsac-lo", "data": str(path)}, track=False)
+
+
+def test_trigger_minimal_optimises_every_new_best_minimal_hypothesis():
+    coords = noisy_line(sigma=0.02)
+    mask = torch.ones(1, 50, dtype=torch.bool)
+    # candidates in order: a poor line, a better one (both minimal samples through data points), a worse one
+    hyps = torch.stack([LINE.solve(coords[:, [0, 3]])[0], LINE.solve(coords[:, [5, 45]])[0],
+                        LINE.solve(coords[:, [1, 2]])[0]], 1)  # (1, 3, 3)
+    res = torch.stack([LINE.residuals(hyps[:, i], coords) for i in range(3)], 1)  # (1, 3, 50)
+    count = ((res <= 0.1) & mask[:, None]).sum(-1)
+    out = {}
+    for trig in ("best", "minimal"):
+        conf = LOConf(enabled=True, score="msac", iterations=2, trigger=trig)
+        best = Best.empty(1, "cpu")
+        scores = []
+        for i in range(3):  # one candidate per update, as a sequential sampler
+            best = update_best(LINE, conf, coords, mask, best, hyps[:, i:i + 1], count[:, i:i + 1], res[:, i:i + 1])
+            scores.append(best.score.item())
+        assert scores == sorted(scores)  # the stored best never gets worse
+        out[trig] = best
+    # "best": the LO'd first line already beats the raw second one, so LO ran once; "minimal": twice (1st, 2nd)
+    assert out["best"].lo_calls.item() == 1 and out["minimal"].lo_calls.item() == 2
+    raw = score(LINE, LOConf(score="msac"), res, mask[:, None])[0]
+    assert out["minimal"].raw.item() == pytest.approx(raw.max().item()) and raw[1] == raw.max()
