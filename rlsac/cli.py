@@ -216,6 +216,7 @@ def ablate(tracking: bool, sets: tuple[str, ...], **options) -> None:
 @click.option("--regime", required=True, help="Data regime, a key of params.yaml folds.pool (e.g. easy, hard).")
 @click.option("--fold", required=True, help="Test building, one of params.yaml folds.test (e.g. castle).")
 @click.option("--model", help="With --stage train: one model of folds.models [default: all of them].")
+@click.option("--only", help="With --stage evaluate: comma-separated methods/models to run [default: all].")
 @click.option("--params", "params", default="params.yaml", show_default=True,
               help="params.yaml: its folds, fundamental and train.fundamental sections.")
 @click.option("--threads", type=int, default=1, show_default=True, help="torch CPU threads (1 is fastest here).")

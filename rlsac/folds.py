@@ -42,7 +42,8 @@ DEFAULTS: dict[str, Any] = {
     "seed": 0,
     "model_regime": "hard",
 }
-OPTIONS: dict[str, Any] = {"stage": None, "regime": None, "fold": None, "model": None, "params": "params.yaml",
+OPTIONS: dict[str, Any] = {"stage": None, "regime": None, "fold": None, "model": None, "only": None,
+                           "params": "params.yaml",
                            "device": "auto", "threads": 1}
 
 
@@ -121,6 +122,11 @@ def check_options(options: dict[str, Any], p: dict[str, Any] | None = None) -> d
             raise RlsacError(f"models are trained on regime {p['model_regime']!r} only (folds.model_regime)")
         if o["stage"] == "train" and o["model"] is not None and o["model"] not in p["models"]:
             raise RlsacError(f"unknown model {o['model']!r} (known: {', '.join(p['models'])})")
+        if o["only"] is not None:
+            o["only"] = [s.strip() for s in str(o["only"]).split(",") if s.strip()]
+            bad = sorted(set(o["only"]) - set(p["methods"]) - set(p["models"]))
+            if bad or not o["only"]:
+                raise RlsacError(f"--only {bad or o['only']}: not in folds.methods or folds.models")
     return o
 
 
@@ -189,10 +195,12 @@ def evaluate_fold(p: dict, regime: str, fold: str, o: dict, track: bool) -> list
     if not test.is_file():
         raise RlsacError(f"{test}: no such file (run `rlsac folds --stage data` first)")
     trained = p["model_regime"]  # every regime is evaluated with the models trained on this one's data
-    missing = [str(checkpoint(trained, fold, m)) for m in p["models"] if not checkpoint(trained, fold, m).is_file()]
+    only = o.get("only") or p["methods"] + p["models"]
+    models = [m for m in p["models"] if m in only]
+    missing = [str(checkpoint(trained, fold, m)) for m in models if not checkpoint(trained, fold, m).is_file()]
     if missing:
         raise RlsacError(f"no checkpoint {missing[0]} (run `rlsac folds --stage train` first)")
-    runs = [(m, None) for m in p["methods"]] + [(m, checkpoint(trained, fold, m)) for m in p["models"]]
+    runs = [(m, None) for m in p["methods"] if m in only] + [(m, checkpoint(trained, fold, m)) for m in models]
     out = []
     for method, ckpt in runs:
         for it in p["iterations"]:

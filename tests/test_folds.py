@@ -214,6 +214,13 @@ def test_folds_command_end_to_end(imported, tmp_path, monkeypatch):
     rec = json.loads((tmp_path / "reports/folds/data/hard/fountain.json").read_text())
     assert rec["test_scenes"] == "fountain-P11" and rec["train_scenes"] == "entry-P10"
     assert rec["splits"]["train"]["pairs"] + rec["splits"]["val"]["pairs"] == 8
+    # baselines can run before any model is trained; a model needs its checkpoint
+    r = run.invoke(cli, base + ["--stage", "evaluate", "--only", "uniform"])
+    assert r.exit_code == 0, r.output
+    assert (tmp_path / "reports/eval/folds/hard/fountain/uniform/i15/summary.json").is_file()
+    assert not (tmp_path / "reports/eval/folds/hard/fountain/ransac").exists()
+    r = run.invoke(cli, base + ["--stage", "evaluate", "--only", "rlsac"])
+    assert r.exit_code == 2 and "no checkpoint" in r.output
     r = run.invoke(cli, base + ["--stage", "train"])
     assert r.exit_code == 0, r.output
     ws = torch.load(tmp_path / "checkpoints/folds/hard/fountain/rlsac-ws.pt", weights_only=False)
