@@ -173,7 +173,10 @@ def check_other(argv: list[str], line: str) -> None:
     elif prog == ".":
         assert argv[1] == ".venv/bin/activate", line
     elif prog == "pip":
-        assert argv[1] == "install" and ci_install_args() == argv[2:], f"{line}: not what .ci/run installs"
+        assert argv[1] == "install" and "-e" in argv and ".[dev]" in argv, line
+        pins = [a for a in argv[2:] if "==" in a]
+        assert pins and all(f'"{pin}"' in (ROOT / "pyproject.toml").read_text() for pin in pins), \
+            f"{line}: its pins are not pyproject.toml's"
     elif prog == "python":
         assert argv[1:3] == ["-m", "pytest"], line
     elif prog == "bash":
@@ -193,12 +196,15 @@ def check(argv: list[str], line: str, complete: bool = True) -> None:
         check_other(argv, line)
 
 
-def ci_install_args() -> list[str]:
-    for line in (ROOT / ".ci" / "run").read_text().splitlines():
-        if " -m pip install " in line and not line.lstrip().startswith("#"):
-            argv = shlex.split(line)
-            return [a for a in argv[argv.index("install") + 1:] if a != "-q"]
-    raise AssertionError(".ci/run installs nothing")
+def ci_runs_readme_blocks() -> list[str]:
+    """The README blocks .ci/run evaluates, as its readme_block function extracts them (awk, run here)."""
+    import subprocess
+
+    ci = (ROOT / ".ci" / "run").read_text()
+    func = re.search(r"^readme_block\(\) \{\n.*?^\}", ci, re.S | re.M).group(0)
+    n = [int(k) for k in re.findall(r'^eval "\$\(readme_block (\d)\)"', ci, re.M)]
+    return [subprocess.run(["bash", "-c", f"{func}\nreadme_block {k}"], cwd=ROOT, check=True, capture_output=True,
+                           text=True).stdout.strip() for k in n]
 
 
 # ------------------------------------------------------------------------------------------------- tests
@@ -235,6 +241,7 @@ def test_readme_starts_with_the_two_fresh_clone_commands():
     assert _commands(second) == [["python", "-m", "pytest", "-q"]] and second.startswith(".venv/bin/python")
     for argv in cmds:
         check(argv, first)
+    assert ci_runs_readme_blocks() == [first, second], ".ci/run runs the README's two commands as written"
 
 
 def test_every_rlsac_command_is_documented():
@@ -301,10 +308,10 @@ def test_checker_rejects_what_the_issue_found():
     with pytest.raises(AssertionError):
         check_dvc(["dvc", "metrics", "show", "--no-such-option"])
     with pytest.raises(AssertionError):
-        check_other(["pip", "install", "torch"], "pip install torch")
+        check_other(["pip", "install", "torch==2.0.0", "-e", ".[dev]"], "pip install torch==2.0.0 -e .[dev]")
 
 
 if __name__ == "__main__":  # print what is checked
     for doc in DOCS:
-        for line, argv in block_commands(doc.read_text()):
+        for _line, argv in block_commands(doc.read_text()):
             print(doc.name, shlex.join(argv), file=sys.stdout)
