@@ -91,9 +91,11 @@ def _names(v) -> list[str] | None:
 
 
 def check_options(options: dict[str, Any]) -> dict[str, Any]:
-    unknown = sorted(set(options) - set(OPTIONS))
-    if unknown:
-        raise RlsacError(f"unknown ablate option(s) {unknown}; known: {sorted(OPTIONS)}")
+    from rlsac.config import check_mapping
+
+    options = check_mapping(options, OPTIONS, "ablate",  # types and ranges, as rlsac.config.build does
+                            types={"train_steps": int, "variants": str | list[str], "models": str | list[str]},
+                            ranges={"threads": "[0, inf)", "device": ("auto", "cpu", "cuda")})
     o = {**OPTIONS, **{k: v for k, v in options.items() if v is not None}}
     if o["what"] not in WHATS:
         raise RlsacError(f"ablate --what must be one of {', '.join(WHATS)}, got {o['what']!r}")

@@ -182,6 +182,27 @@ def check_value(key: str, value: Any, tp: Any, spec: Any = None) -> Any:
     return value
 
 
+def check_mapping(options: dict[str, Any], defaults: dict[str, Any], where: str,
+                  types: dict[str, Any] | None = None, ranges: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The same checks as ``build`` for an options dict with a dict of defaults (``rlsac ablate``,
+    ``rlsac plot``): unknown keys, and each value not None coerced to ``types[key]`` (else the type of
+    its default, when that is a bool, int, float or str) and checked against ``ranges[key]``."""
+    types, ranges = types or {}, ranges or {}
+    unknown = sorted(set(options) - set(defaults), key=str)
+    if unknown:
+        raise RlsacError(f"unknown {where} option(s) {unknown}; known: {sorted(defaults)}")
+    out = dict(options)
+    for key, value in options.items():
+        if value is None:
+            continue
+        default = defaults[key]
+        tp = types.get(key, type(default) if isinstance(default, (bool, int, float, str)) else Any)
+        out[key] = coerce(f"{where}.{key}", value, tp)
+        if key in ranges:
+            check_range(f"{where}.{key}", out[key], ranges[key])
+    return out
+
+
 def to_dict(conf) -> dict[str, Any]:
     return dataclasses.asdict(conf)
 

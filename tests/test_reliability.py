@@ -341,6 +341,15 @@ CASES = [
      "train_steps must be positive"),
     ("ablate-params-missing", ["ablate", "--what", "sampling", "--params", "{p_missing}"], "no such params file"),
     ("ablate-unknown", ["ablate", "--what", "sampling", "--params", "", "--set", "bogus=1"], "unknown ablate option"),
+    ("ablate-threads-type", ["ablate", "--what", "sampling", "--params", "", "--set", "threads=abc"],
+     "ablate.threads must be an integer, got 'abc'"),
+    ("ablate-threads-range", ["ablate", "--what", "sampling", "--params", "", "--set", "threads=-1"],
+     "ablate.threads must be in [0, inf)"),
+    ("ablate-table-type", ["ablate", "--what", "sampling", "--params", "", "--set", "table=5"],
+     "ablate.table must be true or false"),
+    ("plot-steps-type", ["plot", "--set", "line_steps=abc"], "plot.line_steps must be an integer, got 'abc'"),
+    ("plot-steps-range", ["plot", "--set", "fundamental_steps=0"], "plot.fundamental_steps must be in [1, inf)"),
+    ("plot-seed", ["plot", "--set", "seed=-1"], "plot.seed must be in"),
 ]
 
 

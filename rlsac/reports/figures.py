@@ -102,9 +102,14 @@ STYLE = {"font.size": 11, "axes.titlesize": 11, "axes.labelsize": 11, "legend.fo
 RESIDUAL_LABEL = {"sampson": "Sampson, px", "sampson_sq": "squared Sampson, px²", "symmetric": "symmetric epipolar, px"}
 
 def _options(options: dict[str, Any]) -> dict[str, Any]:
-    unknown = sorted(set(options) - set(DEFAULTS))
-    if unknown:
-        raise RlsacError(f"unknown plot option(s) {unknown}; known: {sorted(DEFAULTS)}")
+    from rlsac.config import SEED_RANGE, check_mapping
+
+    options = check_mapping(options, DEFAULTS, "plot",  # types and ranges, as rlsac.config.build does
+                            types={"which": str | list[str], "line_index": int | str, "pair": int | str,
+                                   "iterations_csv": str, "image_root": str},
+                            ranges={"line_steps": "[1, inf)", "fundamental_steps": "[1, inf)",
+                                    "fundamental_iterations": "[1, inf)", "seed": SEED_RANGE,
+                                    "device": ("auto", "cpu", "cuda")})
     o = {**DEFAULTS, **{k: v for k, v in options.items() if v is not None}}
     which = o["which"]
     if isinstance(which, str):
