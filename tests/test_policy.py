@@ -68,9 +68,12 @@ def test_edgeconv_output_changes_only_with_its_neighbours():
 
 
 def naive_pointnet(net, state, mask, graph):
-    """The network written out edge by edge: EdgeConv layers, global max pool over valid points, head."""
+    """The network written out edge by edge: EdgeConv layers (the given graph first, then, for a dynamic
+    network, the kNN graph of each layer's input features), global max pool over valid points, head."""
     x, feats = state, []
-    for conv in net.convs:
+    for i, conv in enumerate(net.convs):
+        if i > 0 and net.conf.dynamic:
+            graph = knn(x, net.conf.k, mask)
         xi = x[:, :, None, :].expand(-1, -1, graph.shape[-1], -1)
         xj = torch.stack([x[r][graph[r]] for r in range(x.shape[0])])
         edge = conv.centre(xi) + (xj - xi) @ conv.neigh.weight.T
@@ -82,27 +85,48 @@ def naive_pointnet(net, state, mask, graph):
     return out.masked_fill(~mask, float("-inf")) if isinstance(net, Actor) else out
 
 
+def random_graph(mask, k, seed=0):
+    """Each point's neighbours: itself, then k - 1 random valid points (not its kNN)."""
+    R, N = mask.shape
+    keys = torch.rand(R, N, N, generator=torch.Generator().manual_seed(seed)).masked_fill(~mask[:, None, :], -1.0)
+    keys = keys + 2 * torch.eye(N)
+    return keys.topk(k, dim=-1).indices
+
+
+def same(out, ref, valid):
+    return torch.allclose(out[valid], ref[valid], atol=1e-5) and torch.equal(out.isinf(), ref.isinf())
+
+
+@pytest.mark.parametrize("dynamic", [False, True], ids=["static", "dynamic"])
 @pytest.mark.parametrize("cls", [Actor, Critic])
-def test_every_forward_path_is_the_edge_by_edge_network(cls):
+def test_every_forward_path_is_the_edge_by_edge_network(cls, dynamic):
     """forward (training), reference_forward, and precompute + forward_memory (test-time rollouts)."""
-    net = make_actor(cls=cls)
+    torch.manual_seed(0)
+    net = cls(5, dataclasses.replace(PCONF, dynamic=dynamic))
     s = states(r=4)
     mask = torch.ones(4, 12, dtype=torch.bool)
     mask[1, 9:] = False
-    graph = net.graph(s, mask)
+    graph = random_graph(mask, PCONF.k)  # a given graph is used as given
     ref = naive_pointnet(net, s, mask, graph)
     valid = mask if cls is Actor else torch.ones_like(mask)
     for out in (net(s, mask, graph), net.reference_forward(s, mask, graph)):
-        assert torch.allclose(out[valid], ref[valid], atol=1e-5) and torch.equal(out.isinf(), ref.isinf())
+        assert same(out, ref, valid)
+    ref = naive_pointnet(net, s, mask, net.graph(s, mask))  # no graph: the coordinates' kNN graph
+    for out in (net(s, mask), net.reference_forward(s, mask)):
+        assert same(out, ref, valid)
+    ref = naive_pointnet(net, s, torch.ones_like(mask), net.graph(s))  # no mask: every point valid
+    for out in (net(s), net.reference_forward(s)):
+        assert same(out, ref, torch.ones_like(mask))
     # rollout layout: 2 instances x 2 episodes sharing data channels and graph, memory per row
     s[1, ..., :2], s[3, ..., :2] = s[0, ..., :2], s[2, ..., :2]
     mask[1] = mask[0]
-    graph = net.graph(s, mask)
-    prep = net.precompute(s[::2, ..., :2], mask[::2], episodes=2)
-    out = net.forward_memory(prep, s[..., 2:])
-    ref = naive_pointnet(net, s, mask, graph)
-    valid = mask if cls is Actor else torch.ones_like(mask)
-    assert torch.allclose(out[valid], ref[valid], atol=1e-5)
+    ref = naive_pointnet(net, s, mask, net.graph(s, mask))
+    for chunk in (8192, 24, 12):  # one chunk; one instance per chunk; one episode per chunk
+        prep = net.precompute(s[::2, ..., :2], mask[::2], episodes=2, chunk_points=chunk)
+        assert same(net.forward_memory(prep, s[..., 2:]), ref, mask if cls is Actor else torch.ones_like(mask))
+    prep = net.precompute(s[::2, ..., :2], None, episodes=2)
+    ref = naive_pointnet(net, s, torch.ones_like(mask), net.graph(s))
+    assert same(net.forward_memory(prep, s[..., 2:]), ref, torch.ones_like(mask))
 
 
 def test_knn_graph_uses_coordinates_and_skips_masked_points():

@@ -209,6 +209,9 @@ def test_replay_buffer_stores_and_wraps():
         assert buf.action[j].tolist() == ref[3][0].tolist() and buf.reward[j].item() == pytest.approx(i / 10)
         assert buf.done[j].item() == i % 2
     inst, mem, mem2, action, reward, done = buf.sample(64, torch.Generator().manual_seed(0))
+    torch.manual_seed(123)  # draws come from the given generator only
+    assert torch.equal(buf.sample(64, torch.Generator().manual_seed(0))[0], inst)
+    assert not torch.equal(buf.sample(64, torch.Generator().manual_seed(1))[0], inst)
     assert set(inst.tolist()) == {2, 3, 4, 5, 6}  # every stored row is drawn, nothing else
     for i, me, me2, a, r, d in zip(inst.tolist(), mem, mem2, action, reward, done, strict=True):
         ref = rows(1, i)
