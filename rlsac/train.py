@@ -84,7 +84,10 @@ def train(options: dict, track: bool = True) -> dict:
     if conf.threads > 0:
         torch.set_num_threads(conf.threads)
     device = resolve_device(conf.device)
-    task = get_task(conf.task, **conf.task_options)
+    try:
+        task = get_task(conf.task, **conf.task_options)
+    except TypeError as e:  # an unknown task option
+        raise RlsacError(f"bad task_options for task '{conf.task}': {e}") from None
     data = load(conf.task, conf.data, device)
     data["features"] = task.features(data)
     if conf.sac.warm_start_updates > 0:

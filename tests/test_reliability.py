@@ -277,6 +277,7 @@ CASES = [
     ("train-widths", train("--set", "policy.widths=[32,0]"), "policy.widths[1] must be in [1, inf)"),
     ("train-resume-type", train("--set", "resume=3"), "train.resume must be true or false"),
     ("train-unknown", train("--set", "sac.bogus=1"), "unknown config key(s) ['bogus'] in train.sac"),
+    ("train-task-options", train("--set", "task_options.bogus=1"), "bad task_options for task 'line'"),
     ("train-seed", train("--seed", "-1"), "train.seed must be in"),
     ("train-data-text", train(data="{text_h5}"), "not a readable HDF5 file"),
     ("train-data-missing", train(data="nope.h5"), "no such file"),
