@@ -117,24 +117,34 @@ def _edge_max(a: torch.Tensor, b: torch.Tensor, nbr: torch.Tensor,
 
 
 class _NeighbourMax(torch.autograd.Function):
-    """b (P, C), flat (P k) neighbour rows -> (P, C) max over each point's k neighbours.
+    """b (P, C), nbr (k P) neighbour rows, neighbour-major (nbr[j P + p]) -> (P, C) max over each
+    point's k neighbours.
 
-    The backward sends each output gradient to the neighbour that won, one (P, C) scatter, instead of
-    amax's backward over the whole (P, k, C) gather (an equality mask, a count and a product there,
-    then a (P k, C) index_add): 3.5x faster for the layer at SAC batch 64. Ties (equal features) give
+    Forward: one gather into (k, P, C) and a max over its outer dimension (vectorised, unlike a max
+    over the middle dimension of (P, k, C), and far unlike max-with-indices there: 55% of a SAC update).
+    Backward (the gather kept from the forward): each output gradient goes to the first neighbour that
+    reaches the max, one (P, C) scatter, instead of amax's backward over the whole gather (an equality
+    mask, a count and a product there, then a (P k, C) index_add). SAC update at batch 64, CPU time:
+    1.4x (lines) and 1.55x (fundamental) faster than the reference forward. Ties (equal features) give
     the gradient to the first winner where amax splits it: the same total into the tied rows."""
 
     @staticmethod
-    def forward(ctx, b: torch.Tensor, flat: torch.Tensor, k: int) -> torch.Tensor:
-        values, arg = b.index_select(0, flat).view(-1, k, b.shape[1]).max(dim=1)
+    def forward(ctx, b: torch.Tensor, nbr: torch.Tensor, k: int) -> torch.Tensor:
+        g = b.index_select(0, nbr).view(k, -1, b.shape[1])
+        values = g.amax(dim=0)
         if ctx.needs_input_grad[0]:
-            ctx.save_for_backward(torch.gather(flat.view(-1, k), 1, arg))
+            ctx.save_for_backward(g, nbr, values)
             ctx.rows = b.shape[0]
         return values
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor):
-        (winner,) = ctx.saved_tensors
+        g, nbr, values = ctx.saved_tensors
+        k = g.shape[0]
+        rows = nbr.view(k, -1, 1)
+        winner = rows[k - 1].expand_as(values)
+        for j in range(k - 2, -1, -1):  # the first neighbour reaching the max wins
+            winner = torch.where(g[j] == values, rows[j], winner)
         return grad.new_zeros(ctx.rows, grad.shape[1]).scatter_add_(0, winner, grad), None, None
 
 
@@ -208,12 +218,12 @@ class PointNet(nn.Module):
         idx = self.graph(state, mask) if graph is None else graph
         R, N, k = idx.shape
         rows = torch.arange(R, device=idx.device).view(R, 1, 1) * N
-        flat = (idx + rows).reshape(-1)
+        flat = (idx + rows).view(R * N, k).t().reshape(-1)  # neighbour-major, as _NeighbourMax takes it
         feats, x = [], state
         for i, conv in enumerate(self.convs):
             if i > 0 and self.conf.dynamic:
                 idx = knn(x, self.conf.k, mask)
-                flat = (idx + rows).reshape(-1)
+                flat = (idx + rows).view(R * N, k).t().reshape(-1)
             w2, wd, bias = conv.split()
             b = F.linear(x, w2).reshape(R * N, -1)
             nb = _NeighbourMax.apply(b, flat, k).view(R, N, -1)
