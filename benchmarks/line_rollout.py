@@ -140,17 +140,18 @@ def main() -> None:
 
     threads = [int(t) for t in args.compare_threads.split(",") if t]
     if threads and device == "cpu":
-        b = max(batches)
-        print(f"\n== torch threads (b={b}), wall ms per instance (CPU time counts every thread)")
+        b = min(max(batches), 32)
+        print(f"\n== torch threads ({b} instances in one call), wall ms per instance (CPU time counts every thread)")
         print(f"{'threads':>7s} {'rlsac after':>12s} {'ransac':>8s}")
+        batch = lines.to_batch(data, slice(0, b), device=device)
         for t in threads:
             torch.set_num_threads(t)
             clocks = {"after": Clocks(), "ransac": Clocks()}
-            for s, batch in chunks(b):
+            for _ in range(2):
                 for name in clocks:
                     with clocks[name]:
-                        methods[name](batch, torch.Generator(device=device).manual_seed(s))
-            print(f"{t:7d} {1e3 * clocks['after'].wall / n:12.3f} {1e3 * clocks['ransac'].wall / n:8.3f}")
+                        methods[name](batch, torch.Generator(device=device).manual_seed(0))
+            print(f"{t:7d} {1e3 * clocks['after'].wall / (2 * b):12.3f} {1e3 * clocks['ransac'].wall / (2 * b):8.3f}")
         torch.set_num_threads(args.threads)
 
     if args.train_steps > 0:
