@@ -189,6 +189,10 @@ def train(options: dict, track: bool = True) -> dict:
                               stop.signum)
         done_before = bool(history) and history[-1]["step"] == conf.sac.total_steps
         final = ({} if val is None else history[-1] if done_before else validate(conf.sac.total_steps))
+        if kept["payload"] is not None and conf.selection != "last":  # the kept actor carries the whole curve
+            kept["payload"]["history"] = list(history)
+            with atomic_path(out) as tmp:
+                torch.save(kept["payload"], tmp)
         save_state(conf.sac.total_steps)
         seconds = time.time() - t0
         run.metrics({"time/train_seconds": seconds})

@@ -444,7 +444,8 @@ def build(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
                 got = folds.build(eval_root, out_dir, Path(out_dir) / "folds" / "data")
                 files += got["files"]
                 missing += got["missing"]
-            elif key == "iterations":
+                continue
+            if key == "iterations":
                 df = iterations_csv(eval_root, out_dir)
                 files.append(df.attrs["path"])
             else:
