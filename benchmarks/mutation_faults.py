@@ -39,8 +39,7 @@ FAULTS = {
     "EdgeConv ignores neighbours (training forward)": (
         "rlsac/policy.py", "nb = _NeighbourMax.apply(b, flat, k).view(R, N, -1)", "nb = b.view(R, N, -1)", ALL),
     "EdgeConv ignores neighbours (rollout forward_memory)": (
-        "rlsac/policy.py", "        torch.maximum(buf, torch.index_select(b, 0, nbr[j], out=tmp), out=buf)\n",
-        "        pass\n", ALL),
+        "rlsac/policy.py", "a.view(b.shape).add_(nb)", "a.view(b.shape).add_(b)", ALL),
     "EdgeConv ignores neighbours (EdgeConv.forward, reference path)": (
         "rlsac/policy.py", "nb = b.reshape(R * N, -1).index_select(0, flat).view(R, N, k, -1).amax(dim=2)",
         "nb = b", ALL),

@@ -12,6 +12,7 @@ import torch
 
 from rlsac.config import build, to_dict
 from rlsac.data.lines import LineDataConf, generate, to_batch, write
+from rlsac.errors import RlsacError
 from rlsac.evaluate import evaluate
 from rlsac.policy import Actor, Critic, EdgeConv, PolicyConf, knn
 from rlsac.rollout import checkpoint_env, load_actor, rlsac_estimate
@@ -266,6 +267,9 @@ def test_rollout_feeds_the_actor_the_current_memory_channels(monkeypatch):
         res = (task.residuals(step["hyp"], coords) / 0.1).clamp(max=5.0) / 5.0
         assert torch.allclose(state[..., 3], res, atol=1e-5)
         assert torch.equal(state[..., 4].sum(-1), torch.full((10,), 2.0 * (t + 1)))
+        # the recorded step: its hypothesis' inliers and their count
+        assert torch.equal(step["inliers"], task.residuals(step["hyp"], coords) <= 0.1)
+        assert torch.equal(step["count"], step["inliers"].sum(-1))
 
 
 def test_uniform_control_runs_the_same_environment_without_the_actor(monkeypatch):
@@ -316,3 +320,33 @@ def test_checkpoint_env_settings_drive_the_real_test_time_rollout(workdir, monke
         seen[name] = (s["steps_per_episode"], len(spy.calls), [residual_clip_seen(c) for c, _ in spy.calls])
     assert seen["a"][:2] == (5, 4) and seen["b"][:2] == (15, 14)
     assert np.allclose(seen["a"][2], 2.0, rtol=1e-3) and np.allclose(seen["b"][2], 5.0, rtol=1e-3)
+
+
+def test_checkpoint_env_reads_the_env_section_and_overrides_psi():
+    conf = {"env": {"steps_per_episode": 5, "residual_clip": 2.0, "kappa": 4}}
+    env = checkpoint_env(conf)
+    assert (env.steps_per_episode, env.residual_clip, env.kappa, env.candidates) == (5, 2.0, 4, 16)
+    env = checkpoint_env(conf, steps_per_episode=7.0)
+    assert env.steps_per_episode == 7 and isinstance(env.steps_per_episode, int) and env.residual_clip == 2.0
+    assert conf["env"]["steps_per_episode"] == 5  # the checkpoint's conf is not modified
+    assert checkpoint_env({}) == checkpoint_env(None) == build(type(env), {})
+    with pytest.raises(RlsacError, match=r"unknown config key.*\['bogus'\] in checkpoint env"):
+        checkpoint_env({"env": {"bogus": 1}})
+
+
+def test_load_actor_errors_are_one_line(tmp_path):
+    with pytest.raises(RlsacError, match=r"nope\.pt: no such checkpoint"):
+        load_actor(tmp_path / "nope.pt")
+    torch.save({"actor": {}, "conf": {"policy": {}}}, tmp_path / "bad.pt")  # no in_channels
+    with pytest.raises(RlsacError, match=r"bad\.pt: not an rlsac checkpoint \(KeyError: 'in_channels'\)$"):
+        load_actor(tmp_path / "bad.pt")
+    actor = make_actor()
+    save_checkpoint(tmp_path / "w.pt", actor, {})
+    state = torch.load(tmp_path / "w.pt", weights_only=False)
+    state["actor"]["head.0.weight"] = torch.zeros(3, 3)
+    torch.save(state, tmp_path / "w.pt")
+    with pytest.raises(RlsacError) as e:
+        load_actor(tmp_path / "w.pt")
+    msg = str(e.value)
+    assert msg.startswith(f"{tmp_path / 'w.pt'}: not an rlsac checkpoint (RuntimeError: ")
+    assert len(msg) == len(f"{tmp_path / 'w.pt'}: not an rlsac checkpoint (RuntimeError: )") + 80  # cut at 80

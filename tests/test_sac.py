@@ -331,3 +331,25 @@ def test_training_loop_warm_starts_the_first_updates_then_counts_on():
     train_loop(agent, task, data, EnvConf(), 0, torch.Generator().manual_seed(0), log=lambda m, step: None)
     n = len(supervised)
     assert n >= 6 and supervised == [True] * 3 + [False] * (n - 3) and int(agent.n_updates) == n
+
+
+def test_training_loop_callbacks_and_masked_graph():
+    """From a resumed step: validation every val_every steps, a checkpoint at the first episode end at or
+    after every ckpt_every steps (episodes of 2 steps here, ending at steps 3, 5, 7); the actor's graph
+    never links a valid point to a padded one."""
+    task, data = line_data()
+    data["mask"] = data["mask"].clone()
+    data["mask"][::2, -5:] = False  # padded points on half the instances
+    agent = make_agent(total_steps=8, num_envs=4, learning_starts=10**6)
+    seen, calls = [], []
+    hook = agent.actor.register_forward_hook(lambda m, args, out: seen.append((args[1], args[2])))
+    train_loop(agent, task, data, EnvConf(steps_per_episode=3, kappa=100, varsigma=100), 1,
+               torch.Generator().manual_seed(0), log=lambda m, step: None,
+               validate=lambda step: calls.append(("val", step)) or {}, val_every=2,
+               checkpoint=lambda step, buf: calls.append(("ckpt", step)), ckpt_every=3)
+    hook.remove()
+    assert calls == [("val", 2), ("ckpt", 3), ("val", 4), ("val", 6), ("ckpt", 7), ("val", 8)]
+    assert len(seen) == 7
+    for mask, graph in seen:
+        linked = torch.gather(mask, 1, graph.flatten(1)).view(graph.shape)
+        assert linked[mask].all() and not mask.all()
