@@ -13,7 +13,7 @@
 2. Training: ``rlsac.sac.train_loop`` for ``--train-steps`` vector-env steps with an update every step
    (lines: 32 envs, SAC batch 64; fundamental: synthetic pairs, N = 150, 264 channels, 16 envs, batch
    32, as in params.yaml), once with the networks' original forward pass (``reference_forward``) and
-   once with the current one: steps/s before and after.
+   once with the current one: steps per CPU second before and after.
 
 Every ratio is measured in this one run; nothing is asserted. Without ``--checkpoint`` ('') the
 actor is randomly initialised (timing representative, accuracy not).
@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 from contextlib import nullcontext
 from pathlib import Path
 
@@ -31,7 +30,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from timing import Clocks, Split, format_split  # noqa: E402
+from timing import CLOCK, Clocks, Split, format_split  # noqa: E402
 
 from rlsac.baselines import ransac  # noqa: E402
 from rlsac.data import lines  # noqa: E402
@@ -155,7 +154,7 @@ def main() -> None:
         torch.set_num_threads(args.threads)
 
     if args.train_steps > 0:
-        print(f"\n== training: {args.train_steps} vector-env steps, one SAC update per step")
+        print(f"\n== training: {args.train_steps} vector-env steps, one SAC update per step; steps per CPU second")
         print(f"{'task':12s} {'envs':>5s} {'batch':>6s} {'before steps/s':>15s} {'after steps/s':>14s} "
               f"{'after/before':>13s}")
         for name, tdata, tk, c, envs, bs in _train_setups(device):
@@ -182,7 +181,7 @@ def _train_setups(device):
 
 
 def _train_rate(task, tdata, pconf, envs, batch_size, steps, forward, device) -> float:
-    """Vector-env steps per second of train_loop with PointNet.forward replaced by ``forward``."""
+    """Vector-env steps per CPU second of train_loop with PointNet.forward replaced by ``forward``."""
     saved = PointNet.forward
     PointNet.forward = forward
     try:
@@ -192,10 +191,10 @@ def _train_rate(task, tdata, pconf, envs, batch_size, steps, forward, device) ->
         agent = SACAgent(task.feature_dim + 3, pconf, sconf).to(device)
         gen = torch.Generator(device=device).manual_seed(0)
         buf = train_loop(agent, task, tdata, EnvConf(), 0, gen, log=lambda *a, **k: None)  # fills, first update
-        t0 = time.perf_counter()
+        t0 = CLOCK()
         agent.conf.total_steps = 2 * steps + 1
         train_loop(agent, task, tdata, EnvConf(), steps + 1, gen, log=lambda *a, **k: None, buffer=buf)
-        return steps / (time.perf_counter() - t0)
+        return steps / (CLOCK() - t0)
     finally:
         PointNet.forward = saved
 
