@@ -46,9 +46,10 @@ LO_METHODS = ("ransac-lo", "uniform-lo", "rlsac-lo")
 METHODS = METHODS + LO_METHODS
 DEFAULT_ITERATIONS = {"line": 150, "fundamental": 1000}
 # torch CPU threads for the evaluation loop. One thread: per-step tensors are small (one instance, or
-# chunks of ~8k points), so a second thread mostly adds synchronisation, and on a shared machine it
-# competes with the other jobs. Measured on the 2-core machine (issue #17, one vs two threads): RLSAC
-# 2-8x and our RANSAC 3-5x faster with one; benchmarks/line_rollout.py --threads 1,2 re-measures it.
+# chunks of 4096 points), so a second thread mostly adds synchronisation, and on a shared machine it
+# competes with the other jobs. Measured on the 2-core machine, one vs two threads: issue #17, RLSAC
+# 2-8x and our RANSAC 3-5x faster with one; benchmarks/line_rollout.py (32 line instances per call,
+# wall time, machine loaded by other jobs): RLSAC 78 vs 677 ms/instance, our RANSAC 1.4 vs 3.9 ms.
 THREADS = 1
 EXPERIMENT = {"line": "lines", "fundamental": "fundamental"}
 DEFAULTS: dict[str, Any] = {
