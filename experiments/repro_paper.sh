@@ -9,7 +9,8 @@
 # fundamental lane finishes first and one core sits idle for the last hour.
 #
 #   bash experiments/repro_paper.sh                 # all lanes in parallel, then final
-#   bash experiments/repro_paper.sh lines_low       # one lane: lines_low | lines_high | fundamental | final
+#   bash experiments/repro_paper.sh lines_low       # one lane: lines_low | lines_high | fundamental |
+#                                                   #   folds_a | folds_b | final
 #   bash experiments/repro_paper.sh --list          # "lane stage" per line (a foreach group = all its items)
 #
 # Logs and wall times go to logs/repro_<lane>.log. OMP_NUM_THREADS=1 keeps each stage on one core.
@@ -30,10 +31,21 @@ line_stages() {  # the line stages of the given outlier rates
   echo "$out"
 }
 
+fold_stages() {  # the leave-one-building-out stages of the given folds (both regimes, every model)
+  local f r m out=""
+  for f in "$@"; do
+    for r in easy hard; do out="$out fold_data@$r-$f fold_eval@$r-$f"; done
+    for m in rlsac rlsac-ws; do out="$out fold_train@$f-$m"; done
+  done
+  echo "$out"
+}
+
 declare -A STAGES=(
   [lines_low]="$(line_stages 0.1 0.2 0.3)"
   [lines_high]="$(line_stages 0.4 0.5 0.6 0.7)"
   [fundamental]="import_scenes prepare_fundamental train_fundamental eval_fundamental eval_fundamental_rlsac ablation_data ablation_train ablation_eval"
+  [folds_a]="$(fold_stages castle fountain)"
+  [folds_b]="$(fold_stages herzjesu entry)"
   [final]="tables figures"
 )
 lane() {
@@ -47,7 +59,7 @@ lane() {
 }
 
 if [ "${1:-}" = "--list" ]; then
-  for name in lines_low lines_high fundamental final; do
+  for name in lines_low lines_high fundamental folds_a folds_b final; do
     for stage in ${STAGES[$name]}; do echo "$name $stage"; done
   done
   exit 0
@@ -58,7 +70,7 @@ if [ $# -gt 0 ]; then
 fi
 start=$(date +%s)
 pids=()
-for name in lines_low lines_high fundamental; do
+for name in lines_low lines_high fundamental folds_a folds_b; do
   lane "$name" & pids+=($!)
 done
 failed=0
