@@ -6,6 +6,7 @@
 #   .venv/bin/pip install 'mutmut>=3.8'      # once; deliberately not a project dependency
 #   OMP_NUM_THREADS=1 bash benchmarks/mutation.sh [MAX_CHILDREN [MUTANT_PATTERN ...]]
 #   e.g. bash benchmarks/mutation.sh 2 'rlsac.sac*' 'rlsac.rollout*'     (default: 2 workers, every mutant)
+#   SAMPLE=300 SEED=0 bash benchmarks/mutation.sh 2   # a uniform random sample of 300 of the mutants
 #
 # Runs in a temporary copy of the repository (the working tree is never touched; MUTATION_DIR keeps
 # it elsewhere, and an existing one resumes). Prints mutmut's per-mutant results and the kill rate
@@ -44,6 +45,26 @@ process_isolation = forkserver
 EOF
 echo "mutation run in $WORK"
 cd "$WORK"
+if [ -n "${SAMPLE:-}" ] && [ $# -eq 0 ]; then  # generate the mutants, then draw the sample's names
+  "$PY" - "$SAMPLE" "${SEED:-0}" > sample.txt <<'PY'
+import json, os, random, sys
+from pathlib import Path
+from mutmut.__main__ import create_mutants
+from mutmut.utils.file_utils import copy_also_copy_files, copy_src_dir, setup_source_paths
+os.makedirs("mutants", exist_ok=True)
+with open(os.devnull, "w") as null:  # mutmut prints progress: keep sample.txt to the names
+    out, sys.stdout = sys.stdout, null
+    copy_src_dir(); copy_also_copy_files(); setup_source_paths()
+    create_mutants(2)
+    sys.stdout = out
+names = sorted(k for f in ("sac", "policy", "rollout")
+               for k in json.loads(Path(f"mutants/rlsac/{f}.py.meta").read_text())["exit_code_by_key"])
+print("\n".join(random.Random(int(sys.argv[2])).sample(names, min(int(sys.argv[1]), len(names)))))
+PY
+  mapfile -t picked < sample.txt
+  set -- "${picked[@]}"
+  echo "sampled $# mutants (seed ${SEED:-0}) into $WORK/sample.txt"
+fi
 "$MUTMUT" run --max-children "$CHILDREN" "$@" || true
 "$MUTMUT" results --all true > results.txt 2>&1 || "$MUTMUT" results > results.txt 2>&1 || true
 "$PY" - <<'EOF'
