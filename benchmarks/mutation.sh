@@ -14,6 +14,7 @@
 # also kill mutants here, test_train.py, test_speed_equivalence.py) are left out to keep it to about
 # an hour on 2 cores. benchmarks/mutation_faults.py runs the issue's hand-made faults against all of them.
 set -euo pipefail
+main() {  # the whole script is parsed before it runs: editing this file during a run is safe
 ROOT=$(cd "$(dirname "$0")/.." && pwd)
 MUTMUT=${MUTMUT:-$ROOT/.venv/bin/mutmut}
 PY=${PYTHON:-$ROOT/.venv/bin/python}
@@ -85,3 +86,6 @@ if n:
     print(f"{'all checked':16s} {n:5d} mutants  killed {total['killed']:5d} ({total['killed'] / n:.0%})")
 EOF
 echo "survivors: cd $WORK && $MUTMUT show <name>   (listed in $WORK/results.txt)"
+}
+main "$@"
+exit
