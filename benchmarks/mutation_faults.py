@@ -2,6 +2,7 @@
 that must catch it. Not part of CI (it runs the learning tests once per fault: a few minutes).
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/mutation_faults.py [NAME ...]
+    FAULT_TESTS="tests/test_sac.py tests/test_policy.py" ... # only these test files (faster)
 
 Prints one line per fault: caught (with the failing tests) or MISSED; exits 1 if any fault is missed
 or no longer applies (its original text is gone from the source: update the fault). The working tree
@@ -10,6 +11,7 @@ is never modified: the copy lives in a temporary directory and is imported first
 
 from __future__ import annotations
 
+import os
 import re
 import shutil
 import subprocess
@@ -63,6 +65,7 @@ FAULTS = {
 
 def run_fault(name: str, work: Path) -> tuple[str, list[str]]:
     path, old, new, tests = FAULTS[name]
+    tests = os.environ.get("FAULT_TESTS", "").split() or tests
     src = work / path
     text = (ROOT / path).read_text()
     if text.count(old) != 1:
