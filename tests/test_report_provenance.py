@@ -43,8 +43,9 @@ def fresh_clone(workdir):
     (workdir / "dvc.lock").write_text(yaml.safe_dump(lock))
     d = workdir / "reports" / "eval" / "fundamental" / "rlsac" / "i1000"
     d.mkdir(parents=True)
-    (d / "summary.json").write_text(json.dumps({"mAA_R": 0.9, "mAA_t": 0.6, "mAA": 0.6, "median_R": 0.3,
-                                                "median_t": 1.9, "n_instances": 87, "data": "data/fundamental/test.h5"}))
+    summary = {"mAA_R": 0.9, "mAA_t": 0.6, "mAA": 0.6, "median_R": 0.3, "median_t": 1.9, "n_instances": 87,
+               "data": "data/fundamental/test.h5"}
+    (d / "summary.json").write_text(json.dumps(summary))
     figs = workdir / "reports" / "figures"
     figs.mkdir()
     for name in FIGURES:
