@@ -118,12 +118,13 @@ def build(eval_root: str | Path = "reports/eval", out_dir: str | Path = "reports
         methods = _order({k[1] for k in res if k[0] == regime})
         budgets = sorted({k[2] for k in res if k[0] == regime})
         folds = sorted({f for k, df in res.items() if k[0] == regime for f in df["fold"].unique()})
-        ratio = [r["splits"]["test"]["mean_gt_inlier_ratio_sampson_2px"] for (g, _), r in recs.items() if g == regime]
+        tests = [r["splits"]["test"] for (g, _), r in recs.items() if g == regime]
+        ratio = [t["mean_gt_inlier_ratio_sampson_2px"] for t in tests for _ in range(int(t["pairs"]))]  # per pair
         n_test = {f: int((res[(regime, methods[0], budgets[-1])]["fold"] == f).sum())
                   for f in folds} if methods else {}
         n = sum(n_test.values())
         md.append(f"## Regime `{regime}`" + (f" (mean ground-truth inlier ratio of the test pairs "
-                                              f"{np.mean(ratio):.2f} over folds)" if ratio else ""))
+                                              f"{np.mean(ratio):.2f})" if ratio else ""))
         md.append(f"{n} test pairs pooled over {len(folds)} folds ({', '.join(f'{f} {n_test[f]}' for f in folds)}): "
                   f"one pair moves a pooled mAA by {1 / max(n, 1):.4f}.\n")
         for it in budgets:
