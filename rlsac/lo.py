@@ -2,8 +2,9 @@
 
 RANSAC (``rlsac.baselines.ransac``), the uniform control and RLSAC (``rlsac.env``) all keep "the best
 hypothesis so far" per instance through ``update_best``: it scores a group of candidate hypotheses per
-instance, and when the group's best beats the best so far it runs ``local_optimization`` on it (if
-enabled) before storing it. ``finish`` turns the best hypothesis into the output.
+instance, and when the group's best beats the best so far (``LOConf.trigger``: the best LO-improved
+score, or the best unoptimised one) it runs ``local_optimization`` on it (if enabled) and keeps the
+result if it beats the best. ``finish`` turns the best hypothesis into the output.
 
 Scores (higher is better; ``LOConf.score``):
 
@@ -271,8 +272,9 @@ def update_best(task: Task, conf: LOConf | None, coords: torch.Tensor, mask: tor
     coords (B, N, d), mask (B, N): the instances; hyps (B, k, *H) candidates; count (B, k) their inlier
     counts, < 0 for candidates that may not compete (degenerate, inactive); res (B, k, N) their residuals
     (needed when LO is on). LO off: the candidate with most inliers replaces the best if it has more (ties
-    keep the earlier one, as a sequential RANSAC would). LO on: the same with ``conf.score``, and the
-    winner is locally optimised before it is stored. -> the updated ``best`` (new tensors).
+    keep the earlier one, as a sequential RANSAC would). LO on: the group's best by ``conf.score`` is
+    locally optimised when it beats the best score (trigger "best") or the best unoptimised score so far
+    (trigger "minimal"), and stored if the result beats the best. -> the updated ``best`` (new tensors).
     """
     B, k = count.shape
     if hyps.shape[:2] != (B, k) or coords.shape[0] != B:
