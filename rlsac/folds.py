@@ -41,6 +41,7 @@ DEFAULTS: dict[str, Any] = {
     "iterations": [10, 100, 1000],
     "seed": 0,
     "model_regime": "hard",
+    "lo_models": [],
 }
 OPTIONS: dict[str, Any] = {"stage": None, "regime": None, "fold": None, "model": None, "only": None,
                            "params": "params.yaml",
@@ -74,9 +75,11 @@ def protocol(params: dict[str, Any]) -> dict[str, Any]:
         raise RlsacError(f"folds.iterations must be positive budgets, got {p['iterations']}")
     from rlsac.evaluate import METHODS
 
-    bad = [m for m in p["methods"] if m not in METHODS or m in ("rlsac", "oracle")]
+    bad = [m for m in p["methods"] if m not in METHODS or m in ("rlsac", "rlsac-lo", "oracle")]
     if bad:
         raise RlsacError(f"folds.methods {bad}: not a baseline of `rlsac evaluate` (RLSAC models go in folds.models)")
+    if not set(p["lo_models"]) <= set(p["models"]):
+        raise RlsacError(f"folds.lo_models {p['lo_models']} must be models of folds.models {p['models']}")
     clash = sorted(set(p["models"]) & set(METHODS))
     if clash and clash != ["rlsac"]:
         raise RlsacError(f"folds.models {clash}: a model may not share a method's name")
@@ -124,7 +127,8 @@ def check_options(options: dict[str, Any], p: dict[str, Any] | None = None) -> d
             raise RlsacError(f"unknown model {o['model']!r} (known: {', '.join(p['models'])})")
         if o["only"] is not None:
             o["only"] = [s.strip() for s in str(o["only"]).split(",") if s.strip()]
-            bad = sorted(set(o["only"]) - set(p["methods"]) - set(p["models"]))
+            known = set(p["methods"]) | set(p["models"]) | {f"{m}-lo" for m in p["lo_models"]}
+            bad = sorted(set(o["only"]) - known)
             if bad or not o["only"]:
                 raise RlsacError(f"--only {bad or o['only']}: not in folds.methods or folds.models")
     return o
@@ -187,7 +191,7 @@ def train_model(p: dict, params: dict, regime: str, fold: str, model: str, o: di
     return train(opts, track=track)
 
 
-def evaluate_fold(p: dict, regime: str, fold: str, o: dict, track: bool) -> list[dict]:
+def evaluate_fold(p: dict, regime: str, fold: str, o: dict, track: bool, lo: dict | None = None) -> list[dict]:
     """Every method and every model at every budget on the fold's test file."""
     from rlsac.evaluate import evaluate
 
@@ -195,21 +199,24 @@ def evaluate_fold(p: dict, regime: str, fold: str, o: dict, track: bool) -> list
     if not test.is_file():
         raise RlsacError(f"{test}: no such file (run `rlsac folds --stage data` first)")
     trained = p["model_regime"]  # every regime is evaluated with the models trained on this one's data
-    only = o.get("only") or p["methods"] + p["models"]
-    models = [m for m in p["models"] if m in only]
-    missing = [str(checkpoint(trained, fold, m)) for m in models if not checkpoint(trained, fold, m).is_file()]
+    lo_runs = [f"{m}-lo" for m in p["lo_models"]]
+    only = o.get("only") or p["methods"] + p["models"] + lo_runs
+    # (name in the tables, evaluate method, checkpoint): models with local optimisation are rows "<model>-lo"
+    runs = [(m, m, None) for m in p["methods"] if m in only]
+    runs += [(m, "rlsac", checkpoint(trained, fold, m)) for m in p["models"] if m in only]
+    runs += [(f"{m}-lo", "rlsac-lo", checkpoint(trained, fold, m)) for m in p["lo_models"] if f"{m}-lo" in only]
+    missing = [str(c) for _, _, c in runs if c is not None and not c.is_file()]
     if missing:
         raise RlsacError(f"no checkpoint {missing[0]} (run `rlsac folds --stage train` first)")
-    runs = [(m, None) for m in p["methods"] if m in only] + [(m, checkpoint(trained, fold, m)) for m in models]
     out = []
-    for method, ckpt in runs:
+    for name, method, ckpt in runs:
         for it in p["iterations"]:
-            tags = {"benchmark": "folds", "regime": regime, "fold": fold, "model": method}
-            s = evaluate({"task": "fundamental", "method": "rlsac" if ckpt else method, "data": str(test),
+            tags = {"benchmark": "folds", "regime": regime, "fold": fold, "model": name}
+            s = evaluate({"task": "fundamental", "method": method, "data": str(test),
                           "checkpoint": str(ckpt) if ckpt else None, "iterations": int(it), "seed": int(p["seed"]),
-                          "device": o["device"], "out_dir": str(eval_dir(regime, fold, method, it)), "tags": tags},
-                         track=track)
-            out.append({"method": method, "iterations": int(it), "mAA_R": s["mAA_R"], "mAA_t": s["mAA_t"],
+                          "device": o["device"], "out_dir": str(eval_dir(regime, fold, name, it)), "tags": tags,
+                          "lo": lo if method.endswith("-lo") else None}, track=track)
+            out.append({"method": name, "iterations": int(it), "mAA_R": s["mAA_R"], "mAA_t": s["mAA_t"],
                         "seconds": round(s["seconds"], 1)})
     return out
 
@@ -238,7 +245,8 @@ def folds(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
         models = [o["model"]] if o["model"] else p["models"]
         result["models"] = {m: train_model(p, params, regime, fold, m, o, track) for m in models}
     else:
-        result["evaluations"] = evaluate_fold(p, regime, fold, o, track)
+        lo = _section(params, "evaluate", "fundamental").get("lo")  # the *-lo methods' options (rlsac.lo)
+        result["evaluations"] = evaluate_fold(p, regime, fold, o, track, lo)
     result["seconds"] = round(time.time() - t0, 1)
     return result
 

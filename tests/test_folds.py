@@ -200,7 +200,7 @@ def test_folds_command_end_to_end(imported, tmp_path, monkeypatch):
                                   "sac": {"total_steps": 8, "num_envs": 2, "batch_size": 4, "learning_starts": 4}}},
         "folds": {"test": ["fountain"], "scenes": {"fountain": "fountain-P11", "entry": "entry-P10"},
                   "val_fraction": 0.3, "regimes": ["hard"], "pool": {"hard": 100},
-                  "methods": ["uniform", "ransac"], "models": ["rlsac", "rlsac-ws"],
+                  "methods": ["uniform", "ransac"], "models": ["rlsac", "rlsac-ws"], "lo_models": ["rlsac-ws"],
                   "train": {"rlsac": {}, "rlsac-ws": {"sac": {"warm_start_updates": 2}, "selection": "val_mAA"}},
                   "iterations": [15], "seed": 0},
     }
@@ -230,9 +230,10 @@ def test_folds_command_end_to_end(imported, tmp_path, monkeypatch):
     assert [h["step"] for h in paper["history"]][:2] == [4, 8]
     r = run.invoke(cli, base + ["--stage", "evaluate"])
     assert r.exit_code == 0, r.output
-    for m in ("uniform", "ransac", "rlsac", "rlsac-ws"):
+    for m in ("uniform", "ransac", "rlsac", "rlsac-ws", "rlsac-ws-lo"):
         s = json.loads((tmp_path / f"reports/eval/folds/hard/fountain/{m}/i15/summary.json").read_text())
         assert s["n_instances"] == 8 and s["iterations"] == 15
+        assert ("lo" in s) == m.endswith("-lo")
     r = run.invoke(cli, ["table", "--which", "folds", "--no-tracking"])
     assert r.exit_code == 0, r.output
     md = (tmp_path / "reports/table2_folds.md").read_text()

@@ -23,7 +23,7 @@ from rlsac.errors import RlsacError  # noqa: E402
 STYLE = {"uniform": ("tab:blue", "x"), "ransac": ("tab:purple", "o"), "opencv_ransac": ("tab:gray", "s"),
          "usac": ("tab:orange", "^"), "usac_accurate": ("tab:brown", "v"), "magsac": ("tab:green", "D"),
          "rlsac": ("tab:red", "*"), "rlsac-ws": ("darkred", "P"), "ransac-lo": ("violet", "h"),
-         "rlsac-lo": ("crimson", "p")}
+         "rlsac-lo": ("crimson", "p"), "rlsac-ws-lo": ("crimson", "p")}
 
 
 def _save(fig, out_dir: Path, name: str) -> list[str]:

@@ -31,7 +31,8 @@ NAMES = {"uniform": "Uniform (RLSAC env., uniform sets)", "ransac": "RANSAC (our
          "opencv_ransac": "OpenCV RANSAC", "usac": "OpenCV USAC", "usac_accurate": "OpenCV USAC_ACCURATE",
          "magsac": "OpenCV MAGSAC++", "rlsac": "RLSAC (paper recipe)",
          "rlsac-ws": "RLSAC + warm start, GT selection (not in the paper)",
-         "ransac-lo": "RANSAC + LO (not in the paper)", "rlsac-lo": "RLSAC + LO (not in the paper)"}
+         "ransac-lo": "RANSAC + LO (not in the paper)", "rlsac-lo": "RLSAC + LO (not in the paper)",
+         "rlsac-ws-lo": "RLSAC + warm start, GT selection + LO (not in the paper)"}
 REFERENCE = "rlsac"  # paired differences are taken against the paper-recipe RLSAC
 CONTROL = "uniform"
 
