@@ -5,8 +5,10 @@ have defaults):
 
     task        "line" | "fundamental"
     method      "ransac" (our batched RANSAC, any task), "rlsac" (needs ``checkpoint``), "uniform" (the
-                RLSAC environment with uniform minimal sets: RLSAC - uniform is the learned sampler alone), one of
-                OpenCV's "opencv_ransac" | "usac" | "usac_accurate" | "magsac" (fundamental only), or
+                RLSAC environment with uniform minimal sets: RLSAC - uniform is the learned sampler alone), "guided"
+                (the same environment, sets drawn ~ exp(-SNN / guide_temperature): a hand-made sampler with the
+                policy's side information, fundamental only), one of OpenCV's "opencv_ransac" | "usac" |
+                "usac_accurate" | "magsac" | "prosac" (fundamental only; prosac orders matches by SNN), or
                 "oracle" (the refinement on the true inliers, lines only: the headroom of any sampler)
     data        h5 file written by ``rlsac synth-lines`` / ``rlsac prepare-cvpr2020``
     checkpoint  RLSAC checkpoint (.pt), method "rlsac" only
@@ -38,9 +40,10 @@ from rlsac.progress import tqdm  # no bars unless a person watches (not under CI
 from rlsac.tasks import TASK_NAMES, Task, get_task
 from rlsac.tracking import check_store, start_run
 
-OPENCV_METHODS = ("opencv_ransac", "usac", "usac_accurate", "magsac")
-OPENCV_FLAG = {"opencv_ransac": "ransac", "usac": "usac", "usac_accurate": "usac_accurate", "magsac": "magsac"}
-METHODS = ("ransac", "rlsac", "uniform", "oracle") + OPENCV_METHODS
+OPENCV_METHODS = ("opencv_ransac", "usac", "usac_accurate", "magsac", "prosac")
+OPENCV_FLAG = {"opencv_ransac": "ransac", "usac": "usac", "usac_accurate": "usac_accurate", "magsac": "magsac",
+               "prosac": "prosac"}
+METHODS = ("ransac", "rlsac", "uniform", "guided", "oracle") + OPENCV_METHODS
 # not in the paper: the same samplers with local optimisation and the `lo` options' score (rlsac.lo)
 LO_METHODS = ("ransac-lo", "uniform-lo", "rlsac-lo")
 METHODS = METHODS + LO_METHODS
@@ -63,6 +66,10 @@ DEFAULTS: dict[str, Any] = {
     "sampling": "max",  # RLSAC test-time sampling: max (paper) or prob (ablation)
     "tags": None,  # extra MLflow run tags, e.g. {"ablation": "sampling", "variant": "full"} (rlsac.ablate)
     "threads": None,  # None = THREADS
+    # guided: minimal sets drawn with probabilities ~ exp(-SNN / guide_temperature) in the RLSAC environment, a
+    # hand-made sampler that uses the same side information as the policy (not in the paper). 0.05 was the best
+    # of {0.02, 0.05, 0.1, 0.2} on the fold validation pairs (reports/folds.md)
+    "guide_temperature": 0.05,
     "lo": None,  # *-lo methods: rlsac.lo.LOConf options (params.yaml evaluate.<task>.lo); ignored by the others
 }
 
@@ -126,6 +133,11 @@ def check_options(options: dict[str, Any]) -> dict[str, Any]:
         raise RlsacError(f"unknown method '{o['method']}' (known: {', '.join(METHODS)})")
     if o["method"] in OPENCV_METHODS and o["task"] != "fundamental":
         raise RlsacError(f"method '{o['method']}' is OpenCV's fundamental-matrix estimator: use --task fundamental")
+    if o["method"] == "guided" and not hasattr(get_task(o["task"]), "match_quality"):
+        raise RlsacError(f"method 'guided' needs per-point match quality, which task '{o['task']}' has not")
+    o["guide_temperature"] = check_value("guide_temperature", o["guide_temperature"], float)
+    if not 0 < o["guide_temperature"] < float("inf"):
+        raise RlsacError(f"guide_temperature must be positive and finite, got {o['guide_temperature']}")
     if o["method"] == "oracle" and o["task"] != "line":
         raise RlsacError("method 'oracle' needs the true inlier mask, which only synthetic lines have: use --task line")
     if o["method"] in ("rlsac", "rlsac-lo") and not o["checkpoint"]:
@@ -207,6 +219,13 @@ def make_estimator(o: dict[str, Any], device: str, lo=None
         env = _with_lo(checkpoint_env({}, o["steps_per_episode"]), lo)
         return task, lambda batch, g: rlsac_estimate(task, batch, None, iterations, env, generator=g), \
             {"steps_per_episode": env.steps_per_episode}
+    if method == "guided":  # the same environment, minimal sets drawn by match quality: a hand-made guided sampler
+        task = task_from(o["task"])
+        env = _with_lo(checkpoint_env({}, o["steps_per_episode"]), lo)
+        tau = o["guide_temperature"]
+        return task, lambda batch, g: rlsac_estimate(task, batch, None, iterations, env, generator=g,
+                                                     guide=-task.match_quality(batch) / tau), \
+            {"steps_per_episode": env.steps_per_episode, "guide_temperature": tau}
     actor, ckpt_conf = load_actor(o["checkpoint"], device)
     ckpt_conf = dict(ckpt_conf or {})
     task = task_from(o["task"], checkpoint_task_options(ckpt_conf))

@@ -191,8 +191,10 @@ def train_model(p: dict, params: dict, regime: str, fold: str, model: str, o: di
     return train(opts, track=track)
 
 
-def evaluate_fold(p: dict, regime: str, fold: str, o: dict, track: bool, lo: dict | None = None) -> list[dict]:
-    """Every method and every model at every budget on the fold's test file."""
+def evaluate_fold(p: dict, regime: str, fold: str, o: dict, track: bool, lo: dict | None = None,
+                  guide_temperature: float | None = None) -> list[dict]:
+    """Every method and every model at every budget on the fold's test file (``lo``, ``guide_temperature``:
+    params.yaml evaluate.fundamental's options of the *-lo methods and of ``guided``)."""
     from rlsac.evaluate import evaluate
 
     test = data_dir(regime, fold) / "test.h5"
@@ -215,7 +217,8 @@ def evaluate_fold(p: dict, regime: str, fold: str, o: dict, track: bool, lo: dic
             s = evaluate({"task": "fundamental", "method": method, "data": str(test),
                           "checkpoint": str(ckpt) if ckpt else None, "iterations": int(it), "seed": int(p["seed"]),
                           "device": o["device"], "out_dir": str(eval_dir(regime, fold, name, it)), "tags": tags,
-                          "lo": lo if method.endswith("-lo") else None}, track=track)
+                          "lo": lo if method.endswith("-lo") else None,
+                          "guide_temperature": guide_temperature if method == "guided" else None}, track=track)
             out.append({"method": name, "iterations": int(it), "mAA_R": s["mAA_R"], "mAA_t": s["mAA_t"],
                         "seconds": round(s["seconds"], 1)})
     return out
@@ -245,8 +248,8 @@ def folds(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
         models = [o["model"]] if o["model"] else p["models"]
         result["models"] = {m: train_model(p, params, regime, fold, m, o, track) for m in models}
     else:
-        lo = _section(params, "evaluate", "fundamental").get("lo")  # the *-lo methods' options (rlsac.lo)
-        result["evaluations"] = evaluate_fold(p, regime, fold, o, track, lo)
+        ev = _section(params, "evaluate", "fundamental")  # the *-lo methods' (rlsac.lo) and guided's options
+        result["evaluations"] = evaluate_fold(p, regime, fold, o, track, ev.get("lo"), ev.get("guide_temperature"))
     result["seconds"] = round(time.time() - t0, 1)
     return result
 

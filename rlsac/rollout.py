@@ -19,12 +19,14 @@ from rlsac.tasks import Task
 @torch.no_grad()
 def rlsac_estimate(task: Task, batch: dict, actor: Actor | None, iterations: int, env_conf: EnvConf | None = None,
                    sampling: str = "max", generator: torch.Generator | None = None,
-                   record: bool = False, reference: bool = False) -> dict:
+                   record: bool = False, reference: bool = False, guide: torch.Tensor | None = None) -> dict:
     """Run ceil(iterations / psi) episodes per instance in parallel, at most ``iterations`` hypotheses.
 
     batch: coords (B, N, d), mask (B, N), plus what ``task.features`` needs.
     actor None = the uniform control: the same environment (episodes, de-duplication, scoring,
     refinement, budget) with uniformly random minimal sets instead of the policy's.
+    guide (B, N): with actor None, fixed per-point logits instead of the policy's (the guided control:
+    minimal sets drawn without replacement with probabilities ~ exp(guide), Gumbel top-m as ``prob``).
     env_conf: the environment of the checkpoint (``checkpoint_env``); default EnvConf().
     -> hyp (B, *H), valid (B,), inliers (B, N); with ``record`` also ``steps``: per step the minimal
     sets (R, m), hypotheses, inlier masks and rewards of every row (for figures).
@@ -53,10 +55,16 @@ def rlsac_estimate(task: Task, batch: dict, actor: Actor | None, iterations: int
     steps = []
     if record:
         steps.append(_snapshot(env))
+    if guide is not None:
+        if actor is not None or guide.shape != batch["mask"].shape:
+            raise RlsacError(f"guide must be (B, N) = {tuple(batch['mask'].shape)} logits without an actor")
+        guide = guide.to(feats.dtype).repeat_interleave(episodes, 0)
     for _ in range(1, psi):
         if not env.active.any():
             break
-        if actor is None:  # the uniform control
+        if guide is not None:  # the guided control: a fixed, hand-made sampling distribution
+            env.step(select_lazily(env, guide, sample=True))
+        elif actor is None:  # the uniform control
             env.step(env.select(env.action, random=True))
         else:
             if reference:

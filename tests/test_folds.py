@@ -144,6 +144,60 @@ def test_uniform_control_uses_the_rlsac_environment(imported, tmp_path):
     assert out["valid"].all()
 
 
+def test_guided_control_draws_by_match_quality_in_the_same_environment(imported, tmp_path):
+    """guide logits: the environment's de-duplication holds, and low-SNN matches are drawn far more often than
+    high-SNN ones (a cold temperature all but restricts the sets to the best matches)."""
+    from rlsac.rollout import rlsac_estimate
+    from rlsac.sampling import set_keys
+    from rlsac.tasks.fundamental import FundamentalTask
+
+    task = FundamentalTask()
+    d = _prep(imported, tmp_path, "g", scenes="fountain-P11", pool=400)
+    batch = fundamental.to_batch(d, [0, 1])
+    snn = task.match_quality(batch)
+    assert torch.equal(snn, batch["features"][..., 4])
+    out = rlsac_estimate(task, batch, None, 45, generator=torch.Generator().manual_seed(0), record=True,
+                         guide=-snn / 0.02)
+    sets = torch.stack([s["minimal_set"] for s in out["steps"][1:]]).view(14, 2, 3, 8)  # (t, B, E, m)
+    keys = torch.stack([set_keys(s["minimal_set"], 40) for s in out["steps"][1:]]).view(14, 2, 3)
+    for b in range(2):
+        assert keys[:, b].unique().numel() == 42  # no set twice within the instance
+        drawn = torch.bincount(sets[:, b].flatten(), minlength=40).float()
+        order = snn[b].argsort()
+        # per match, the best quarter is drawn > 3x as often as the worse half (uniform sets: about 1x)
+        assert drawn[order[:10]].mean() > 3 * drawn[order[-20:]].mean()
+    with pytest.raises(RlsacError, match="guide"):
+        rlsac_estimate(task, batch, None, 45, guide=snn[:1])
+    # through evaluate: its own summary names the temperature
+    evaluate({"task": "fundamental", "method": "guided", "data": str(tmp_path / "g.h5"), "iterations": 30,
+              "device": "cpu", "out_dir": str(tmp_path / "ev_g")}, track=False)
+    assert json.loads((tmp_path / "ev_g" / "summary.json").read_text())["guide_temperature"] == 0.05
+    with pytest.raises(RlsacError, match="guided"):
+        evaluate({"task": "line", "method": "guided", "data": str(tmp_path / "g.h5")}, track=False)
+
+
+def test_prosac_receives_the_matches_best_first(imported, tmp_path, monkeypatch):
+    import cv2
+
+    from rlsac.baselines import opencv_fundamental
+
+    d = _prep(imported, tmp_path, "p", scenes="fountain-P11", pool=400)
+    batch = fundamental.to_batch(d, [0])
+    seen = {}
+    real = cv2.findFundamentalMat
+
+    def spy(p1, p2, *args):
+        seen["p1"] = p1.copy()
+        return real(p1, p2, *args)
+
+    monkeypatch.setattr(cv2, "findFundamentalMat", spy)
+    out = opencv_fundamental(batch, "prosac", 100, seed=3)
+    valid = batch["mask"][0].numpy()
+    coords, snn = batch["coords"][0].numpy()[valid], batch["features"][0, :, 4].numpy()[valid]
+    np.testing.assert_array_equal(seen["p1"], coords[np.argsort(snn, kind="stable"), :2])
+    assert out["valid"][0] and out["inliers"][0].sum() >= 8
+
+
 # ------------------------------------------------------------------------------------ table, known values
 
 

@@ -29,12 +29,13 @@ LIMIT = 10.0  # mAA@10 deg (the tutorial's and Table 2's)
 N_BOOT = 2000
 NAMES = {"uniform": "Uniform (RLSAC env., uniform sets)", "ransac": "RANSAC (our batched torch)",
          "opencv_ransac": "OpenCV RANSAC", "usac": "OpenCV USAC", "usac_accurate": "OpenCV USAC_ACCURATE",
-         "magsac": "OpenCV MAGSAC++", "rlsac": "RLSAC (paper recipe)",
+         "magsac": "OpenCV MAGSAC++", "prosac": "OpenCV PROSAC (matches ordered by SNN)",
+         "guided": "Guided (RLSAC env., sets drawn by SNN; not in the paper)", "rlsac": "RLSAC (paper recipe)",
          "rlsac-ws": "RLSAC + warm start, GT selection (not in the paper)",
          "ransac-lo": "RANSAC + LO (not in the paper)", "rlsac-lo": "RLSAC + LO (not in the paper)",
          "rlsac-ws-lo": "RLSAC + warm start, GT selection + LO (not in the paper)"}
 REFERENCE = "rlsac"  # paired differences are taken against the paper-recipe RLSAC
-CONTROL = "uniform"
+CONTROLS = ("uniform", "guided")  # the learned sampler against uniform sets, and against a hand-made SNN-guided one
 
 
 def _errors(path: Path) -> pd.DataFrame | None:
@@ -193,23 +194,28 @@ def build(eval_root: str | Path = "reports/eval", out_dir: str | Path = "reports
 
 
 def _control_section(res, regime: str, budgets, folds) -> str:
-    """Each RLSAC model minus the uniform control (the learned sampler alone), per fold and pooled."""
+    """Each RLSAC model minus each control (uniform sets: the learned sampler alone; SNN-guided sets: what it
+    adds beyond ranking matches by their SNN ratio), per fold and pooled, paired over pairs."""
     models = [m for m in _order({k[1] for k in res if k[0] == regime}) if m.startswith("rlsac")]
-    rows = []
-    for m in models:
-        for it in budgets:
-            a, b = res.get((regime, m, it)), res.get((regime, CONTROL, it))
-            if a is None or b is None:
-                continue
-            row = {"model": NAMES.get(m, m), "iterations": it}
-            for col, name in (("err_R", "R"), ("err_t", "t")):
-                row[f"pooled {name}"] = _ci(_paired(a, b, col))
-            for f in folds:
-                row[f"{f} R / t"] = " / ".join(_ci(_paired(a[a["fold"] == f], b[b["fold"] == f], c))
-                                                for c in ("err_R", "err_t"))
-            rows.append(row)
-    if not rows:
-        return ""
-    return ("### RLSAC − uniform (the learned sampler alone; same environment, episodes, de-duplication, scoring, "
-            "refinement and budget), paired over pairs, 95% interval\n\n"
-            + pd.DataFrame(rows).to_markdown(index=False, disable_numparse=True) + "\n")
+    out = []
+    for control in CONTROLS:
+        rows = []
+        for m in models:
+            for it in budgets:
+                a, b = res.get((regime, m, it)), res.get((regime, control, it))
+                if a is None or b is None:
+                    continue
+                row = {"model": NAMES.get(m, m), "iterations": it}
+                for col, name in (("err_R", "R"), ("err_t", "t")):
+                    row[f"pooled {name}"] = _ci(_paired(a, b, col))
+                for f in folds:
+                    row[f"{f} R / t"] = " / ".join(_ci(_paired(a[a["fold"] == f], b[b["fold"] == f], c))
+                                                    for c in ("err_R", "err_t"))
+                rows.append(row)
+        if rows:
+            what = ("the learned sampler alone; same environment, episodes, de-duplication, scoring, refinement and "
+                    "budget" if control == "uniform" else "what the policy adds beyond drawing sets by SNN ratio, "
+                    "in the same environment")
+            out.append(f"### RLSAC − {control} ({what}), paired over pairs, 95% interval\n\n"
+                       + pd.DataFrame(rows).to_markdown(index=False, disable_numparse=True) + "\n")
+    return "\n".join(out)

@@ -64,6 +64,11 @@ class FundamentalTask:
         out = torch.cat([c1, c2, rest], dim=-1)
         return out * batch["mask"][..., None].to(dt)
 
+    def match_quality(self, batch: dict) -> torch.Tensor:
+        """Per-correspondence side information the samplers may use without ground truth: the SNN
+        ratio (second-nearest-neighbour descriptor ratio, lower = more distinctive). -> (B, N)"""
+        return batch["features"][..., 4].to(batch["coords"].dtype)
+
     def true_inliers(self, batch: dict) -> torch.Tensor:
         """Ground-truth inlier labels (B, N) bool: Sampson distance to the ground-truth F within the
         inlier threshold (supervised warm start only; the paper's RLSAC never sees them)."""
