@@ -171,7 +171,7 @@ def test_guided_control_draws_by_match_quality_in_the_same_environment(imported,
     # through evaluate: its own summary names the temperature
     evaluate({"task": "fundamental", "method": "guided", "data": str(tmp_path / "g.h5"), "iterations": 30,
               "device": "cpu", "out_dir": str(tmp_path / "ev_g")}, track=False)
-    assert json.loads((tmp_path / "ev_g" / "summary.json").read_text())["guide_temperature"] == 0.05
+    assert json.loads((tmp_path / "ev_g" / "summary.json").read_text())["guide_temperature"] == 0.1
     with pytest.raises(RlsacError, match="guided"):
         evaluate({"task": "line", "method": "guided", "data": str(tmp_path / "g.h5")}, track=False)
 
