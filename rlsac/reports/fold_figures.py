@@ -45,7 +45,7 @@ def plot_folds_iterations(csv: str | Path, out_dir: Path) -> tuple[list[str], st
     if df.empty:
         raise RlsacError(f"{csv}: no results to plot")
     regimes = sorted(df["regime"].unique())
-    fig, axes = plt.subplots(len(regimes), 2, figsize=(11, 4 * len(regimes)), squeeze=False)
+    fig, axes = plt.subplots(len(regimes), 2, figsize=(11, 4 * len(regimes)), squeeze=False, layout="constrained")
     for r, regime in enumerate(regimes):
         d = df[df["regime"] == regime]
         for c, (col, what) in enumerate((("mAA_R", "rotation"), ("mAA_t", "translation"))):
