@@ -247,8 +247,6 @@ def test_readme_starts_with_the_two_fresh_clone_commands():
 def test_every_rlsac_command_is_documented():
     text = (ROOT / "README.md").read_text()
     for name in cli.commands:
-        if name == "folds":  # documented with the folds benchmark
-            continue
         assert f"`rlsac {name}" in text, f"rlsac {name} missing from the README's command table"
     assert "--method oracle" in text
 
