@@ -12,6 +12,7 @@ import sys
 import click
 
 from rlsac.errors import RlsacError
+from rlsac.methods import METHODS
 
 
 class _UserError(click.ClickException):
@@ -157,10 +158,10 @@ def train(task: str, tracking: bool, params_path: str, sets: tuple[str, ...], **
 
 @cli.command()
 @click.option("--task", type=click.Choice(["line", "fundamental"]), required=True)
-@click.option("--method", type=click.Choice(["ransac", "rlsac", "uniform", "oracle", "usac", "usac_accurate", "magsac",
-                                           "opencv_ransac", "ransac-lo", "uniform-lo", "rlsac-lo"]), required=True,
-              help="oracle = refinement on the true inliers (lines only); *-lo = with local optimisation "
-                   "(params.yaml evaluate.<task>.lo).")
+@click.option("--method", type=click.Choice(list(METHODS)), required=True,
+              help="oracle = refinement on the true inliers (lines only); uniform / guided = the RLSAC environment "
+                   "with uniform sets / sets drawn by SNN ratio (fundamental); prosac = OpenCV PROSAC on SNN-ordered "
+                   "matches; *-lo = with local optimisation (params.yaml evaluate.<task>.lo).")
 @click.option("--data", type=click.Path(dir_okay=False), required=True, help="Test h5.")
 @click.option("--checkpoint", type=click.Path(dir_okay=False), help="RLSAC checkpoint (methods rlsac, rlsac-lo).")
 @click.option("--iterations", type=int, help="Hypotheses per instance [default: params.yaml evaluate.<task>].")

@@ -36,17 +36,11 @@ import torch
 from rlsac.config import SEED_RANGE, check_value
 from rlsac.errors import RlsacError
 from rlsac.io import atomic_path, check_writable, write_json
+from rlsac.methods import LO_METHODS, METHODS, OPENCV_FLAG, OPENCV_METHODS  # noqa: F401 (names used by others)
 from rlsac.progress import tqdm  # no bars unless a person watches (not under CI, not redirected)
 from rlsac.tasks import TASK_NAMES, Task, get_task
 from rlsac.tracking import check_store, start_run
 
-OPENCV_METHODS = ("opencv_ransac", "usac", "usac_accurate", "magsac", "prosac")
-OPENCV_FLAG = {"opencv_ransac": "ransac", "usac": "usac", "usac_accurate": "usac_accurate", "magsac": "magsac",
-               "prosac": "prosac"}
-METHODS = ("ransac", "rlsac", "uniform", "guided", "oracle") + OPENCV_METHODS
-# not in the paper: the same samplers with local optimisation and the `lo` options' score (rlsac.lo)
-LO_METHODS = ("ransac-lo", "uniform-lo", "rlsac-lo")
-METHODS = METHODS + LO_METHODS
 DEFAULT_ITERATIONS = {"line": 150, "fundamental": 1000}
 # torch CPU threads for the evaluation loop. One thread: per-step tensors are small (one instance, or
 # chunks of 4096 points), so a second thread mostly adds synchronisation, and on a shared machine it

@@ -73,7 +73,7 @@ def protocol(params: dict[str, Any]) -> dict[str, Any]:
         raise RlsacError(f"folds.val_fraction must be in (0, 1), got {p['val_fraction']}")
     if not p["iterations"] or any(int(i) <= 0 for i in p["iterations"]):
         raise RlsacError(f"folds.iterations must be positive budgets, got {p['iterations']}")
-    from rlsac.evaluate import METHODS
+    from rlsac.methods import METHODS
 
     bad = [m for m in p["methods"] if m not in METHODS or m in ("rlsac", "rlsac-lo", "oracle")]
     if bad:

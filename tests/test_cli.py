@@ -47,6 +47,14 @@ def test_help_lists_all_subcommands():
         assert c in r.output
 
 
+def test_evaluate_offers_every_registered_method():
+    """The CLI's --method choices are rlsac.methods.METHODS, the list evaluate builds estimators for."""
+    from rlsac.methods import METHODS
+
+    choices = next(p for p in cli.commands["evaluate"].params if p.name == "method").type.choices
+    assert list(choices) == list(METHODS) and {"guided", "prosac", "uniform"} <= set(choices)
+
+
 def test_console_script_help_and_error(tmp_path):
     r = subprocess.run([sys.executable, "-c", "from rlsac.cli import main; main()", "evaluate", "--task", "line",
                         "--method", "ransac", "--data", str(tmp_path / "missing.h5"), "--no-tracking"],
