@@ -157,6 +157,12 @@ def test_features_and_protocol():
     assert torch.equal(f[:, :140, 4:], batch["features"][:, :140, 4:])
     small = FundamentalTask(use_descriptors=False)
     assert small.feature_dim == 5 and small.features(batch).shape == (2, 150, 5)
+    assert torch.equal(small.features(batch), f[..., :5])
+    blind = FundamentalTask(use_snn=False)  # the SNN ratio hidden from the policy, descriptors kept
+    fb = blind.features(batch)
+    assert blind.feature_dim == 260 and fb.shape == (2, 150, 260)
+    assert torch.equal(fb[..., :4], f[..., :4]) and torch.equal(fb[..., 4:], f[..., 5:])
+    assert FundamentalTask(use_snn=False, use_descriptors=False).features(batch).shape == (2, 150, 4)
     assert (task.name, task.sample_size, task.coord_dim, task.threshold) == ("fundamental", 8, 4, 4.0)
 
 

@@ -364,3 +364,42 @@ def test_rollout_draws_only_from_its_generator(sampling):
                              record=True)
         sets.append(torch.stack([s["minimal_set"].sort(-1).values for s in out["steps"]]))
     assert torch.equal(sets[0], sets[1]) and not torch.equal(sets[0], sets[2])
+
+
+def test_rollout_forward_one_neighbour_at_a_time_is_the_same_network(monkeypatch):
+    """The large-chunk path of the rollout's neighbour max (k gathers into scratch buffers, taken when a gather
+    exceeds GATHER_AT_ONCE floats) computes what the one-gather path does."""
+    from rlsac import policy
+
+    torch.manual_seed(0)
+    net = Actor(5, PCONF)
+    s = states(r=4)
+    mask = torch.ones(4, 12, dtype=torch.bool)
+    mask[1, 9:] = False
+    s[1, ..., :2], s[3, ..., :2] = s[0, ..., :2], s[2, ..., :2]
+    mask[1] = mask[0]
+    ref = naive_pointnet(net, s, mask, net.graph(s, mask))
+    monkeypatch.setattr(policy, "GATHER_AT_ONCE", 0)
+    prep = net.precompute(s[::2, ..., :2], mask[::2], episodes=2)
+    assert same(net.forward_memory(prep, s[..., 2:]), ref, mask)
+
+
+def test_neighbour_max_gradient_goes_to_the_winning_neighbour():
+    """_NeighbourMax's backward equals autograd through gather + amax when there are no ties, and gives a
+    tied maximum's whole gradient to the first neighbour (in neighbour order) that reaches it."""
+    from rlsac.policy import _NeighbourMax
+
+    g = torch.Generator().manual_seed(0)
+    P, C, k = 7, 3, 4
+    b = torch.randn(P, C, generator=g, requires_grad=True)
+    nbr = torch.randint(P, (k * P,), generator=g)
+    w = torch.randn(P, C, generator=g)
+    (_NeighbourMax.apply(b, nbr, k) * w).sum().backward()
+    b2 = b.detach().clone().requires_grad_(True)
+    (b2.index_select(0, nbr).view(k, P, C).amax(0) * w).sum().backward()
+    assert torch.allclose(b.grad, b2.grad)
+    # ties: rows 0 and 1 are equal; point 0's neighbours are [2, 1, 0, 1]: the gradient goes to row 1
+    t = torch.tensor([[1.0], [1.0], [0.0]], requires_grad=True)
+    order = torch.tensor([[2, 1, 0, 1], [2, 2, 2, 2], [2, 2, 2, 2]]).T.reshape(-1)  # neighbour-major
+    _NeighbourMax.apply(t, order, 4)[0].sum().backward()
+    assert t.grad[:, 0].tolist() == [0.0, 1.0, 0.0]

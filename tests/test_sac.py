@@ -353,3 +353,48 @@ def test_training_loop_callbacks_and_masked_graph():
     for mask, graph in seen:
         linked = torch.gather(mask, 1, graph.flatten(1)).view(graph.shape)
         assert linked[mask].all() and not mask.all()
+
+
+def test_update_reports_every_loss_and_chart():
+    agent = make_agent(batch_size=4)
+    s, s2, mask, graph, action, reward, done = make_batch(agent)
+    m = agent.update(s, s2, mask, graph, action, reward, done)
+    assert set(m) == {"losses/qf1", "losses/qf2", "losses/qf1_values", "losses/actor", "losses/alpha",
+                      "charts/alpha", "charts/entropy"}
+    assert m["losses/qf1"] != m["losses/qf2"]  # two critics, two losses
+
+
+@pytest.mark.parametrize("sampling, sample", [("prob", True), ("max", False)])
+def test_training_loop_samples_as_train_sampling_says(monkeypatch, sampling, sample):
+    from rlsac.env import SampleConsensusEnv
+
+    seen = []
+    real = SampleConsensusEnv.select
+
+    def spy(self, logits, sample=False, random=False):
+        if not random:  # reset draws each episode's first set at random
+            seen.append(sample)
+        return real(self, logits, sample=sample, random=random)
+
+    monkeypatch.setattr(SampleConsensusEnv, "select", spy)
+    collect(EnvConf(), 4, train_sampling=sampling)
+    assert seen and all(x is sample for x in seen)
+
+
+def test_training_loop_logs_update_metrics_every_50_steps():
+    """Steps 50 and 100 log the update's metrics with throughput: updates / transitions per second, whose
+    ratio is the number of updates over the transitions stored, whatever the elapsed time."""
+    task, data = line_data()
+    agent = make_agent(total_steps=101, num_envs=4, learning_starts=8, batch_size=8, buffer_size=1000)
+    buf = ReplayBuffer(1000, 20, task.sample_size, "cpu")
+    logged = []
+
+    def log(m, step):
+        if "charts/updates_per_s" in m:
+            logged.append((step, dict(m), int(agent.n_updates), len(buf)))
+
+    train_loop(agent, task, data, EnvConf(), 0, torch.Generator().manual_seed(0), log=log, buffer=buf)
+    assert [s for s, *_ in logged] == [50, 100]
+    for _, m, n_upd, n_trans in logged:
+        assert {"losses/qf1", "losses/qf2", "charts/alpha", "charts/transitions_per_s"} <= set(m)
+        assert m["charts/updates_per_s"] / m["charts/transitions_per_s"] == pytest.approx(n_upd / n_trans)

@@ -23,7 +23,8 @@ from rlsac.errors import RlsacError  # noqa: E402
 STYLE = {"uniform": ("tab:blue", "x"), "guided": ("tab:cyan", "<"), "prosac": ("olive", ">"),
          "ransac": ("tab:purple", "o"), "opencv_ransac": ("tab:gray", "s"),
          "usac": ("tab:orange", "^"), "usac_accurate": ("tab:brown", "v"), "magsac": ("tab:green", "D"),
-         "rlsac": ("tab:red", "*"), "rlsac-ws": ("darkred", "P"), "ransac-lo": ("violet", "h"),
+         "rlsac": ("tab:red", "*"), "rlsac-ws": ("darkred", "P"), "rlsac-1k": ("salmon", "X"),
+         "rlsac-nosnn": ("black", "1"), "ransac-lo": ("violet", "h"),
          "rlsac-lo": ("crimson", "p"), "rlsac-ws-lo": ("crimson", "p")}
 
 

@@ -32,6 +32,8 @@ NAMES = {"uniform": "Uniform (RLSAC env., uniform sets)", "ransac": "RANSAC (our
          "magsac": "OpenCV MAGSAC++", "prosac": "OpenCV PROSAC (matches ordered by SNN)",
          "guided": "Guided (RLSAC env., sets drawn by SNN; not in the paper)", "rlsac": "RLSAC (paper recipe)",
          "rlsac-ws": "RLSAC + warm start, GT selection (not in the paper)",
+         "rlsac-1k": "RLSAC (paper recipe, 1000 SAC steps)",
+         "rlsac-nosnn": "RLSAC without the SNN ratio (not in the paper)",
          "ransac-lo": "RANSAC + LO (not in the paper)", "rlsac-lo": "RLSAC + LO (not in the paper)",
          "rlsac-ws-lo": "RLSAC + warm start, GT selection + LO (not in the paper)"}
 REFERENCE = "rlsac"  # paired differences are taken against the paper-recipe RLSAC

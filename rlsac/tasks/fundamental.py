@@ -33,6 +33,8 @@ class FundamentalTask:
     # "sampson_sq" (px^2), "sampson" (px) or "symmetric" (RMS of the two point-to-epipolar-line distances, px)
     residual: str = "sampson_sq"
     use_descriptors: bool = True  # ablation: False drops the two 128-d SIFT descriptors (c = 5)
+    # False hides the SNN ratio from the policy (not in the paper): does it learn anything beyond ranking by SNN?
+    use_snn: bool = True
     refine_iterations: int = 0  # extra Sampson-reweighted least-squares passes in ``refine``
     maa_limit_deg: float = 10.0  # Table 2 reports mAA@10 deg (thresholds 1..10 deg)
 
@@ -48,20 +50,21 @@ class FundamentalTask:
 
     @property
     def feature_dim(self) -> int:
-        return 261 if self.use_descriptors else 5
+        return 4 + int(self.use_snn) + 256 * int(self.use_descriptors)
 
     # ----------------------------------------------------------------------------- network input
     def features(self, batch: dict) -> torch.Tensor:
-        """[x1, y1, x2, y2] centred on each image and divided by its max(w, h), SNN and (optionally)
-        the descriptors as stored in batch["features"][..., 4:]. Padded rows are zero. -> (B, N, c)"""
+        """[x1, y1, x2, y2] centred on each image and divided by its max(w, h), then (each optional) the SNN
+        ratio and the descriptors as stored in batch["features"][..., 4:]. Padded rows are zero. -> (B, N, c)"""
         coords, feats = batch["coords"], batch["features"]
         dev, dt = coords.device, coords.dtype
         s1 = torch.as_tensor(np.asarray(batch["size1"]), dtype=dt, device=dev)  # (B, 2) w, h
         s2 = torch.as_tensor(np.asarray(batch["size2"]), dtype=dt, device=dev)
         c1 = (coords[..., :2] - s1[:, None] / 2) / s1.amax(-1)[:, None, None]
         c2 = (coords[..., 2:4] - s2[:, None] / 2) / s2.amax(-1)[:, None, None]
-        rest = feats[..., 4:self.feature_dim].to(dt)
-        out = torch.cat([c1, c2, rest], dim=-1)
+        extra = [feats[..., 4:5]] if self.use_snn else []
+        extra += [feats[..., 5:261]] if self.use_descriptors else []
+        out = torch.cat([c1, c2, *[e.to(dt) for e in extra]], dim=-1)
         return out * batch["mask"][..., None].to(dt)
 
     def match_quality(self, batch: dict) -> torch.Tensor:
