@@ -11,8 +11,9 @@
 # Runs in a temporary copy of the repository (the working tree is never touched; MUTATION_DIR keeps
 # it elsewhere, and an existing one resumes). Prints mutmut's per-mutant results and the kill rate
 # per file; the slower tests (tests/test_learning.py, whose 400-step learning test and training runs
-# also kill mutants here, test_train.py, test_speed_equivalence.py) are left out to keep it to about
-# an hour on 2 cores. benchmarks/mutation_faults.py runs the issue's hand-made faults against all of them.
+# also kill mutants here, test_train.py, and test_speed_equivalence.py except its fast select_lazily
+# test) are left out to keep it to about an hour on 2 cores. benchmarks/mutation_faults.py runs the
+# issue's hand-made faults against all of them.
 set -euo pipefail
 main() {  # the whole script is parsed before it runs: editing this file during a run is safe
 ROOT=$(cd "$(dirname "$0")/.." && pwd)
@@ -27,7 +28,7 @@ mkdir -p "$WORK/tests"
 rm -rf "$WORK/rlsac"
 cp -r "$ROOT/rlsac" "$WORK/rlsac"
 find "$WORK/rlsac" -name __pycache__ -prune -exec rm -rf {} +
-cp "$ROOT"/tests/{conftest.py,test_sac.py,test_policy.py,test_env.py} "$WORK/tests/"
+cp "$ROOT"/tests/{conftest.py,test_sac.py,test_policy.py,test_env.py,test_speed_equivalence.py} "$WORK/tests/"
 cat > "$WORK/setup.cfg" <<'EOF'
 [mutmut]
 source_paths = rlsac
@@ -39,6 +40,7 @@ pytest_add_cli_args_test_selection =
     tests/test_sac.py
     tests/test_policy.py
     tests/test_env.py
+    tests/test_speed_equivalence.py::test_select_lazily_is_env_select
 pytest_add_cli_args =
     -p
     no:cacheprovider
