@@ -31,11 +31,12 @@ line_stages() {  # the line stages of the given outlier rates
   echo "$out"
 }
 
-fold_stages() {  # the leave-one-building-out stages of the given folds (both regimes, every model)
+FOLD_MODELS=$(awk '/^folds:/ {f = 1} f && /^  models:/ {gsub(/.*\[|\].*|,/, " "); print; exit}' params.yaml)
+fold_stages() {  # the leave-one-building-out stages of the given folds (both regimes, every folds.models model)
   local f r m out=""
   for f in "$@"; do
     for r in easy hard; do out="$out fold_data@$r-$f fold_eval@$r-$f"; done
-    for m in rlsac rlsac-ws; do out="$out fold_train@$f-$m"; done
+    for m in $FOLD_MODELS; do out="$out fold_train@$f-$m"; done
   done
   echo "$out"
 }
