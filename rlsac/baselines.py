@@ -81,14 +81,14 @@ OPENCV_F_METHODS = {"ransac": "FM_RANSAC", "usac": "USAC_DEFAULT", "usac_accurat
 
 
 def opencv_fundamental(batch: dict, method: str, iterations: int, threshold: float | None = None,
-                       confidence: float | None = None, seed: int = 0) -> dict:
+                       confidence: float | None = None, seed: int = 0, quality=None) -> dict:
     """OpenCV robust F estimation per batch row on its valid (mask) correspondences.
 
     batch: coords (B, N, 4) pixels, mask (B, N) -> hyp np (B, 3, 3) unit Frobenius norm (zero where
     invalid), valid np bool (B,), inliers np bool (B, N). method: ransac | usac | usac_accurate |
     magsac | prosac (cv2.FM_RANSAC, USAC_DEFAULT, USAC_ACCURATE, USAC_MAGSAC, USAC_PROSAC), maxIters = iterations.
-    prosac needs the correspondences ordered best first: they go in by ascending SNN ratio
-    (batch["features"][..., 4], the tutorial's side information), ties in the seeded random order.
+    prosac needs the correspondences ordered best first: ``quality`` (B, N), lower = better (the task's
+    ``match_quality``, the SNN ratio), puts them in ascending order, ties in the seeded random order.
 
     Seeding: the method presets are only reachable through the flag API, whose RNG state is fixed, so
     ``seed`` permutes the correspondences before the call (which changes every random draw) and the
@@ -114,19 +114,17 @@ def opencv_fundamental(batch: dict, method: str, iterations: int, threshold: flo
     valid = np.zeros(B, dtype=bool)
     inliers = np.zeros((B, N), dtype=bool)
     rng = np.random.default_rng(seed)
-    snn = None
-    if method == "prosac":
-        if "features" not in batch:
-            raise RlsacError("prosac orders matches by their SNN ratio: the batch has no features")
-        f = batch["features"]
-        snn = (f.detach().cpu().numpy() if isinstance(f, torch.Tensor) else np.asarray(f))[..., 4]
+    if method == "prosac" and quality is None:
+        raise RlsacError("prosac needs the matches' quality to order them (quality=task.match_quality(batch))")
+    if quality is not None:
+        quality = quality.detach().cpu().numpy() if isinstance(quality, torch.Tensor) else np.asarray(quality)
     for b in range(B):
         idx = np.flatnonzero(mask[b])
         if idx.size < 8:
             continue
         idx = idx[rng.permutation(idx.size)]
-        if snn is not None:
-            idx = idx[np.argsort(snn[b, idx], kind="stable")]
+        if method == "prosac":
+            idx = idx[np.argsort(quality[b, idx], kind="stable")]
         pts = coords[b, idx].astype(np.float64)
         try:
             F, inl = cv2.findFundamentalMat(np.ascontiguousarray(pts[:, :2]), np.ascontiguousarray(pts[:, 2:4]),

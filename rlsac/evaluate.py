@@ -129,9 +129,7 @@ def check_options(options: dict[str, Any]) -> dict[str, Any]:
         raise RlsacError(f"method '{o['method']}' is OpenCV's fundamental-matrix estimator: use --task fundamental")
     if o["method"] == "guided" and not hasattr(get_task(o["task"]), "match_quality"):
         raise RlsacError(f"method 'guided' needs per-point match quality, which task '{o['task']}' has not")
-    o["guide_temperature"] = check_value("guide_temperature", o["guide_temperature"], float)
-    if not 0 < o["guide_temperature"] < float("inf"):
-        raise RlsacError(f"guide_temperature must be positive and finite, got {o['guide_temperature']}")
+    o["guide_temperature"] = check_value("guide_temperature", o["guide_temperature"], float, "(0, inf)")
     if o["method"] == "oracle" and o["task"] != "line":
         raise RlsacError("method 'oracle' needs the true inlier mask, which only synthetic lines have: use --task line")
     if o["method"] in ("rlsac", "rlsac-lo") and not o["checkpoint"]:
@@ -203,7 +201,8 @@ def make_estimator(o: dict[str, Any], device: str, lo=None
 
         def estimate(batch, g):
             seed = int(torch.randint(0, 2**31 - 1, (1,), generator=g, device=g.device).item())
-            return opencv_fundamental(batch, OPENCV_FLAG[method], iterations, seed=seed)
+            quality = task.match_quality(batch) if method == "prosac" else None
+            return opencv_fundamental(batch, OPENCV_FLAG[method], iterations, seed=seed, quality=quality)
 
         return task, estimate, {}
     from rlsac.rollout import checkpoint_env, load_actor, rlsac_estimate

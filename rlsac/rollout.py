@@ -41,6 +41,8 @@ def rlsac_estimate(task: Task, batch: dict, actor: Actor | None, iterations: int
         raise RlsacError(f"sampling must be 'max' or 'prob', got {sampling!r}")
     if iterations < 1:
         raise RlsacError(f"iterations must be positive, got {iterations}")
+    if guide is not None and (actor is not None or guide.shape != batch["mask"].shape):
+        raise RlsacError(f"guide must be (B, N) = {tuple(batch['mask'].shape)} logits without an actor")
     conf = env_conf or EnvConf()
     psi = conf.steps_per_episode
     env = SampleConsensusEnv(task, conf, training=False)
@@ -56,8 +58,6 @@ def rlsac_estimate(task: Task, batch: dict, actor: Actor | None, iterations: int
     if record:
         steps.append(_snapshot(env))
     if guide is not None:
-        if actor is not None or guide.shape != batch["mask"].shape:
-            raise RlsacError(f"guide must be (B, N) = {tuple(batch['mask'].shape)} logits without an actor")
         guide = guide.to(feats.dtype).repeat_interleave(episodes, 0)
     for _ in range(1, psi):
         if not env.active.any():
