@@ -37,10 +37,11 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 from timing import Clocks, Split, format_split, opencv_hypotheses  # noqa: E402
 
-from rlsac.baselines import opencv_fundamental, ransac  # noqa: E402
+from rlsac.baselines import opencv_estimate, ransac  # noqa: E402
 from rlsac.evaluate import checkpoint_task_options, pair_seed, resolve_device, task_from  # noqa: E402
 from rlsac.policy import Actor, PolicyConf  # noqa: E402
 from rlsac.rollout import checkpoint_env, in_channels, load_actor, rlsac_estimate  # noqa: E402
+from rlsac.tasks.fundamental import FundamentalTask  # noqa: E402
 
 
 def _data(path: str, pairs: int):
@@ -113,7 +114,7 @@ def main() -> None:
 
     def run_magsac(p):
         batch = fundamental.to_batch(data, [p])
-        return opencv_fundamental(batch, "magsac", args.iterations, seed=0), batch
+        return opencv_estimate(FundamentalTask(), batch, "magsac", args.iterations, seed=0), batch
 
     def run_ransac(p):
         batch = fundamental.to_batch(data, [p], device=device)

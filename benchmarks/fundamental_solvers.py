@@ -14,7 +14,7 @@ import time
 import numpy as np
 import torch
 
-from rlsac.baselines import opencv_fundamental, ransac
+from rlsac.baselines import opencv_estimate, ransac
 from rlsac.sampling import gather_points, uniform_minimal_sets
 from rlsac.tasks.fundamental import FundamentalTask
 
@@ -74,7 +74,7 @@ def main() -> None:
     rows = []
     for name in ("ransac", "usac", "usac_accurate", "magsac"):
         t0 = time.perf_counter()
-        out = opencv_fundamental(batch, name, args.iterations)
+        out = opencv_estimate(FundamentalTask(), batch, name, args.iterations)
         rows.append((f"opencv {name}", time.perf_counter() - t0, task.errors(out["hyp"], out["valid"], out["inliers"],
                                                                               batch)))
     for thr in (4.0, 1.0):

@@ -10,7 +10,7 @@
 #
 #   bash experiments/repro_paper.sh                 # all lanes in parallel, then final
 #   bash experiments/repro_paper.sh lines_low       # one lane: lines_low | lines_high | fundamental |
-#                                                   #   folds_a | folds_b | final
+#                                                   #   folds_a | folds_b | essential | final
 #   bash experiments/repro_paper.sh --list          # "lane stage" per line (a foreach group = all its items)
 #
 # Logs and wall times go to logs/repro_<lane>.log. OMP_NUM_THREADS=1 keeps each stage on one core.
@@ -47,6 +47,7 @@ declare -A STAGES=(
   [fundamental]="import_scenes prepare_fundamental train_fundamental eval_fundamental eval_fundamental_rlsac ablation_data ablation_train ablation_eval"
   [folds_a]="$(fold_stages castle fountain)"
   [folds_b]="$(fold_stages herzjesu entry)"
+  [essential]="essential_train essential_eval essential_eval_rlsac"
   [final]="tables figures"
 )
 lane() {
@@ -60,7 +61,7 @@ lane() {
 }
 
 if [ "${1:-}" = "--list" ]; then
-  for name in lines_low lines_high fundamental folds_a folds_b final; do
+  for name in lines_low lines_high fundamental folds_a folds_b essential final; do
     for stage in ${STAGES[$name]}; do echo "$name $stage"; done
   done
   exit 0
@@ -71,7 +72,7 @@ if [ $# -gt 0 ]; then
 fi
 start=$(date +%s)
 pids=()
-for name in lines_low lines_high fundamental folds_a folds_b; do
+for name in lines_low lines_high fundamental folds_a folds_b essential; do
   lane "$name" & pids+=($!)
 done
 failed=0

@@ -37,6 +37,28 @@ class _Group(click.Group):
             raise _UserError(" ".join(str(e).split()) or e.__class__.__name__, getattr(e, "exit_code", 2)) from None
 
 
+class _TaskChoice(click.Choice):
+    """--task: the names registered in rlsac.tasks.TASKS, read when first needed (importing the tasks
+    imports torch, which ``rlsac --help`` should not wait for)."""
+
+    def __init__(self) -> None:
+        super().__init__([])
+
+    @property
+    def choices(self):
+        from rlsac.tasks import task_names
+
+        return task_names()
+
+    @choices.setter
+    def choices(self, value) -> None:
+        pass
+
+
+def task_option(f):
+    return click.option("--task", type=_TaskChoice(), required=True, help="A registered task (rlsac.tasks).")(f)
+
+
 def tracking_option(f):
     return click.option("--tracking/--no-tracking", default=True, show_default=True,
                         help="Log an MLflow run (MLFLOW_TRACKING_URI, default sqlite:///mlflow.db).")(f)
@@ -136,7 +158,7 @@ def prepare_cvpr2020(tracking: bool, sets: tuple[str, ...], **options) -> None:
 
 
 @cli.command()
-@click.option("--task", type=click.Choice(["line", "fundamental"]), required=True)
+@task_option
 @click.option("--data", type=click.Path(dir_okay=False), help="Training h5.")
 @click.option("--val-data", type=click.Path(dir_okay=False), help="Validation h5.")
 @click.option("--out", type=click.Path(dir_okay=False), help="Checkpoint path, e.g. checkpoints/NAME.pt.")
@@ -157,11 +179,12 @@ def train(task: str, tracking: bool, params_path: str, sets: tuple[str, ...], **
 
 
 @cli.command()
-@click.option("--task", type=click.Choice(["line", "fundamental"]), required=True)
+@task_option
 @click.option("--method", type=click.Choice(list(METHODS)), required=True,
-              help="oracle = refinement on the true inliers (lines only); uniform / guided = the RLSAC environment "
-                   "with uniform sets / sets drawn by SNN ratio (fundamental); prosac = OpenCV PROSAC on SNN-ordered "
-                   "matches; *-lo = with local optimisation (params.yaml evaluate.<task>.lo).")
+              help="oracle = refinement on the true inliers (synthetic lines); uniform / guided = the RLSAC "
+                   "environment with uniform sets / sets drawn by SNN ratio (two-view tasks); opencv_ransac, usac, "
+                   "usac_accurate, magsac, prosac = OpenCV's estimator of the task (prosac on SNN-ordered matches); "
+                   "*-lo = with local optimisation (params.yaml evaluate.<task>.lo).")
 @click.option("--data", type=click.Path(dir_okay=False), required=True, help="Test h5.")
 @click.option("--checkpoint", type=click.Path(dir_okay=False), help="RLSAC checkpoint (methods rlsac, rlsac-lo).")
 @click.option("--iterations", type=int, help="Hypotheses per instance [default: params.yaml evaluate.<task>].")
@@ -232,9 +255,10 @@ def folds(tracking: bool, **options) -> None:
 
 
 @cli.command()
-@click.option("--which", type=click.Choice(["1", "2", "3", "iterations", "folds", "all"]), default="all",
+@click.option("--which", type=click.Choice(["1", "2", "3", "iterations", "folds", "essential", "all"]), default="all",
               show_default=True, help="Table 1 (lines), 2 (fundamental), 3 (ablations), the iterations CSV, "
-                                      "Table 2 over the leave-one-building-out folds, or all.")
+                                      "Table 2 over the leave-one-building-out folds, Table E (essential matrix, "
+                                      "not in the paper), or all.")
 @click.option("--eval-root", default="reports/eval", show_default=True, type=click.Path(file_okay=False),
               help="Root of the evaluation summaries (lines/, fundamental/, ablation/).")
 @click.option("--out-dir", default="reports", show_default=True, type=click.Path(file_okay=False))

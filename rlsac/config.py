@@ -160,7 +160,7 @@ def check_range(key: str, value: Any, spec: Any) -> None:
         return
     if value is None:
         return
-    if isinstance(spec, (tuple, list, set, frozenset)):
+    if isinstance(spec, (tuple, list, set, frozenset, dict)):  # a dict: a registry's names
         if value not in spec:
             raise RlsacError(f"{key} must be one of {', '.join(map(str, spec))}, got {_show(value)}")
         return

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 import torch
 
 from rlsac.baselines import finalize
-from rlsac.lo import Best, LOConf, finish, update_best
+from rlsac.lo import Best, LOConf, finish, score_sets, update_best
 from rlsac.sampling import gather_points, set_keys, uniform_minimal_sets
 from rlsac.tasks import Task
 
@@ -148,8 +148,7 @@ class SampleConsensusEnv:
         """Apply minimal sets idx (R, m). Returns reward (R,), done (R,), active-before-step (R,)."""
         task, conf, psi = self.task, self.conf, self.conf.steps_per_episode
         act = self.active
-        hyps, valid = task.solve(gather_points(self.coords, idx))
-        res = task.residuals(hyps, self.coords)
+        hyps, valid, res, _ = score_sets(task, gather_points(self.coords, idx), self.coords, self.mask)
         res = torch.where(valid[:, None] & self.mask, res, torch.full_like(res, float("inf")))
         inl = (res <= task.threshold) & self.mask
         count = inl.sum(-1).masked_fill(~valid, 0)

@@ -3,13 +3,10 @@
 ``evaluate(options)`` is what ``rlsac evaluate`` calls. Options (all but ``task``/``method``/``data``
 have defaults):
 
-    task        "line" | "fundamental"
-    method      "ransac" (our batched RANSAC, any task), "rlsac" (needs ``checkpoint``), "uniform" (the
-                RLSAC environment with uniform minimal sets: RLSAC - uniform is the learned sampler alone), "guided"
-                (the same environment, sets drawn ~ exp(-SNN / guide_temperature): a hand-made sampler with the
-                policy's side information, fundamental only), one of OpenCV's "opencv_ransac" | "usac" |
-                "usac_accurate" | "magsac" | "prosac" (fundamental only; prosac orders matches by SNN), or
-                "oracle" (the refinement on the true inliers, lines only: the headroom of any sampler)
+    task        a registered task (rlsac.tasks.TASKS: line, fundamental, essential)
+    method      a registered method (rlsac.methods.METHODS: ransac, rlsac, uniform, guided, oracle, OpenCV's
+                opencv_ransac | usac | usac_accurate | magsac | prosac, the *-lo variants); each says which
+                task capability it needs, checked here before any work
     data        h5 file written by ``rlsac synth-lines`` / ``rlsac prepare-cvpr2020``
     checkpoint  RLSAC checkpoint (.pt), method "rlsac" only
     iterations  hypotheses per instance (default 150 for lines, 1000 for fundamental)
@@ -36,19 +33,17 @@ import torch
 from rlsac.config import SEED_RANGE, check_value
 from rlsac.errors import RlsacError
 from rlsac.io import atomic_path, check_writable, write_json
-from rlsac.methods import LO_METHODS, METHODS, OPENCV_FLAG, OPENCV_METHODS  # noqa: F401 (names used by others)
+from rlsac.methods import METHODS
 from rlsac.progress import tqdm  # no bars unless a person watches (not under CI, not redirected)
-from rlsac.tasks import TASK_NAMES, Task, get_task
+from rlsac.tasks import TASKS, Task, get_task, task_class
 from rlsac.tracking import check_store, start_run
 
-DEFAULT_ITERATIONS = {"line": 150, "fundamental": 1000}
 # torch CPU threads for the evaluation loop. One thread: per-step tensors are small (one instance, or
 # chunks of 4096 points), so a second thread mostly adds synchronisation, and on a shared machine it
 # competes with the other jobs. Measured on the 2-core machine, one vs two threads: issue #17, RLSAC
 # 2-8x and our RANSAC 3-5x faster with one; benchmarks/line_rollout.py (32 line instances per call,
 # wall time, machine loaded by other jobs): RLSAC 78 vs 677 ms/instance, our RANSAC 1.4 vs 3.9 ms.
 THREADS = 1
-EXPERIMENT = {"line": "lines", "fundamental": "fundamental"}
 DEFAULTS: dict[str, Any] = {
     "checkpoint": None,
     "iterations": None,
@@ -99,19 +94,6 @@ def checkpoint_task_options(ckpt_conf: dict[str, Any]) -> dict[str, Any]:
     return options
 
 
-def data_module(task: str):
-    """The data module (``read``/``to_batch``) of a task."""
-    if task == "line":
-        from rlsac.data import lines
-
-        return lines
-    if task == "fundamental":
-        from rlsac.data import fundamental
-
-        return fundamental
-    raise RlsacError(f"unknown task '{task}' (known: {', '.join(TASK_NAMES)})")
-
-
 def check_options(options: dict[str, Any]) -> dict[str, Any]:
     """Fill defaults and validate; -> a new, complete options dict."""
     missing = [k for k in ("task", "method", "data") if not options.get(k)]
@@ -121,29 +103,26 @@ def check_options(options: dict[str, Any]) -> dict[str, Any]:
     if unknown:
         raise RlsacError(f"unknown evaluate option(s) {unknown}")
     o = {**DEFAULTS, **{k: v for k, v in options.items() if v is not None}}
-    if o["task"] not in TASK_NAMES:
-        raise RlsacError(f"unknown task '{o['task']}' (known: {', '.join(TASK_NAMES)})")
+    task_cls = task_class(o["task"])
     if o["method"] not in METHODS:
         raise RlsacError(f"unknown method '{o['method']}' (known: {', '.join(METHODS)})")
-    if o["method"] in OPENCV_METHODS and o["task"] != "fundamental":
-        raise RlsacError(f"method '{o['method']}' is OpenCV's fundamental-matrix estimator: use --task fundamental")
-    if o["method"] == "guided" and not hasattr(get_task(o["task"]), "match_quality"):
-        raise RlsacError(f"method 'guided' needs per-point match quality, which task '{o['task']}' has not")
+    method = METHODS[o["method"]]
+    why = method.unsupported(task_cls, TASKS)
+    if why:
+        raise RlsacError(why)
     o["guide_temperature"] = check_value("guide_temperature", o["guide_temperature"], float, "(0, inf)")
-    if o["method"] == "oracle" and o["task"] != "line":
-        raise RlsacError("method 'oracle' needs the true inlier mask, which only synthetic lines have: use --task line")
-    if o["method"] in ("rlsac", "rlsac-lo") and not o["checkpoint"]:
+    if method.checkpoint and not o["checkpoint"]:
         raise RlsacError(f"method '{o['method']}' needs --checkpoint")
-    if o["method"] in LO_METHODS:  # bad LO options fail before any work
+    if method.lo:  # bad LO options fail before any work
         from rlsac.lo import conf_for_method
 
         conf_for_method(o["method"], o["lo"])
-    if o["checkpoint"] and o["method"] not in ("rlsac", "rlsac-lo"):  # it would only mislabel the run and its outputs
+    if o["checkpoint"] and not method.checkpoint:  # it would only mislabel the run and its outputs
         raise RlsacError(f"--checkpoint is used by --method rlsac only, not by {o['method']}")
     if o["checkpoint"] and not Path(o["checkpoint"]).is_file():
         raise RlsacError(f"{o['checkpoint']}: no such checkpoint file")
     if o["iterations"] is None:
-        o["iterations"] = DEFAULT_ITERATIONS[o["task"]]
+        o["iterations"] = task_cls.default_iterations
     o["threads"] = THREADS if o["threads"] is None else int(o["threads"])
     if o["threads"] < 0:
         raise RlsacError(f"threads must be >= 0, got {o['threads']}")
@@ -169,72 +148,10 @@ def run_name(o: dict[str, Any]) -> str:
     return f"{o['task']}_{o['method']}{model}_{Path(o['data']).stem}_i{o['iterations']}_s{o['seed']}"
 
 
-def make_estimator(o: dict[str, Any], device: str, lo=None
-                   ) -> tuple[Task, Callable[[dict, torch.Generator], dict], dict]:
-    """-> (task, estimate(batch, generator) -> {hyp, valid, inliers} torch tensors, extra run params).
-    ``lo``: the rlsac.lo.LOConf of a ``*-lo`` method, passed to its base method's sampler."""
-    method, iterations = o["method"], o["iterations"]
-    if method in LO_METHODS:  # the base method with LO; its budget summed into the summary (CountingEstimate)
-        from dataclasses import asdict
-
-        from rlsac.lo import CountingEstimate, conf_for_method
-
-        lo = conf_for_method(method, o["lo"])
-        task, estimate, extra = make_estimator({**o, "method": method.removesuffix("-lo")}, device, lo)
-        return task, CountingEstimate(estimate), {**extra, "lo": asdict(lo)}
-    if method == "ransac":
-        from rlsac.baselines import ransac
-
-        task = task_from(o["task"])
-        return task, lambda batch, g: ransac(task, batch, iterations, g, lo=lo), {}
-    if method == "oracle":
-        from rlsac.baselines import oracle
-
-        task = task_from(o["task"])
-        return task, lambda batch, g: oracle(task, batch), {}
-    if method in OPENCV_METHODS:
-        try:
-            from rlsac.baselines import opencv_fundamental
-        except ImportError:
-            raise RlsacError("OpenCV baselines are not implemented yet (rlsac.baselines.opencv_fundamental)") from None
-        task = task_from(o["task"])
-
-        def estimate(batch, g):
-            seed = int(torch.randint(0, 2**31 - 1, (1,), generator=g, device=g.device).item())
-            quality = task.match_quality(batch) if method == "prosac" else None
-            return opencv_fundamental(batch, OPENCV_FLAG[method], iterations, seed=seed, quality=quality)
-
-        return task, estimate, {}
-    from rlsac.rollout import checkpoint_env, load_actor, rlsac_estimate
-
-    if method == "uniform":  # the RLSAC environment with uniform minimal sets: the learned sampler's control
-        task = task_from(o["task"])
-        env = _with_lo(checkpoint_env({}, o["steps_per_episode"]), lo)
-        return task, lambda batch, g: rlsac_estimate(task, batch, None, iterations, env, generator=g), \
-            {"steps_per_episode": env.steps_per_episode}
-    if method == "guided":  # the same environment, minimal sets drawn by match quality: a hand-made guided sampler
-        task = task_from(o["task"])
-        env = _with_lo(checkpoint_env({}, o["steps_per_episode"]), lo)
-        tau = o["guide_temperature"]
-        return task, lambda batch, g: rlsac_estimate(task, batch, None, iterations, env, generator=g,
-                                                     guide=-task.match_quality(batch) / tau), \
-            {"steps_per_episode": env.steps_per_episode, "guide_temperature": tau}
-    actor, ckpt_conf = load_actor(o["checkpoint"], device)
-    ckpt_conf = dict(ckpt_conf or {})
-    task = task_from(o["task"], checkpoint_task_options(ckpt_conf))
-    env = _with_lo(checkpoint_env(ckpt_conf, o["steps_per_episode"]), lo)
-
-    def estimate(batch, g):
-        return rlsac_estimate(task, batch, actor, iterations, env, sampling=o["sampling"], generator=g)
-
-    return task, estimate, {"steps_per_episode": env.steps_per_episode}
-
-
-def _with_lo(env, lo):
-    """The environment conf with LO ``lo`` (rlsac.lo.LOConf), or unchanged when ``lo`` is None."""
-    from dataclasses import replace
-
-    return env if lo is None else replace(env, lo=lo)
+def make_estimator(o: dict[str, Any], device: str) -> tuple[Task, Callable[[dict, torch.Generator], dict], dict]:
+    """-> (task, estimate(batch, generator) -> {hyp, valid, inliers} torch tensors, extra run params),
+    built by the method's registered builder (rlsac.methods)."""
+    return METHODS[o["method"]].build(o, device, None)
 
 
 def pair_seed(seed: int, scene: str, pair: str) -> int:
@@ -285,12 +202,13 @@ def _n_instances(data: dict) -> int:
 def evaluate(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
     """Evaluate ``options['method']`` on ``options['data']``; write CSV + JSON; -> the summary dict."""
     o = check_options(options)
-    for f in ("errors.csv", "summary.json"):  # before any work: an unwritable output fails now, not at the end
+    # before any work: an unwritable output fails now, not at the end
+    for f in ("errors.csv", "summary.json", "config.json"):
         check_writable(Path(o["out_dir"]) / f)
     check_store(track)
     device = resolve_device(o["device"])
-    mod = data_module(o["task"])
-    data, attrs = mod.read(o["data"])
+    task_cls = task_class(o["task"])
+    data, attrs = task_cls.read(o["data"])
     n = _n_instances(data)
     if n == 0:
         raise RlsacError(f"{o['data']}: no instances")
@@ -298,15 +216,15 @@ def evaluate(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
     out_dir = Path(o["out_dir"])
     name = run_name(o)
     params = {**{k: v for k, v in o.items() if k != "tags"}, "device": device, "n_instances": n, **extra,
-              "data_attrs": {k: _plain(v) for k, v in attrs.items()}}
+              "task_options": _task_options(task), "data_attrs": {k: _plain(v) for k, v in attrs.items()}}
     tags = {"command": "evaluate", "method": o["method"], **{k: str(v) for k, v in (o["tags"] or {}).items()}}
-    with start_run(EXPERIMENT[o["task"]], f"evaluate {name}", params=params, tags=tags, enabled=track) as run:
+    with start_run(task_cls.experiment, f"evaluate {name}", params=params, tags=tags, enabled=track) as run:
         torch_threads = torch.get_num_threads()
         if device == "cpu" and o["threads"] > 0:
             torch.set_num_threads(o["threads"])
         try:
             t0 = time.perf_counter()
-            errors, counts = run_method(task, estimate, data, mod.to_batch, n, o["seed"], device, o["batch_size"],
+            errors, counts = run_method(task, estimate, data, task_cls.to_batch, n, o["seed"], device, o["batch_size"],
                                         desc=f"{o['method']} {Path(o['data']).name}")
             seconds = time.perf_counter() - t0
         finally:
@@ -322,6 +240,8 @@ def evaluate(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
         csv_path, json_path = out_dir / "errors.csv", out_dir / "summary.json"
         with atomic_path(csv_path) as tmp:
             frame.to_csv(tmp, index=False, float_format="%.6g")
+        # the full resolved configuration of this result (method, budget, sampling, checkpoint, task options)
+        write_json(out_dir / "config.json", {k: _plain(v) for k, v in params.items()})
         write_json(json_path, summary)
         summary["out_dir"] = str(out_dir)
         run.metrics({k: v for k, v in summary.items() if isinstance(v, (int, float)) and not isinstance(v, bool)
@@ -341,6 +261,13 @@ def format_summary(summary: dict[str, Any]) -> str:
     return (f"{summary['method']} on {summary['data']} ({summary['n_instances']} instances, "
             f"{summary['iterations']} it): {metrics}; {summary['seconds_per_instance'] * 1e3:.2f} ms/instance "
             f"-> {summary['out_dir']}")
+
+
+def _task_options(task) -> dict[str, Any]:
+    """The task's options (its dataclass fields), as resolved for this run."""
+    import dataclasses
+
+    return dataclasses.asdict(task) if dataclasses.is_dataclass(task) else {}
 
 
 def _np(v):

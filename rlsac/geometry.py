@@ -108,11 +108,30 @@ def sampson_distance(F: torch.Tensor, pts: torch.Tensor, squared: bool = False) 
     """Sampson (first-order geometric) error in pixels.
 
     F (B, 3, 3), pts (B, N, 4) -> (B, N): e^2 / (|l2_xy|^2 + |l1_xy|^2) when squared, else its sqrt.
+    F (B, S, 3, 3) (S hypotheses of each set of points) -> (B, S, N).
     Points whose gradient vanishes (e.g. F = 0, both points at the epipoles) get +inf. Computed in
     float64 (pixel coordinates ~1e3 cancel badly in float32), returned in the dtype of ``pts``.
     """
+    if F.dim() == 4:  # (B, S, 3, 3): S hypotheses per point set
+        return _sampson_many(F, pts, squared)
     e, l2, l1 = epipolar_terms(F.double(), pts.double())
     den = l2[..., :2].square().sum(-1) + l1[..., :2].square().sum(-1)
+    d2 = e.square() / den.clamp_min(1e-30)
+    d2 = torch.where(den > 1e-30, d2, torch.full_like(d2, float("inf")))
+    return (d2 if squared else d2.sqrt()).to(pts.dtype)
+
+
+def _sampson_many(F: torch.Tensor, pts: torch.Tensor, squared: bool) -> torch.Tensor:
+    """sampson_distance of F (B, S, 3, 3) on pts (B, N, 4) -> (B, S, N), as (B, 3S, 3) @ (B, 3, N)
+    products: one batched product per point set instead of S copies of the points."""
+    B, S = F.shape[:2]
+    N = pts.shape[1]
+    F, p = F.double(), pts.double()
+    h1, h2 = _to_h(p[..., :2]).transpose(1, 2), _to_h(p[..., 2:]).transpose(1, 2)  # (B, 3, N)
+    l2 = (F.reshape(B, 3 * S, 3) @ h1).view(B, S, 3, N)  # F x1
+    l1 = (F.transpose(-1, -2).reshape(B, 3 * S, 3) @ h2).view(B, S, 3, N)  # F^T x2
+    e = (l2 * h2[:, None]).sum(2)
+    den = l2[:, :, :2].square().sum(2) + l1[:, :, :2].square().sum(2)
     d2 = e.square() / den.clamp_min(1e-30)
     d2 = torch.where(den > 1e-30, d2, torch.full_like(d2, float("inf")))
     return (d2 if squared else d2.sqrt()).to(pts.dtype)
@@ -152,6 +171,35 @@ def fundamental_from_pose(K1: torch.Tensor, K2: torch.Tensor, R: torch.Tensor, t
     return F / F.flatten(1).norm(dim=-1).clamp_min(EPS)[:, None, None]
 
 
-def essential_from_fundamental(F: torch.Tensor, K1: torch.Tensor, K2: torch.Tensor) -> torch.Tensor:
-    """E = K2^T F K1. (B, 3, 3) x3 -> (B, 3, 3)."""
-    return K2.transpose(1, 2) @ F @ K1
+def project_to_essential(E: torch.Tensor) -> torch.Tensor:
+    """Nearest essential matrix (singular values (1, 1, 0)), unit Frobenius norm up to sqrt(2).
+
+    E (B, 3, 3) -> (B, 3, 3) U diag(1, 1, 0) V^T / sqrt(2)."""
+    if E.dim() != 3 or E.shape[-2:] != (3, 3):
+        raise ValueError(f"project_to_essential: E must be (B, 3, 3), got {tuple(E.shape)}")
+    U, _, Vh = torch.linalg.svd(E)
+    d = torch.tensor([1.0, 1.0, 0.0], dtype=E.dtype, device=E.device) / 2**0.5
+    return (U * d) @ Vh
+
+
+def five_point(pts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Nister's five-point solver (kornia's batched implementation, in float64).
+
+    pts (B, 5, 4) calibrated correspondences [x1, y1, x2, y2] (K^-1 applied) -> E (B, 10, 3, 3) with
+    x2^T E x1 = 0, unit Frobenius norm, zero where a candidate does not exist; valid (B, 10) bool
+    (finite, non-zero candidates of a non-degenerate sample).
+    """
+    if pts.dim() != 3 or pts.shape[1:] != (5, 4):
+        raise ValueError(f"five_point: pts must be (B, 5, 4), got {tuple(pts.shape)}")
+    from kornia.geometry.epipolar.essential import run_5point
+
+    p = pts.double()
+    if p.shape[0] == 0:
+        return pts.new_zeros(0, 10, 3, 3), torch.zeros(0, 10, dtype=torch.bool, device=pts.device)
+    finite = torch.isfinite(p).flatten(1).all(-1)
+    p = torch.where(finite[:, None, None], p, torch.zeros_like(p))
+    E = run_5point(p[..., :2], p[..., 2:4]).reshape(-1, 10, 3, 3)
+    norm = E.flatten(2).norm(dim=-1)
+    valid = torch.isfinite(E).flatten(2).all(-1) & (norm > EPS) & finite[:, None]
+    E = torch.where(valid[..., None, None], E / norm.clamp_min(EPS)[..., None, None], torch.zeros_like(E))
+    return E.to(pts.dtype), valid

@@ -39,7 +39,6 @@ from rlsac.tasks import Task
 SCORES = ("count", "msac", "magsac")
 # sqrt of the 0.99 quantile of chi^2 with `dof` degrees of freedom: MAGSAC++'s k (OpenCV uses 3.64 for dof 4)
 CHI_QUANTILE_99 = {2: 3.0349, 3: 3.3682, 4: 3.6437}
-DEFAULT_DOF = {"line": 2, "fundamental": 4}
 
 
 @dataclass
@@ -96,7 +95,7 @@ def _squared_residuals(task: Task, res: torch.Tensor) -> tuple[torch.Tensor, flo
 
 def _magsac_constants(task: Task, conf: LOConf, t2: float) -> tuple[float, float, float, float]:
     """-> (a0, a1, 2 sigma_max^2, x_k) for the MAGSAC++ loss in x = r^2 / (2 sigma_max^2)."""
-    dof = conf.dof if conf.dof is not None else DEFAULT_DOF.get(task.name, 2)
+    dof = conf.dof if conf.dof is not None else type(task).residual_dof
     k = CHI_QUANTILE_99[dof]
     two_sigma2 = 2.0 * conf.sigma_scale ** 2 * t2
     return (dof - 1) / 2.0, (dof + 1) / 2.0, two_sigma2, k * k / 2.0
@@ -311,6 +310,29 @@ def update_best(task: Task, conf: LOConf | None, coords: torch.Tensor, mask: tor
     # rows that never had a competing candidate keep count -1 (no hypothesis yet)
     cnt = torch.where(sc > -math.inf, cnt, best.count)
     return Best(hyp, cnt, sc, calls, fits, seconds, torch.maximum(raw, smax))
+
+
+@torch.no_grad()
+def score_sets(task: Task, pts: torch.Tensor, coords: torch.Tensor, mask: torch.Tensor
+               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The one hypothesis-scoring step of every sampler (RANSAC, the RLSAC environment, the figures):
+    solve each minimal set, score it by its inlier count, and of a multi-solution solver's S candidates
+    (``task.solutions`` > 1) keep the one with the most inliers.
+
+    pts (R, m, d) minimal sets, coords (R, N, d) and mask (R, N) of each set's instance ->
+    hyps (R, *H), valid (R,), residuals (R, N) (as ``task.residuals``, not masked), count (R,) inliers
+    among the valid points (callers mask invalid rows).
+    """
+    hyps, valid = task.solve(pts)
+    S = getattr(task, "solutions", 1)
+    if S == 1:
+        res = task.residuals(hyps, coords)
+        return hyps, valid, res, ((res <= task.threshold) & mask).sum(-1)
+    res = task.residuals(hyps, coords)  # (R, S, N): multi-solution tasks take (R, S, *H)
+    count = ((res <= task.threshold) & mask[:, None]).sum(-1).masked_fill(~valid, -1)  # (R, S)
+    pick = count.argmax(-1)
+    rows = torch.arange(mask.shape[0], device=pick.device)
+    return hyps[rows, pick], valid[rows, pick], res[rows, pick], count[rows, pick].clamp_min(0)
 
 
 def inlier_count(task: Task, hyp: torch.Tensor, coords: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:

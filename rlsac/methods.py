@@ -1,13 +1,160 @@
-"""The names of the evaluation methods, in one place (no heavy imports: the CLI reads them for --help).
+"""The evaluation methods, each registered once with how to build its estimator (no heavy imports at
+module level: the CLI reads the names for --help; the builders import what they need).
 
-How each is built lives in ``rlsac.evaluate.make_estimator``.
+A method's builder takes the resolved evaluate options ``o``, the device and an optional LO conf and
+returns (task, estimate(batch, generator) -> {hyp, valid, inliers}, extra run params). ``needs`` names
+the task capability it requires (rlsac.tasks.Task: an optional method or a true class attribute), so
+evaluate rejects an unsupported (task, method) pair before any work, whatever the task.
 """
 
 from __future__ import annotations
 
-OPENCV_METHODS = ("opencv_ransac", "usac", "usac_accurate", "magsac", "prosac")  # fundamental only
-OPENCV_FLAG = {"opencv_ransac": "ransac", "usac": "usac", "usac_accurate": "usac_accurate", "magsac": "magsac",
-               "prosac": "prosac"}  # -> rlsac.baselines.OPENCV_F_METHODS
-# not in the paper: the same samplers with local optimisation and the `lo` options' score (rlsac.lo)
-LO_METHODS = ("ransac-lo", "uniform-lo", "rlsac-lo")
-METHODS = ("ransac", "rlsac", "uniform", "guided", "oracle") + OPENCV_METHODS + LO_METHODS
+from dataclasses import dataclass
+from typing import Any, Callable
+
+
+@dataclass(frozen=True)
+class Method:
+    name: str
+    build: Callable[[dict, str, Any], tuple]
+    needs: str | None = None  # task capability: "match_quality", "opencv_fit", "true_inlier_data"
+    checkpoint: bool = False  # needs --checkpoint
+    lo: bool = False  # the *-lo variant of a base method (rlsac.lo), not in the paper
+
+    def unsupported(self, task_cls: type, tasks: dict[str, type]) -> str | None:
+        """Why this method cannot run on ``task_cls`` (None when it can); ``tasks``: the registry."""
+        if self.needs and not getattr(task_cls, self.needs, False):
+            have = [n for n, c in tasks.items() if getattr(c, self.needs, False)]
+            return (f"method '{self.name}' needs {CAPABILITIES[self.needs]}, which task '{task_cls.name}' has not "
+                    f"(tasks with it: {', '.join(have) or 'none'})")
+        return None
+
+
+CAPABILITIES = {"match_quality": "per-point match quality (the SNN ratio)", "opencv_fit": "an OpenCV estimator",
+                "true_inlier_data": "the true inlier mask in its data (synthetic data)"}
+METHODS: dict[str, Method] = {}
+
+
+def register_method(name: str, needs: str | None = None, checkpoint: bool = False, lo: bool = False):
+    """Decorator: register ``build`` as method ``name`` (unique)."""
+    def deco(build):
+        if name in METHODS:
+            raise ValueError(f"method '{name}' is registered twice")
+        METHODS[name] = Method(name, build, needs, checkpoint, lo)
+        return build
+    return deco
+
+
+# ------------------------------------------------------------------------------ our samplers
+@register_method("ransac")
+def _ransac(o, device, lo=None):
+    """Our batched RANSAC (uniform sets, inlier count, refinement), any task."""
+    from rlsac.baselines import ransac
+    from rlsac.evaluate import task_from
+
+    task = task_from(o["task"])
+    return task, lambda batch, g: ransac(task, batch, o["iterations"], g, lo=lo), {}
+
+
+@register_method("oracle", needs="true_inlier_data")
+def _oracle(o, device, lo=None):
+    """The refinement on the true inliers: the headroom of any sampler (synthetic data only)."""
+    from rlsac.baselines import oracle
+    from rlsac.evaluate import task_from
+
+    task = task_from(o["task"])
+    return task, lambda batch, g: oracle(task, batch), {}
+
+
+def _environment(o, lo, guide=None):
+    """The RLSAC environment without a policy: uniform sets, or sets drawn ~ exp(guide(task, batch))."""
+    from rlsac.evaluate import task_from
+    from rlsac.rollout import checkpoint_env, rlsac_estimate, with_lo
+
+    task = task_from(o["task"])
+    env = with_lo(checkpoint_env({}, o["steps_per_episode"]), lo)
+
+    def estimate(batch, g):
+        return rlsac_estimate(task, batch, None, o["iterations"], env, generator=g,
+                              guide=None if guide is None else guide(task, batch))
+    return task, estimate, {"steps_per_episode": env.steps_per_episode}
+
+
+@register_method("uniform")
+def _uniform(o, device, lo=None):
+    """The RLSAC environment with uniform minimal sets: RLSAC - uniform is the learned sampler alone."""
+    return _environment(o, lo)
+
+
+@register_method("guided", needs="match_quality")
+def _guided(o, device, lo=None):
+    """The same environment, sets drawn ~ exp(-quality / guide_temperature): a hand-made guided sampler
+    with the policy's side information (not in the paper)."""
+    tau = o["guide_temperature"]
+    task, estimate, extra = _environment(o, lo, lambda task, batch: -task.match_quality(batch) / tau)
+    return task, estimate, {**extra, "guide_temperature": tau}
+
+
+@register_method("rlsac", checkpoint=True)
+def _rlsac(o, device, lo=None):
+    """The learned sampler of ``o['checkpoint']`` in its own environment."""
+    from rlsac.evaluate import checkpoint_task_options, task_from
+    from rlsac.rollout import checkpoint_env, load_actor, rlsac_estimate, with_lo
+
+    actor, ckpt_conf = load_actor(o["checkpoint"], device)
+    ckpt_conf = dict(ckpt_conf or {})
+    task = task_from(o["task"], checkpoint_task_options(ckpt_conf))
+    env = with_lo(checkpoint_env(ckpt_conf, o["steps_per_episode"]), lo)
+
+    def estimate(batch, g):
+        return rlsac_estimate(task, batch, actor, o["iterations"], env, sampling=o["sampling"], generator=g)
+
+    return task, estimate, {"steps_per_episode": env.steps_per_episode}
+
+
+# ------------------------------------------------------------------------------ OpenCV
+def _opencv(flag: str):
+    """OpenCV's robust estimator of the task (its ``opencv_fit``) with method preset ``flag``."""
+    def build(o, device, lo=None):
+        import torch
+
+        from rlsac.baselines import opencv_estimate
+        from rlsac.evaluate import task_from
+
+        task = task_from(o["task"])
+
+        def estimate(batch, g):
+            seed = int(torch.randint(0, 2**31 - 1, (1,), generator=g, device=g.device).item())
+            quality = task.match_quality(batch) if flag == "prosac" else None
+            return opencv_estimate(task, batch, flag, o["iterations"], seed=seed, quality=quality)
+
+        return task, estimate, {}
+    return build
+
+
+OPENCV_METHODS = {"opencv_ransac": "ransac", "usac": "usac", "usac_accurate": "usac_accurate", "magsac": "magsac",
+                  "prosac": "prosac"}  # method name -> rlsac.baselines.OPENCV_FLAGS (prosac orders by match_quality)
+for _name, _flag in OPENCV_METHODS.items():
+    register_method(_name, needs="opencv_fit")(_opencv(_flag))
+
+
+# ------------------------------------------------------------------------------ local optimisation
+def _with_lo(base: str):
+    """The base method with local optimisation (rlsac.lo, the ``lo`` options); its LO budget is summed
+    into the summary (CountingEstimate)."""
+    def build(o, device, lo=None):
+        from dataclasses import asdict
+
+        from rlsac.lo import CountingEstimate, conf_for_method
+
+        lo = conf_for_method(f"{base}-lo", o["lo"])
+        task, estimate, extra = METHODS[base].build({**o, "method": base}, device, lo)
+        return task, CountingEstimate(estimate), {**extra, "lo": asdict(lo)}
+    return build
+
+
+for _base in ("ransac", "uniform", "rlsac"):  # not in the paper
+    register_method(f"{_base}-lo", needs=METHODS[_base].needs, checkpoint=METHODS[_base].checkpoint,
+                    lo=True)(_with_lo(_base))
+
+LO_METHODS = tuple(m for m, spec in METHODS.items() if spec.lo)

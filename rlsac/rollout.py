@@ -190,3 +190,10 @@ def checkpoint_env(ckpt_conf: dict, steps_per_episode: int | None = None) -> Env
 
 def in_channels(task: Task) -> int:
     return task.feature_dim + MEMORY_DIM
+
+
+def with_lo(env: EnvConf, lo) -> EnvConf:
+    """The environment conf with LO ``lo`` (rlsac.lo.LOConf), or unchanged when ``lo`` is None."""
+    from dataclasses import replace
+
+    return env if lo is None else replace(env, lo=lo)

@@ -31,7 +31,7 @@ from rlsac.io import atomic_path, check_writable, clean_stale_temps, load_torch
 from rlsac.policy import PolicyConf
 from rlsac.rollout import in_channels, rlsac_estimate
 from rlsac.sac import ReplayBuffer, SACAgent, SACConf, seed_everything, train_loop
-from rlsac.tasks import get_task
+from rlsac.tasks import TASKS, get_task, task_class
 from rlsac.tracking import check_store, start_run
 
 SELECTIONS = ("inlier_ratio", "val_mAA", "last")
@@ -63,7 +63,7 @@ class TrainConf:
     sac: SACConf = field(default_factory=SACConf)
 
     # checked by rlsac.config.build for every source (params.yaml, --set); nested sections have their own
-    ranges = {"task": ("line", "fundamental"), "device": ("auto", "cpu", "cuda"), "seed": "[0, 4294967295]",
+    ranges = {"task": TASKS, "device": ("auto", "cpu", "cuda"), "seed": "[0, 4294967295]",
               "threads": "[0, inf)", "val_instances": "[1, inf)", "val_iterations": "[1, inf)",
               "val_every": "[1, inf)", "ckpt_every": "[1, inf)", "selection": SELECTIONS}
 
@@ -256,7 +256,7 @@ class _StopOnSignal:
 
 
 def task_experiment(task: str) -> str:
-    return {"line": "lines"}.get(task, task)
+    return task_class(task).experiment
 
 
 def to_numpy(batch: dict) -> dict:

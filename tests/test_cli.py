@@ -160,8 +160,10 @@ def test_evaluate_bad_data(workdir, make, fragment):
 
 
 @pytest.mark.parametrize("args,fragment", [
-    (["--method", "usac"], "use --task fundamental"),
-    (["--task", "fundamental", "--method", "oracle"], "only synthetic lines"),
+    (["--method", "usac"], "needs an OpenCV estimator, which task 'line' has not "
+                           "(tasks with it: fundamental, essential)"),
+    (["--task", "fundamental", "--method", "oracle"], "needs the true inlier mask in its data (synthetic data), which "
+                                                      "task 'fundamental' has not (tasks with it: line)"),
     (["--method", "rlsac"], "needs --checkpoint"),
     (["--method", "rlsac", "--checkpoint", "nope.pt"], "no such checkpoint"),
     (["--method", "ransac", "--iterations", "0"], "iterations must be positive"),
@@ -198,6 +200,7 @@ def test_evaluate_rlsac_uses_the_checkpoint_task_options(workdir, monkeypatch):
 
     fake = types.ModuleType("rlsac.rollout")
     fake.load_actor, fake.rlsac_estimate, fake.checkpoint_env = load_actor, rlsac_estimate, rollout.checkpoint_env
+    fake.with_lo = rollout.with_lo
     monkeypatch.setitem(sys.modules, "rlsac.rollout", fake)
     synth("d.h5", 4)
     (workdir / "ck.pt").write_bytes(b"x")

@@ -179,7 +179,7 @@ def test_guided_control_draws_by_match_quality_in_the_same_environment(imported,
 def test_prosac_receives_the_matches_best_first(imported, tmp_path, monkeypatch):
     import cv2
 
-    from rlsac.baselines import opencv_fundamental
+    from rlsac.baselines import opencv_estimate
     from rlsac.tasks.fundamental import FundamentalTask
 
     d = _prep(imported, tmp_path, "p", scenes="fountain-P11", pool=400)
@@ -192,7 +192,8 @@ def test_prosac_receives_the_matches_best_first(imported, tmp_path, monkeypatch)
         return real(p1, p2, *args)
 
     monkeypatch.setattr(cv2, "findFundamentalMat", spy)
-    out = opencv_fundamental(batch, "prosac", 100, seed=3, quality=FundamentalTask().match_quality(batch))
+    task = FundamentalTask()
+    out = opencv_estimate(task, batch, "prosac", 100, seed=3, quality=task.match_quality(batch))
     valid = batch["mask"][0].numpy()
     coords, snn = batch["coords"][0].numpy()[valid], batch["features"][0, :, 4].numpy()[valid]
     np.testing.assert_array_equal(seen["p1"], coords[np.argsort(snn, kind="stable"), :2])

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from rlsac import geometry
-from rlsac.baselines import opencv_fundamental, ransac
+from rlsac.baselines import opencv_estimate, ransac
 from rlsac.errors import RlsacError
 from rlsac.tasks import get_task
 from rlsac.tasks.fundamental import FundamentalTask
@@ -214,14 +214,14 @@ def noisy_batch():
 
 @pytest.mark.parametrize("method", ["ransac", "usac", "usac_accurate", "magsac"])
 def test_opencv_fundamental_recovers_pose(noisy_batch, method):
-    out = opencv_fundamental(noisy_batch, method, 1000, threshold=1.5)
+    out = opencv_estimate(FundamentalTask(), noisy_batch, method, 1000, threshold=1.5)
     assert out["hyp"].shape == (6, 3, 3) and out["valid"].all() and out["inliers"].shape == (6, 150)
     assert not out["inliers"][:, 135:].any()  # padding never an inlier
     gt = noisy_batch["gt_inliers"]
     assert (out["inliers"] & gt).sum() / gt.sum() > 0.8 and (out["inliers"] & ~gt).sum() / (~gt).sum() < 0.1
     e = FundamentalTask().errors(out["hyp"], out["valid"], out["inliers"], noisy_batch)
     assert e["err_R"].max() < 2.0 and np.median(e["err_t"]) < 5.0 and e["err_t"].max() < 15.0
-    again = opencv_fundamental(noisy_batch, method, 1000, threshold=1.5)
+    again = opencv_estimate(FundamentalTask(), noisy_batch, method, 1000, threshold=1.5)
     assert np.array_equal(again["inliers"], out["inliers"])  # same seed, same result
 
 
@@ -229,11 +229,11 @@ def test_opencv_fundamental_failures():
     batch = make_batch(B=3, seed=1)
     batch["mask"][0, 7:] = False  # 7 correspondences: cannot estimate
     batch["coords"][1] = torch.tensor([100.0, 200.0, 300.0, 400.0])  # all identical
-    out = opencv_fundamental(batch, "usac", 100)
+    out = opencv_estimate(FundamentalTask(), batch, "usac", 100)
     assert out["valid"].tolist() == [False, False, True]
     assert not out["inliers"][:2].any() and np.isfinite(out["hyp"]).all()
     with pytest.raises(RlsacError):
-        opencv_fundamental(batch, "lmeds", 100)
+        opencv_estimate(FundamentalTask(), batch, "lmeds", 100)
 
 
 def test_generic_ransac_recovers_pose(noisy_batch):

@@ -4,26 +4,15 @@ from __future__ import annotations
 
 import torch
 
-from rlsac.errors import RlsacError
-
 
 def load(task: str, path, device: str | torch.device = "cpu", idx=slice(None)) -> dict:
-    """Read a line or prepared two-view file into the batch dict the task, env and baselines use."""
-    if task == "line":
-        from rlsac.data import lines
+    """Read a data file of task ``task`` (its registered reader) into the batch dict the task, env and
+    baselines use."""
+    from rlsac.tasks import task_class
 
-        arrays, _ = lines.read(path)
-        return lines.to_batch(arrays, idx, device)
-    if task == "fundamental":
-        from rlsac.data import fundamental
-
-        arrays, _ = fundamental.read(path)
-        return fundamental.to_batch(arrays, idx, device)
-    raise RlsacError(f"unknown task '{task}' (known: line, fundamental)")
-
-
-def batch_size(batch: dict) -> int:
-    return int(batch["coords"].shape[0])
+    cls = task_class(task)
+    arrays, _ = cls.read(path)
+    return cls.to_batch(arrays, idx, device)
 
 
 def slice_batch(batch: dict, idx) -> dict:

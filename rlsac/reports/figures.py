@@ -161,14 +161,15 @@ def _episode(task, batch, actor, env, gen: torch.Generator) -> list[dict]:
         from rlsac.rollout import rlsac_estimate
 
         return rlsac_estimate(task, batch, actor, iterations=steps, env_conf=env, generator=gen, record=True)["steps"]
+    from rlsac.lo import score_sets
     from rlsac.sampling import gather_points, uniform_minimal_sets
 
     coords, mask = batch["coords"], batch["mask"]
     idx = uniform_minimal_sets(mask, task.sample_size, steps, gen)  # (B, steps, m)
     out = []
     for t in range(steps):
-        hyps, valid = task.solve(gather_points(coords, idx[:, t]))
-        inl = (task.residuals(hyps, coords) <= task.threshold) & mask & valid[:, None]
+        hyps, valid, res, _ = score_sets(task, gather_points(coords, idx[:, t]), coords, mask)
+        inl = (res <= task.threshold) & mask & valid[:, None]
         out.append({"minimal_set": idx[:, t], "hyp": hyps, "inliers": inl, "count": inl.sum(-1)})
     return out
 
@@ -464,13 +465,14 @@ def plot_fundamental_pair(o: dict[str, Any], out_dir: Path) -> tuple[list[str], 
         who = f"RLSAC ({Path(o['fundamental_checkpoint']).name}), {iters} iterations"
     else:
         from rlsac.baselines import finalize
+        from rlsac.lo import score_sets
         from rlsac.sampling import gather_points, uniform_minimal_sets
 
         # plain RANSAC written out, so that the minimal set shown is the one behind the estimate
         idx = uniform_minimal_sets(batch["mask"], task.sample_size, iters, gen)[0]  # (iters, m)
-        hyps, valid = task.solve(gather_points(batch["coords"], idx[None])[0])
-        res = task.residuals(hyps, batch["coords"].expand(len(hyps), -1, -1))
-        cnt = ((res <= task.threshold) & batch["mask"]).sum(-1).masked_fill(~valid, -1)
+        hyps, valid, _, cnt = score_sets(task, gather_points(batch["coords"], idx[None])[0],
+                                         batch["coords"].expand(len(idx), -1, -1), batch["mask"].expand(len(idx), -1))
+        cnt = cnt.masked_fill(~valid, -1)
         best = int(cnt.argmax())
         minimal = idx[best].numpy()
         out = finalize(task, batch["coords"], batch["mask"], hyps[best: best + 1],

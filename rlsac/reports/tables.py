@@ -406,7 +406,7 @@ def metrics(eval_root: str | Path = "reports/eval", out_dir: str | Path = "repor
 
 # ------------------------------------------------------------------------------------------- command
 
-WHICH = ("1", "2", "3", "iterations", "folds", "all")
+WHICH = ("1", "2", "3", "iterations", "folds", "essential", "all")
 
 
 def build(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
@@ -435,13 +435,15 @@ def build(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
     with start_run("reports", f"table {which}", params={"which": which, "eval_root": str(eval_root),
                                                         "out_dir": str(out_dir)},
                    tags={"command": "table"}, enabled=track) as run:
-        for key in ("1", "2", "3", "iterations", "folds"):
+        for key in ("1", "2", "3", "iterations", "folds", "essential"):
             if which not in (key, "all"):
                 continue
-            if key == "folds":  # Table 2 over the leave-one-building-out folds (rlsac.reports.folds)
+            if key in ("folds", "essential"):  # Tables 2 (folds) and E on the leave-one-building-out folds
                 from rlsac.reports import folds
 
-                got = folds.build(eval_root, out_dir, Path(out_dir) / "folds" / "data")
+                extra = {} if key == "folds" else {"sub": "essential", "stem": "tableE_essential",
+                                                   "iterations_stem": None, "head": folds.TABLE_E_HEAD}
+                got = folds.build(eval_root, out_dir, Path(out_dir) / "folds" / "data", **extra)
                 files += got["files"]
                 missing += got["missing"]
                 continue

@@ -1,32 +1,54 @@
-"""Estimation problems behind one protocol. A new task is one new module registered in TASKS.
+"""Estimation problems behind one protocol, in one registry. A new task is one new module here that
+decorates its class with ``@register_task`` (and is imported at the bottom of this file); evaluate,
+train, the CLI and the tables find it through ``TASKS``.
 
-Shapes: B batch rows, N points, m minimal size, d coordinate channels the solver uses, and
-H the hypothesis shape (3 for a line, (3, 3) for a fundamental matrix).
+Shapes: B batch rows, N points, m minimal size, d coordinate channels the solver uses, S solutions
+per minimal set (1 for a line or the 8-point F, up to 10 for the five-point E) and H the hypothesis
+shape (3 for a line, (3, 3) for a fundamental or essential matrix).
 """
 
 from __future__ import annotations
 
-from typing import Protocol
+from typing import ClassVar, Protocol
 
 import numpy as np
 import torch
 
+from rlsac.errors import RlsacError
+
 
 class Task(Protocol):
-    name: str
+    # registry data, class attributes of the task class
+    name: ClassVar[str]
+    experiment: ClassVar[str]  # MLflow experiment of its runs
+    default_iterations: ClassVar[int]  # hypotheses per instance when --iterations is not given
+    residual_dof: ClassVar[int]  # degrees of freedom of a residual (MAGSAC++'s marginalisation, rlsac.lo)
+    true_inlier_data: ClassVar[bool]  # its data files carry the true inlier mask (method oracle)
+
     sample_size: int  # m, points in a minimal set
     coord_dim: int  # d, channels of ``coords`` the solver needs
     threshold: float  # inlier threshold on ``residuals``
     feature_dim: int  # c, channels of ``features(batch)``, the network's data features
+    solutions: int  # S, hypotheses per minimal set (``solve`` returns (B, S, *H) when S > 1)
+
+    @staticmethod
+    def read(path) -> tuple[dict[str, np.ndarray], dict]:
+        """Read and validate a data file -> (arrays, attrs); RlsacError on a bad file."""
+
+    @staticmethod
+    def to_batch(arrays: dict, idx=slice(None), device="cpu") -> dict:
+        """Rows ``idx`` of ``read``'s arrays -> the batch dict (coords (B, N, d), mask (B, N), ...)."""
 
     def features(self, batch: dict) -> torch.Tensor:
         """Normalised per-point data features for the policy network. -> (B, N, c)"""
 
     def solve(self, pts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Minimal solver. pts (B, m, d) -> hypotheses (B, *H), valid (B,) bool (False = degenerate)."""
+        """Minimal solver. pts (B, m, d) -> hypotheses (B, *H), valid (B,) bool (False = degenerate);
+        with S > 1 solutions: (B, S, *H), (B, S). Scored by ``rlsac.lo.score_sets`` only."""
 
     def residuals(self, hyps: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
-        """hyps (B, *H), coords (B, N, d) -> residuals (B, N), compared against ``threshold``."""
+        """hyps (B, *H), coords (B, N, d) -> residuals (B, N), compared against ``threshold``; a
+        multi-solution task (S > 1) also takes hyps (B, S, *H) -> (B, S, N)."""
 
     def true_inliers(self, batch: dict) -> torch.Tensor:
         """Ground-truth inlier labels (B, N) bool, for the supervised warm start (not in the paper)."""
@@ -40,19 +62,43 @@ class Task(Protocol):
     def summarize(self, errors: dict[str, np.ndarray]) -> dict[str, float]:
         """Dataset-level metrics (mAA, medians) from the concatenated per-row errors."""
 
+    # Optional capabilities, looked up by the methods that need them (rlsac.methods):
+    #   match_quality(batch) -> (B, N), lower = better match: methods guided and prosac
+    #   opencv_fit(pts (n, d) float64 numpy, flag, threshold, confidence, iterations) -> (hyp, inliers (n,)) or
+    #       None, with opencv_threshold: OpenCV's robust estimator of the task (opencv_ransac, usac, magsac, ...)
+
+
+TASKS: dict[str, type] = {}
+
+
+def register_task(cls: type) -> type:
+    """Class decorator: add a task class to ``TASKS`` under its ``name`` (unique)."""
+    name = getattr(cls, "name", None)
+    if not isinstance(name, str) or not name:
+        raise TypeError(f"{cls.__name__} needs a class attribute 'name'")
+    if name in TASKS and TASKS[name] is not cls:
+        raise ValueError(f"task '{name}' is registered twice ({TASKS[name].__name__}, {cls.__name__})")
+    for attr in ("experiment", "default_iterations", "residual_dof", "read", "to_batch"):
+        if not hasattr(cls, attr):
+            raise TypeError(f"task class {cls.__name__} lacks '{attr}'")
+    TASKS[name] = cls
+    return cls
+
+
+def task_class(name: str) -> type:
+    """The registered class of task ``name``; RlsacError for an unknown name."""
+    if name not in TASKS:
+        raise RlsacError(f"unknown task '{name}' (known: {', '.join(TASKS)})")
+    return TASKS[name]
+
 
 def get_task(name: str, **options) -> Task:
-    from rlsac.errors import RlsacError
-
-    if name == "line":
-        from rlsac.tasks.line import LineTask
-
-        return LineTask(**options)
-    if name == "fundamental":
-        from rlsac.tasks.fundamental import FundamentalTask
-
-        return FundamentalTask(**options)
-    raise RlsacError(f"unknown task '{name}' (known: line, fundamental)")
+    """Task ``name`` built with ``options`` (its dataclass fields: threshold, residual, ...)."""
+    return task_class(name)(**options)
 
 
-TASK_NAMES = ("line", "fundamental")
+def task_names() -> tuple[str, ...]:
+    return tuple(TASKS)
+
+
+from rlsac.tasks import line, fundamental, essential  # noqa: E402,F401,I001  (each registers itself; this order in --help)

@@ -10,13 +10,16 @@ score mAA@10deg of max(err_R, err_t) over the thresholds 1, 2, ..., 10 deg.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import cv2
 import numpy as np
 import torch
 
 from rlsac import geometry, metrics
+from rlsac.data import fundamental as fundamental_data
 from rlsac.errors import RlsacError
+from rlsac.tasks import register_task
 
 RESIDUALS = ("sampson", "sampson_sq", "symmetric")
 MAX_ERR_R = 180.0  # a failed estimate counts as the maximal error (tutorial: pi and pi/2 rad)
@@ -24,8 +27,16 @@ MAX_ERR_T = 90.0
 MIN_POSE_INLIERS = 5  # the tutorial's eval_essential_matrix fails below 5 inliers
 
 
+@register_task
 @dataclass
 class FundamentalTask:
+    experiment: ClassVar[str] = "fundamental"
+    default_iterations: ClassVar[int] = 1000  # Table 2's budget
+    residual_dof: ClassVar[int] = 4  # as OpenCV's MAGSAC++ for F
+    true_inlier_data: ClassVar[bool] = False
+    read = staticmethod(fundamental_data.read)
+    to_batch = staticmethod(fundamental_data.to_batch)
+
     # eps = 4 (paper) read as the squared Sampson error (px^2, i.e. 2 px): at 4 px the consensus of
     # ~1000 px images absorbs near-epipolar outliers and our RANSAC's mAA_t on the Strecha test split
     # drops from 0.641 to 0.611 (both measured at 1k iterations); residual="sampson" restores 4 px.
@@ -41,6 +52,7 @@ class FundamentalTask:
     name: str = "fundamental"
     sample_size: int = 8
     coord_dim: int = 4
+    solutions: int = 1
 
     def __post_init__(self) -> None:
         if self.residual not in RESIDUALS:
@@ -75,10 +87,8 @@ class FundamentalTask:
     def true_inliers(self, batch: dict) -> torch.Tensor:
         """Ground-truth inlier labels (B, N) bool: Sampson distance to the ground-truth F within the
         inlier threshold (supervised warm start only; the paper's RLSAC never sees them)."""
-        from rlsac.data.fundamental import gt_fundamental
-
-        F = torch.as_tensor(gt_fundamental(_np(batch["K1"]), _np(batch["K2"]), _np(batch["dR"]), _np(batch["dT"])),
-                            dtype=batch["coords"].dtype, device=batch["coords"].device)
+        F = fundamental_data.gt_fundamental(_np(batch["K1"]), _np(batch["K2"]), _np(batch["dR"]), _np(batch["dT"]))
+        F = torch.as_tensor(F, dtype=batch["coords"].dtype, device=batch["coords"].device)
         return (self.residuals(F, batch["coords"]) <= self.threshold) & batch["mask"]
 
     # ------------------------------------------------------------------------------- geometry
@@ -111,6 +121,29 @@ class FundamentalTask:
             F = torch.where(keep[:, None, None], F2, F)
         return F, valid
 
+    # ----------------------------------------------------------------------------- OpenCV baselines
+    # The CVPR 2020 tutorial's starter-pack threshold for ~1000 px images (create_F_submission.py); it tunes
+    # only the threshold (grid 0.1..1.0 px) and gives no per-method value, so every method shares it.
+    opencv_threshold: ClassVar[float] = 0.75
+    hypothesis_shape: ClassVar[tuple[int, ...]] = (3, 3)
+
+    @staticmethod
+    def opencv_fit(pts: np.ndarray, flag: int, threshold: float, confidence: float, iterations: int):
+        """cv2.findFundamentalMat on pts (n, 4) pixels -> (F (3, 3) unit Frobenius norm, inliers (n,) bool),
+        None on failure (OpenCV's stacked (3k, 3) output keeps its first F)."""
+        try:
+            F, inl = cv2.findFundamentalMat(np.ascontiguousarray(pts[:, :2]), np.ascontiguousarray(pts[:, 2:4]),
+                                            flag, threshold, confidence, iterations)
+        except cv2.error:
+            return None
+        if F is None or F.size < 9 or inl is None:
+            return None
+        F = np.asarray(F, np.float64)[:3, :3]
+        norm = np.linalg.norm(F)
+        if not np.isfinite(F).all() or norm == 0:
+            return None
+        return F / norm, np.asarray(inl).ravel().astype(bool)
+
     # ----------------------------------------------------------------------------- evaluation
     def errors(self, hyps, valid, inliers, batch) -> dict[str, np.ndarray]:
         """Tutorial pose errors in degrees: {'err_R': (B,), 'err_t': (B,)}; failures get 180 / 90."""
@@ -123,13 +156,18 @@ class FundamentalTask:
         B = hyps.shape[0]
         err_R, err_t = np.full(B, MAX_ERR_R), np.full(B, MAX_ERR_T)
         for b in range(B):
-            pose = relative_pose_from_fundamental(hyps[b], K1[b], K2[b], coords[b, inliers[b]]) if valid[b] else None
+            pose = self.pose(hyps[b], K1[b], K2[b], coords[b, inliers[b]]) if valid[b] else None
             if pose is None:
                 continue
             R, t = pose
             err_R[b] = metrics.rotation_error_deg(R, dR[b])
             err_t[b] = metrics.translation_error_deg(t, dT[b])
         return {"err_R": err_R, "err_t": err_t}
+
+    @staticmethod
+    def pose(hyp: np.ndarray, K1: np.ndarray, K2: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """(R, t) of a hypothesis (3, 3) from its inliers pts (n, 4), None on failure."""
+        return relative_pose_from_fundamental(hyp, K1, K2, pts)
 
     def summarize(self, errors: dict[str, np.ndarray]) -> dict[str, float]:
         eR, et = np.asarray(errors["err_R"], np.float64), np.asarray(errors["err_t"], np.float64)
@@ -147,11 +185,17 @@ def relative_pose_from_fundamental(F: np.ndarray, K1: np.ndarray, K2: np.ndarray
     F, K1, K2 (3, 3), pts (n, 4) pixels -> R (3, 3), t (3,); None when F is not finite / zero, n < 5
     or recoverPose fails.
     """
-    if not np.all(np.isfinite(F)) or np.abs(F).sum() == 0 or pts.shape[0] < MIN_POSE_INLIERS:
+    if not np.all(np.isfinite(F)) or np.abs(F).sum() == 0:
         return None
-    E = K2.T @ F @ K1
-    p1 = _calibrate(pts[:, :2], K1)
-    p2 = _calibrate(pts[:, 2:4], K2)
+    return recover_pose(K2.T @ F @ K1, _calibrate(pts[:, :2], K1), _calibrate(pts[:, 2:4], K2))
+
+
+def recover_pose(E: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """(R, t) from an essential matrix and calibrated inliers p1, p2 (n, 2) by cv2.recoverPose (the
+    tutorial's cheirality check); None when E is not finite / zero, n < 5 or recoverPose fails."""
+    if not np.all(np.isfinite(E)) or np.abs(E).sum() == 0 or p1.shape[0] < MIN_POSE_INLIERS:
+        return None
+    p1, p2 = np.ascontiguousarray(p1, np.float64), np.ascontiguousarray(p2, np.float64)
     try:
         _, R, t, _ = cv2.recoverPose(E, p1, p2)
     except cv2.error:

@@ -7,17 +7,29 @@ is its Euclidean distance to the line.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 import torch
 
 from rlsac import metrics
+from rlsac.data import lines
+from rlsac.tasks import register_task
 
 EPS = 1e-9
 
 
+@register_task
 @dataclass
 class LineTask:
+    experiment: ClassVar[str] = "lines"
+    default_iterations: ClassVar[int] = 150  # Table 1's budget
+    residual_dof: ClassVar[int] = 2
+    true_inlier_data: ClassVar[bool] = True  # the generator stores the inlier mask (method oracle)
+    hypothesis_shape: ClassVar[tuple[int, ...]] = (3,)
+    read = staticmethod(lines.read)
+    to_batch = staticmethod(lines.to_batch)
+
     threshold: float = 0.1  # the paper's inlier threshold: inliers are disturbed within 0.1 of the line
     picture_size: float = 10.0  # points live in [0, picture_size]^2; features are divided by it
     maa_limit_deg: float = 0.5  # Table 1 reports mAA@0.5 deg
@@ -26,6 +38,7 @@ class LineTask:
     sample_size: int = 2
     coord_dim: int = 2
     feature_dim: int = 2
+    solutions: int = 1
 
     def solve(self, pts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """pts (B, 2, 2) -> lines (B, 3), valid (B,): the line through two distinct points."""
