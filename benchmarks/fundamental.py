@@ -37,10 +37,11 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 from timing import Clocks, Split, format_split, opencv_hypotheses  # noqa: E402
 
+from rlsac import checkpoint  # noqa: E402
 from rlsac.baselines import opencv_estimate, ransac  # noqa: E402
-from rlsac.evaluate import checkpoint_task_options, pair_seed, resolve_device, task_from  # noqa: E402
+from rlsac.evaluate import pair_seed, resolve_device, task_from  # noqa: E402
 from rlsac.policy import Actor, PolicyConf  # noqa: E402
-from rlsac.rollout import checkpoint_env, in_channels, load_actor, rlsac_estimate  # noqa: E402
+from rlsac.rollout import in_channels, rlsac_estimate  # noqa: E402
 from rlsac.tasks.fundamental import FundamentalTask  # noqa: E402
 
 
@@ -84,15 +85,15 @@ def main() -> None:
     data, what = _data(args.data, args.pairs)
     P = len(data["pair"])
     if args.checkpoint:
-        actor, conf = load_actor(args.checkpoint, device)
-        task = task_from("fundamental", checkpoint_task_options(dict(conf)))
-        env_conf = checkpoint_env(dict(conf))
+        actor, conf = checkpoint.load_actor(args.checkpoint, device)
+        task = task_from("fundamental", checkpoint.task_options(dict(conf)))
+        env_conf = checkpoint.env_conf(dict(conf))
         who = args.checkpoint
     else:
         task = task_from("fundamental")
         torch.manual_seed(0)
         actor = Actor(in_channels(task), PolicyConf(graph_dims=4)).to(device).eval()
-        env_conf, who = checkpoint_env({}), "randomly initialised actor"
+        env_conf, who = checkpoint.env_conf({}), "randomly initialised actor"
     episodes = -(-args.iterations // env_conf.steps_per_episode)
     print(f"device {device}, {torch.get_num_threads()} thread(s); data: {what}; {args.iterations} iterations "
           f"({episodes} episodes x {env_conf.steps_per_episode} steps per pair); actor: {who}")

@@ -32,12 +32,13 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 from timing import CLOCK, Clocks, Split, format_split  # noqa: E402
 
+from rlsac import checkpoint  # noqa: E402
 from rlsac.baselines import ransac  # noqa: E402
 from rlsac.data import lines  # noqa: E402
 from rlsac.env import EnvConf  # noqa: E402
 from rlsac.evaluate import resolve_device  # noqa: E402
 from rlsac.policy import Actor, PointNet, PolicyConf  # noqa: E402
-from rlsac.rollout import checkpoint_env, in_channels, load_actor, rlsac_estimate  # noqa: E402
+from rlsac.rollout import in_channels, rlsac_estimate  # noqa: E402
 from rlsac.sac import SACAgent, SACConf, train_loop  # noqa: E402
 from rlsac.tasks.fundamental import FundamentalTask  # noqa: E402
 from rlsac.tasks.line import LineTask  # noqa: E402
@@ -62,8 +63,8 @@ def main() -> None:
     n = args.instances
     data = lines.generate(lines.LineDataConf(outlier_rate=args.outlier_rate, n_instances=n, seed=7))
     if args.checkpoint:
-        actor, conf = load_actor(args.checkpoint, device)
-        env_conf, what = checkpoint_env(conf), args.checkpoint
+        actor, conf = checkpoint.load_actor(args.checkpoint, device)
+        env_conf, what = checkpoint.env_conf(conf), args.checkpoint
     else:
         torch.manual_seed(0)
         actor = Actor(in_channels(task), PolicyConf()).to(device).eval()

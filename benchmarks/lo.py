@@ -19,7 +19,7 @@ from pathlib import Path
 
 import torch
 
-from rlsac.commands import _params, _section
+from rlsac.config import read_params, section
 from rlsac.evaluate import DEFAULTS, data_module, make_estimator
 
 DEFAULT_DATA = {"fundamental": "data/fundamental/test.h5", "line": "data/lines/test_o0.5.h5"}
@@ -43,7 +43,7 @@ def main() -> None:
     data_path = args.data or DEFAULT_DATA[task_name]
     ckpt = args.checkpoint or DEFAULT_CKPT[task_name]
     iterations = args.iterations or DEFAULT_ITERATIONS[task_name]
-    lo_options = _section(_params(args.params), "evaluate", task_name).get("lo") or {}
+    lo_options = section(read_params(args.params), "evaluate", task_name).get("lo") or {}
     mod = data_module(task_name)
     data, _ = mod.read(data_path)
     n = min(args.pairs, len(next(v for v in data.values() if hasattr(v, "shape"))))

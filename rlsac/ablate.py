@@ -109,9 +109,9 @@ def check_options(options: dict[str, Any]) -> dict[str, Any]:
 
 def protocol(params: dict[str, Any]) -> dict[str, Any]:
     """``DEFAULTS`` with each top-level key replaced by params.yaml ``ablation``'s, checked."""
-    from rlsac.commands import _section
+    from rlsac.config import section
 
-    given = _section(params, "ablation")
+    given = section(params, "ablation")
     unknown = sorted(set(given) - set(DEFAULTS))
     if unknown:
         raise RlsacError(f"unknown params key(s) ablation.{unknown}; known: {sorted(DEFAULTS)}")
@@ -157,7 +157,7 @@ def plan(o: dict[str, Any], params: dict[str, Any]) -> dict[str, Any]:
     """-> {"models": {name: train options or None (the reference)}, "variants": {name: evaluate options}}"""
     if o["what"] == "generalisation":
         return _plan_generalisation(o, params)
-    from rlsac.commands import _section, deep_update
+    from rlsac.config import deep_update, section
 
     p = protocol(params)
     data, ckpts, evals = Path(o["data_dir"]), Path(o["ckpt_dir"]), Path(o["eval_dir"]) / "ablation"
@@ -175,7 +175,7 @@ def plan(o: dict[str, Any], params: dict[str, Any]) -> dict[str, Any]:
     def checkpoint(model: str) -> Path:
         return model_checkpoint(model, ckpts)
 
-    base = {**_section(params, "train", "fundamental"), "task": "fundamental"}
+    base = {**section(params, "train", "fundamental"), "task": "fundamental"}
     models: dict[str, dict | None] = {}
     for m in wanted:
         if m == FULL:  # the paper's model is trained by `rlsac train` (dvc stage train_fundamental)
@@ -199,9 +199,9 @@ def plan(o: dict[str, Any], params: dict[str, Any]) -> dict[str, Any]:
 
 
 def _plan_generalisation(o: dict[str, Any], params: dict[str, Any]) -> dict[str, Any]:
-    from rlsac.commands import _section
+    from rlsac.config import section
 
-    lines = _section(params, "lines")
+    lines = section(params, "lines")
     p = protocol(params)
     rates = lines.get("rates") or [0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7]
     src = _rate(p["generalisation"].get("train_rate", 0.5))
@@ -212,7 +212,7 @@ def _plan_generalisation(o: dict[str, Any], params: dict[str, Any]) -> dict[str,
         if missing:
             raise RlsacError(f"variant(s) {missing} not in ablation 'generalisation' (known: {', '.join(names)})")
         names = {n: names[n] for n in o["variants"]}
-    t = {**_section(params, "train", "line"), "task": "line"}
+    t = {**section(params, "train", "line"), "task": "line"}
     t.update(data=str(ldir / f"train_o{src}.h5"), val_data=str(ldir / f"val_o{src}.h5"), out=str(ckpt),
              run_name=f"train line o{src}", tags={**(t.get("tags") or {}), "ablation": "generalisation"})
     if o["models"] and o["models"] != [f"line_o{src}"]:
@@ -230,10 +230,10 @@ def _plan_generalisation(o: dict[str, Any], params: dict[str, Any]) -> dict[str,
 
 def ablate(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
     """Run one ablation study (see the module docstring); -> {"what", "trained", "skipped", "variants", "table"}."""
-    from rlsac.commands import _params
+    from rlsac.config import read_params
 
     o = check_options(options)
-    params = _params(o["params"])
+    params = read_params(o["params"])
     pl = plan(o, params)
     if int(o["threads"]) > 0:
         import torch
@@ -270,7 +270,7 @@ def ablate(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
 
 
 def train_model(t: dict[str, Any], o: dict[str, Any], track: bool) -> dict:
-    from rlsac.commands import deep_update
+    from rlsac.config import deep_update
     from rlsac.train import train
 
     for key in ("data", "val_data"):
@@ -284,22 +284,11 @@ def train_model(t: dict[str, Any], o: dict[str, Any], track: bool) -> dict:
     return train(deep_update(t, extra), track=track)
 
 
-def rebuild_table(track: bool = True):
-    """Table 3 through ``rlsac.reports.tables`` when that module exists; -> its result or None."""
-    import importlib
-    import inspect
+def rebuild_table(track: bool = True) -> str:
+    """Table 3 (rlsac.reports.tables) -> the files written, comma-separated."""
+    from rlsac.reports.tables import build
 
-    try:
-        mod = importlib.import_module("rlsac.reports.tables")
-    except ModuleNotFoundError:
-        return None
-    fn = getattr(mod, "build", None)
-    if fn is None:
-        return None
-    kwargs = {"track": track} if "track" in inspect.signature(fn).parameters else {}
-    result = fn({"which": "3"}, **kwargs)
-    files = result.get("files") if isinstance(result, dict) else result
-    return ", ".join(map(str, files)) if isinstance(files, (list, tuple)) else str(files)
+    return build({"which": "3"}, track=track)["files"]
 
 
 def format_summary(s: dict[str, Any]) -> str:

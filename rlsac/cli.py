@@ -133,7 +133,7 @@ def lines_data(tracking: bool, params_path: str, **options) -> None:
 def import_scenes(tracking: bool, sets: tuple[str, ...], **options) -> None:
     """Import real scenes offline into the CVPR 2020 tutorial layout (rlsac.data.scenes)."""
     from rlsac.commands import import_scenes as run
-    from rlsac.commands import parse_sets
+    from rlsac.config import parse_sets
 
     _echo_result(run({**options, **parse_sets(sets)}, track=tracking))
 
@@ -151,8 +151,8 @@ def import_scenes(tracking: bool, sets: tuple[str, ...], **options) -> None:
 @tracking_option
 def prepare_cvpr2020(tracking: bool, sets: tuple[str, ...], **options) -> None:
     """Prepare fundamental-matrix pairs from the CVPR 2020 tutorial layout (rlsac.data.tutorial)."""
-    from rlsac.commands import parse_sets
     from rlsac.commands import prepare_cvpr2020 as run
+    from rlsac.config import parse_sets
 
     _echo_result(run({**options, **parse_sets(sets)}, track=tracking))
 
@@ -201,11 +201,11 @@ def train(task: str, tracking: bool, params_path: str, sets: tuple[str, ...], **
 @tracking_option
 def evaluate(tracking: bool, params_path: str, **options) -> None:
     """Evaluate a method on a data file: errors CSV + summary JSON + MLflow run."""
-    from rlsac.commands import _params, _section
+    from rlsac.config import read_params, section
     from rlsac.evaluate import evaluate as run
     from rlsac.evaluate import format_summary
 
-    defaults = _section(_params(params_path), "evaluate", options["task"])
+    defaults = section(read_params(params_path), "evaluate", options["task"])
     options = {**defaults, **{k: v for k, v in options.items() if v is not None}}
     click.echo(format_summary(run(options, track=tracking)))
 
@@ -226,9 +226,9 @@ def evaluate(tracking: bool, params_path: str, **options) -> None:
 @tracking_option
 def ablate(tracking: bool, sets: tuple[str, ...], **options) -> None:
     """Run one ablation study: train its models (unless present) and evaluate them (rlsac.ablate)."""
+    from rlsac.ablate import ablate as run
     from rlsac.ablate import format_summary
-    from rlsac.commands import ablate as run
-    from rlsac.commands import parse_sets
+    from rlsac.config import parse_sets
 
     click.echo(format_summary(run({**options, **parse_sets(sets)}, track=tracking)))
 
@@ -278,8 +278,8 @@ def table(tracking: bool, **options) -> None:
 @tracking_option
 def plot(tracking: bool, sets: tuple[str, ...]) -> None:
     """Draw the report figures (rlsac.reports.figures)."""
-    from rlsac.commands import parse_sets
-    from rlsac.commands import plot as run
+    from rlsac.config import parse_sets
+    from rlsac.reports.figures import plot as run
 
     _echo_result(run(parse_sets(sets), track=tracking))
 

@@ -7,15 +7,14 @@ Each function takes a plain options dict (what the CLI parsed, or what a noteboo
 from __future__ import annotations
 
 import dataclasses
-import importlib
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
-import yaml
 
 from rlsac import config
+from rlsac.config import deep_update, parse_sets, read_params, section
 from rlsac.errors import RlsacError
 from rlsac.io import atomic_path, check_writable, write_text
 from rlsac.tracking import check_store, start_run
@@ -27,36 +26,11 @@ PAPER_RANSAC_LINES = {
 }
 
 
-DEFAULT_PARAMS = "params.yaml"
-
-
-def _params(path: str | Path | None = DEFAULT_PARAMS) -> dict[str, Any]:
-    """params.yaml -> mapping. The default ./params.yaml may be absent (code defaults apply); any other
-    file named (``--params FILE``) must exist; "" or None = no params file."""
-    if not path:
-        return {}
-    return config.load_params(path, required=str(path) != DEFAULT_PARAMS)
-
-
-def _section(params: dict, *keys: str) -> dict[str, Any]:
-    d: Any = params
-    for k in keys:
-        d = (d or {}).get(k) if isinstance(d, dict) else None
-    if d is None:
-        return {}
-    if not isinstance(d, dict):
-        raise RlsacError(f"params section {'.'.join(keys)} must be a mapping, got {type(d).__name__}")
-    return dict(d)
-
-
-# ---------------------------------------------------------------------------------------------- lines
-
-
 def line_conf(options: dict[str, Any], params_path: str | Path | None = "params.yaml"):
     """LineDataConf = defaults <- params.yaml ``lines_data`` <- ``options`` (None values ignored)."""
     from rlsac.data.lines import LineDataConf
 
-    merged = {**_section(_params(params_path), "lines_data"), **{k: v for k, v in options.items() if v is not None}}
+    merged = {**section(read_params(params_path), "lines_data"), **{k: v for k, v in options.items() if v is not None}}
     conf = config.build(LineDataConf, merged, "lines_data")
     conf.check()
     return conf
@@ -102,7 +76,7 @@ def lines_protocol_data(options: dict[str, Any], track: bool = True,
     if options.get("rate") is None:
         raise RlsacError("lines-data needs --rate")
     rate = config.check_value("rate", options["rate"], float, "[0, 1)")
-    proto = _section(_params(params_path), "lines")
+    proto = section(read_params(params_path), "lines")
     splits = options.get("splits") or "train,val,test"
     splits = [x.strip() for x in splits.split(",") if x.strip()] if isinstance(splits, str) else list(splits)
     if not splits:
@@ -263,108 +237,48 @@ def calibrate_lines(options: dict[str, Any], track: bool = True,
     return {"table": table, "md": str(md_path), "csv": str(csv_path), "run_id": run.run_id}
 
 
-# ------------------------------------------------------------------------------------- other modules
-
-
-def _module(name: str, what: str):
-    """Import ``name``; a missing project module is a plain 'not implemented yet' error."""
-    try:
-        return importlib.import_module(name)
-    except ModuleNotFoundError as e:
-        if e.name and (e.name == name or name.startswith(e.name + ".")):
-            raise RlsacError(f"{what}: not implemented yet ({name} is missing)") from None
-        raise
-
-
-def _with_conf(module: str, cls_name: str, func: str, what: str, options: dict[str, Any], track: bool,
-               outputs=lambda conf: ()):
-    """Build ``cls_name`` from ``options`` (checked by config.build), check that ``outputs(conf)`` can be
-    written and the tracking store too, then call ``func(conf)``."""
-    mod = _module(module, what)
-    cls = getattr(mod, cls_name, None)
-    fn = getattr(mod, func, None)
-    if cls is None or fn is None:
-        raise RlsacError(f"{what}: not implemented yet ({module}.{cls_name}/{func} missing)")
-    conf = config.build(cls, {k: v for k, v in options.items() if v is not None}, what)
-    for path in outputs(conf):
-        check_writable(path)
-    check_store(track)
-    return _call(fn, conf, track)
-
-
-def _call(fn, arg, track: bool):
-    import inspect
-
-    if "track" in inspect.signature(fn).parameters:
-        return fn(arg, track=track)
-    return fn(arg)
+# ------------------------------------------------------------------------------------- data
 
 
 def import_scenes(options: dict[str, Any], track: bool = True):
     """``rlsac.data.scenes.import_scenes(ImportConf(**options))``."""
-    return _with_conf("rlsac.data.scenes", "ImportConf", "import_scenes", "import-scenes", options, track,
-                      lambda c: [Path(c.out) / c.split / "import_summary.json"])
+    from rlsac.data.scenes import ImportConf, import_scenes
+
+    conf = _checked(ImportConf, options, "import-scenes", lambda c: [Path(c.out) / c.split / "import_summary.json"],
+                    track)
+    return import_scenes(conf, track=track)
 
 
 def prepare_cvpr2020(options: dict[str, Any], track: bool = True):
     """``rlsac.data.tutorial.prepare(PrepareConf(**options))``."""
-    return _with_conf("rlsac.data.tutorial", "PrepareConf", "prepare", "prepare-cvpr2020", options, track,
-                      lambda c: [c.out])
+    from rlsac.data.tutorial import PrepareConf, prepare
+
+    return prepare(_checked(PrepareConf, options, "prepare-cvpr2020", lambda c: [c.out], track), track=track)
 
 
-def ablate(options: dict[str, Any], track: bool = True):
-    return _call(_module("rlsac.ablate", "ablate").ablate, options, track)
-
-
-def plot(options: dict[str, Any], track: bool = True):
-    return _call(_module("rlsac.reports.figures", "plot").plot, options, track)
+def _checked(cls, options: dict[str, Any], what: str, outputs, track: bool):
+    """``cls`` built from ``options`` (checked by config.build), after checking that ``outputs(conf)``
+    and the tracking store can be written."""
+    conf = config.build(cls, {k: v for k, v in options.items() if v is not None}, what)
+    for path in outputs(conf):
+        check_writable(path)
+    check_store(track)
+    return conf
 
 
 # ---------------------------------------------------------------------------------------------- train
 
 
-def parse_sets(pairs: tuple[str, ...] | list[str]) -> dict[str, Any]:
-    """("a.b=1", "c=[1, 2]") -> {"a": {"b": 1}, "c": [1, 2]}; values are parsed as YAML."""
-    out: dict[str, Any] = {}
-    for pair in pairs:
-        key, sep, raw = pair.partition("=")
-        key = key.strip()
-        if not sep or not key or any(not p for p in key.split(".")):
-            raise RlsacError(f"--set expects key=value (dotted keys allowed), got {pair!r}")
-        try:
-            value = yaml.safe_load(raw) if raw.strip() else ""
-        except yaml.YAMLError:
-            raise RlsacError(f"--set {key}: value {raw!r} is not valid YAML") from None
-        if isinstance(value, str):  # YAML 1.1 reads 1e-4 (no dot) as a string
-            try:
-                value = float(value)
-            except ValueError:
-                pass
-        d = out
-        parts = key.split(".")
-        for p in parts[:-1]:
-            if not isinstance(d.get(p), dict):
-                d[p] = {}
-            d = d[p]
-        d[parts[-1]] = value
-    return out
-
-
-def deep_update(base: dict[str, Any], new: dict[str, Any]) -> dict[str, Any]:
-    out = dict(base)
-    for k, v in new.items():
-        out[k] = deep_update(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
-    return out
-
-
 def train_options(task: str, flags: dict[str, Any], sets: tuple[str, ...] | list[str] = (),
                   params_path: str | Path | None = "params.yaml") -> dict[str, Any]:
     """params.yaml ``train.<task>`` <- CLI flags (None = not given) <- ``--set`` overrides."""
-    options = _section(_params(params_path), "train", task)
+    options = section(read_params(params_path), "train", task)
     options["task"] = task
     options = deep_update(options, {k: v for k, v in flags.items() if v is not None})
     return deep_update(options, parse_sets(sets))
 
 
 def train(options: dict[str, Any], track: bool = True):
-    return _module("rlsac.train", "train").train(options, track=track)
+    from rlsac.train import train
+
+    return train(options, track=track)

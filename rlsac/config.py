@@ -240,3 +240,61 @@ def load_params(path: str | Path | None = "params.yaml", required: bool = False)
     if not isinstance(data, dict):
         raise RlsacError(f"{path}: params file must be a mapping of sections, got {type(data).__name__}")
     return data
+
+
+DEFAULT_PARAMS = "params.yaml"
+
+
+def read_params(path: str | Path | None = DEFAULT_PARAMS) -> dict[str, Any]:
+    """A command's ``--params`` file -> mapping. The default ./params.yaml may be absent (code defaults
+    apply); any other file named (``--params FILE``) must exist; "" or None = no params file."""
+    if not path:
+        return {}
+    return load_params(path, required=str(path) != DEFAULT_PARAMS)
+
+
+def section(params: dict, *keys: str) -> dict[str, Any]:
+    """params[k1][k2]... as a new dict ({} when absent); RlsacError when it is not a mapping."""
+    d: Any = params
+    for k in keys:
+        d = (d or {}).get(k) if isinstance(d, dict) else None
+    if d is None:
+        return {}
+    if not isinstance(d, dict):
+        raise RlsacError(f"params section {'.'.join(keys)} must be a mapping, got {type(d).__name__}")
+    return dict(d)
+
+
+def parse_sets(pairs: tuple[str, ...] | list[str]) -> dict[str, Any]:
+    """("a.b=1", "c=[1, 2]") -> {"a": {"b": 1}, "c": [1, 2]}; values are parsed as YAML."""
+    out: dict[str, Any] = {}
+    for pair in pairs:
+        key, sep, raw = pair.partition("=")
+        key = key.strip()
+        if not sep or not key or any(not p for p in key.split(".")):
+            raise RlsacError(f"--set expects key=value (dotted keys allowed), got {pair!r}")
+        try:
+            value = yaml.safe_load(raw) if raw.strip() else ""
+        except yaml.YAMLError:
+            raise RlsacError(f"--set {key}: value {raw!r} is not valid YAML") from None
+        if isinstance(value, str):  # YAML 1.1 reads 1e-4 (no dot) as a string
+            try:
+                value = float(value)
+            except ValueError:
+                pass
+        d = out
+        parts = key.split(".")
+        for p in parts[:-1]:
+            if not isinstance(d.get(p), dict):
+                d[p] = {}
+            d = d[p]
+        d[parts[-1]] = value
+    return out
+
+
+def deep_update(base: dict[str, Any], new: dict[str, Any]) -> dict[str, Any]:
+    """``base`` with ``new`` merged in, nested mappings merged key by key."""
+    out = dict(base)
+    for k, v in new.items():
+        out[k] = deep_update(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out

@@ -82,18 +82,6 @@ def task_from(name: str, options: dict[str, Any] | None = None) -> Task:
         raise RlsacError(f"bad options for task '{name}': {e}") from None
 
 
-def checkpoint_task_options(ckpt_conf: dict[str, Any]) -> dict[str, Any]:
-    """Task options stored in a checkpoint conf: ``task`` as a dict of options (with an optional
-    ``name``), or ``task`` as the task name beside a ``task_options`` dict (rlsac.train.TrainConf)."""
-    stored = ckpt_conf.get("task")
-    if isinstance(stored, dict):
-        return dict(stored)
-    options = dict(ckpt_conf.get("task_options") or {})
-    if isinstance(stored, str):
-        options["name"] = stored
-    return options
-
-
 def check_options(options: dict[str, Any]) -> dict[str, Any]:
     """Fill defaults and validate; -> a new, complete options dict."""
     missing = [k for k in ("task", "method", "data") if not options.get(k)]

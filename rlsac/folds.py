@@ -50,9 +50,9 @@ OPTIONS: dict[str, Any] = {"stage": None, "regime": None, "fold": None, "model":
 
 def protocol(params: dict[str, Any]) -> dict[str, Any]:
     """``DEFAULTS`` with each key replaced by params.yaml ``folds``'s, checked for consistency."""
-    from rlsac.commands import _section
+    from rlsac.config import section
 
-    given = _section(params, "folds")
+    given = section(params, "folds")
     unknown = sorted(set(given) - set(DEFAULTS))
     if unknown:
         raise RlsacError(f"unknown params key(s) folds.{unknown}; known: {sorted(DEFAULTS)}")
@@ -175,14 +175,14 @@ def _import_record(root: str) -> dict[str, Any]:
 
 
 def train_model(p: dict, params: dict, regime: str, fold: str, model: str, o: dict, track: bool) -> dict:
-    from rlsac.commands import _section, deep_update
+    from rlsac.config import deep_update, section
     from rlsac.train import train
 
     d = data_dir(regime, fold)
     for split in ("train", "val"):
         if not (d / f"{split}.h5").is_file():
             raise RlsacError(f"{d / f'{split}.h5'}: no such file (run `rlsac folds --stage data` first)")
-    base = _section(params, "train", "fundamental")
+    base = section(params, "train", "fundamental")
     opts = deep_update(deep_update(base, copy.deepcopy(p["train"][model] or {})), {
         "task": "fundamental", "data": str(d / "train.h5"), "val_data": str(d / "val.h5"),
         "out": str(checkpoint(regime, fold, model)), "device": o["device"], "threads": int(o["threads"]),
@@ -226,10 +226,10 @@ def evaluate_fold(p: dict, regime: str, fold: str, o: dict, track: bool, lo: dic
 
 def folds(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
     """Run one stage of one (regime, fold); -> a summary of what was written where."""
-    from rlsac.commands import _params, _section
+    from rlsac.config import read_params, section
 
     o = check_options(options)
-    params = _params(o["params"])
+    params = read_params(o["params"])
     p = protocol(params)
     o = check_options(options, p)
     if int(o["threads"]) > 0:
@@ -240,7 +240,7 @@ def folds(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
     regime, fold = o["regime"], o["fold"]
     result: dict[str, Any] = {"stage": o["stage"], "regime": regime, "fold": fold}
     if o["stage"] == "data":
-        made = make_data(p, _section(params, "fundamental"), regime, fold, track)
+        made = make_data(p, section(params, "fundamental"), regime, fold, track)
         result["files"] = {k: {"out": v["out"], "pairs": v["pairs"], "skipped": v["skip_reasons"],
                                "mean_gt_inlier_ratio": v["mean_gt_inlier_ratio_sampson_2px"]}
                            for k, v in made.items()}
@@ -248,7 +248,7 @@ def folds(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
         models = [o["model"]] if o["model"] else p["models"]
         result["models"] = {m: train_model(p, params, regime, fold, m, o, track) for m in models}
     else:
-        ev = _section(params, "evaluate", "fundamental")  # the *-lo methods' (rlsac.lo) and guided's options
+        ev = section(params, "evaluate", "fundamental")  # the *-lo methods' (rlsac.lo) and guided's options
         result["evaluations"] = evaluate_fold(p, regime, fold, o, track, ev.get("lo"), ev.get("guide_temperature"))
     result["seconds"] = round(time.time() - t0, 1)
     return result

@@ -68,11 +68,12 @@ def _oracle(o, device, lo=None):
 
 def _environment(o, lo, guide=None):
     """The RLSAC environment without a policy: uniform sets, or sets drawn ~ exp(guide(task, batch))."""
+    from rlsac.checkpoint import env_conf
     from rlsac.evaluate import task_from
-    from rlsac.rollout import checkpoint_env, rlsac_estimate, with_lo
+    from rlsac.rollout import rlsac_estimate, with_lo
 
     task = task_from(o["task"])
-    env = with_lo(checkpoint_env({}, o["steps_per_episode"]), lo)
+    env = with_lo(env_conf({}, o["steps_per_episode"]), lo)
 
     def estimate(batch, g):
         return rlsac_estimate(task, batch, None, o["iterations"], env, generator=g,
@@ -98,13 +99,14 @@ def _guided(o, device, lo=None):
 @register_method("rlsac", checkpoint=True)
 def _rlsac(o, device, lo=None):
     """The learned sampler of ``o['checkpoint']`` in its own environment."""
-    from rlsac.evaluate import checkpoint_task_options, task_from
-    from rlsac.rollout import checkpoint_env, load_actor, rlsac_estimate, with_lo
+    from rlsac.checkpoint import env_conf, load_actor, task_options
+    from rlsac.evaluate import task_from
+    from rlsac.rollout import rlsac_estimate, with_lo
 
     actor, ckpt_conf = load_actor(o["checkpoint"], device)
     ckpt_conf = dict(ckpt_conf or {})
-    task = task_from(o["task"], checkpoint_task_options(ckpt_conf))
-    env = with_lo(checkpoint_env(ckpt_conf, o["steps_per_episode"]), lo)
+    task = task_from(o["task"], task_options(ckpt_conf))
+    env = with_lo(env_conf(ckpt_conf, o["steps_per_episode"]), lo)
 
     def estimate(batch, g):
         return rlsac_estimate(task, batch, actor, o["iterations"], env, sampling=o["sampling"], generator=g)

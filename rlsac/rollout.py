@@ -3,15 +3,12 @@
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import torch
 
-from rlsac.config import build
 from rlsac.env import MEMORY_DIM, EnvConf, SampleConsensusEnv
 from rlsac.errors import RlsacError
-from rlsac.io import load_torch
-from rlsac.policy import Actor, PolicyConf
+from rlsac.policy import Actor
 from rlsac.sampling import set_keys
 from rlsac.tasks import Task
 
@@ -27,7 +24,7 @@ def rlsac_estimate(task: Task, batch: dict, actor: Actor | None, iterations: int
     refinement, budget) with uniformly random minimal sets instead of the policy's.
     guide (B, N): with actor None, fixed per-point logits instead of the policy's (the guided control:
     minimal sets drawn without replacement with probabilities ~ exp(guide), Gumbel top-m as ``prob``).
-    env_conf: the environment of the checkpoint (``checkpoint_env``); default EnvConf().
+    env_conf: the environment of the checkpoint (``rlsac.checkpoint.env_conf``); default EnvConf().
     -> hyp (B, *H), valid (B,), inliers (B, N); with ``record`` also ``steps``: per step the minimal
     sets (R, m), hypotheses, inlier masks and rewards of every row (for figures).
     reference: the original per-step path (the full (R, N, c + 3) state through
@@ -161,31 +158,6 @@ def _snapshot(env: SampleConsensusEnv) -> dict:
         "inliers": env.last_inliers.cpu(),
         "count": env.count.cpu(),
     }
-
-
-def load_actor(path: str | Path, device: str | torch.device = "cpu") -> tuple[Actor, dict]:
-    """Load an actor checkpoint written by ``rlsac train`` -> (actor in eval mode, training conf)."""
-    path = Path(path)
-    if not path.is_file():
-        raise RlsacError(f"{path}: no such checkpoint")
-    try:
-        ckpt = load_torch(path, device)  # a text or h5 file: one-line error
-        conf = ckpt["conf"]
-        pconf = build(PolicyConf, conf["policy"])
-        actor = Actor(ckpt["in_channels"], pconf).to(device)
-        actor.load_state_dict(ckpt["actor"])
-    except (KeyError, RuntimeError, EOFError, ValueError, TypeError) as e:
-        raise RlsacError(f"{path}: not an rlsac checkpoint ({e.__class__.__name__}: {str(e)[:80]})") from None
-    actor.eval()
-    return actor, conf
-
-
-def checkpoint_env(ckpt_conf: dict, steps_per_episode: int | None = None) -> EnvConf:
-    """The environment a checkpoint was trained with (its ``env`` section), psi optionally overridden."""
-    env = dict((ckpt_conf or {}).get("env") or {})
-    if steps_per_episode is not None:
-        env["steps_per_episode"] = int(steps_per_episode)
-    return build(EnvConf, env, "checkpoint env")
 
 
 def in_channels(task: Task) -> int:

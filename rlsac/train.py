@@ -22,6 +22,7 @@ from pathlib import Path
 
 import torch
 
+from rlsac import checkpoint
 from rlsac.config import build, to_dict
 from rlsac.data import load, slice_batch
 from rlsac.devices import resolve_device
@@ -129,8 +130,7 @@ def train(options: dict, track: bool = True) -> dict:
             except RlsacError:
                 on_disk = {}
             if on_disk.get("step") != kept["payload"].get("step"):
-                with atomic_path(out) as tmp:
-                    torch.save(kept["payload"], tmp)
+                checkpoint.write(out, kept["payload"])
     conf_dict = to_dict(conf)
     logged_conf = {k: v for k, v in conf_dict.items() if k != "resume"}
     run_name = conf.run_name or f"train {conf.task} {out.stem} ({Path(conf.data).stem})"
@@ -142,11 +142,9 @@ def train(options: dict, track: bool = True) -> dict:
     mlflow_run: dict = {}
 
     def save_actor(step: int, metrics: dict) -> None:
-        kept["payload"] = {"actor": {k: v.detach().clone() for k, v in agent.actor.state_dict().items()},
-                           "conf": conf_dict, "in_channels": in_channels(task), "step": step, "val": metrics,
-                           "selection": conf.selection, "history": list(history)}
-        with atomic_path(out) as tmp:
-            torch.save(kept["payload"], tmp)
+        kept["payload"] = checkpoint.actor_payload(agent.actor, conf_dict, in_channels(task), step, metrics,
+                                                   conf.selection, history)
+        checkpoint.write(out, kept["payload"])
 
     def save_state(step: int, buf=None) -> None:
         nonlocal buffer
@@ -191,8 +189,7 @@ def train(options: dict, track: bool = True) -> dict:
         final = ({} if val is None else history[-1] if done_before else validate(conf.sac.total_steps))
         if kept["payload"] is not None and conf.selection != "last":  # the kept actor carries the whole curve
             kept["payload"]["history"] = list(history)
-            with atomic_path(out) as tmp:
-                torch.save(kept["payload"], tmp)
+            checkpoint.write(out, kept["payload"])
         save_state(conf.sac.total_steps)
         seconds = time.time() - t0
         run.metrics({"time/train_seconds": seconds})

@@ -181,7 +181,7 @@ def test_usage_error_keeps_clicks_exit_code(workdir):
 
 
 def test_evaluate_rlsac_uses_the_checkpoint_task_options(workdir, monkeypatch):
-    """The rlsac branch against rollout's contract, with a fake rollout module running RANSAC."""
+    """The rlsac method against the checkpoint's and rollout's contracts, with a fake rollout running RANSAC."""
     from rlsac.baselines import ransac
 
     seen = {}
@@ -196,12 +196,10 @@ def test_evaluate_rlsac_uses_the_checkpoint_task_options(workdir, monkeypatch):
                     candidates=env_conf.candidates, sampling=sampling, actor=actor)
         return ransac(task, batch, iterations, generator)
 
-    from rlsac import rollout
+    from rlsac import checkpoint, rollout
 
-    fake = types.ModuleType("rlsac.rollout")
-    fake.load_actor, fake.rlsac_estimate, fake.checkpoint_env = load_actor, rlsac_estimate, rollout.checkpoint_env
-    fake.with_lo = rollout.with_lo
-    monkeypatch.setitem(sys.modules, "rlsac.rollout", fake)
+    monkeypatch.setattr(checkpoint, "load_actor", load_actor)
+    monkeypatch.setattr(rollout, "rlsac_estimate", rlsac_estimate)
     synth("d.h5", 4)
     (workdir / "ck.pt").write_bytes(b"x")
     s = evaluate({"task": "line", "method": "rlsac", "data": "d.h5", "checkpoint": "ck.pt", "iterations": 10,
@@ -236,11 +234,6 @@ def test_train_builds_options_from_params_flags_and_sets(workdir, monkeypatch):
     assert o["sac"] == {"lr": 1e-4, "batch": 8} and o["env"] == {"steps_per_episode": 7}
     assert "resume" not in o and "device" not in o  # flags not given keep the params/conf defaults
     assert_user_error(invoke("train", "--task", "line", "--set", "novalue"), "key=value")
-
-
-def test_missing_module_is_not_implemented():
-    with pytest.raises(RlsacError, match="not implemented yet"):
-        commands._module("rlsac.no_such_module_xyz", "thing")
 
 
 def test_calibrate_lines_tiny(workdir):

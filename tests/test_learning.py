@@ -9,11 +9,12 @@ import numpy as np
 import pytest
 import torch
 
+from rlsac.checkpoint import env_conf, load_actor
 from rlsac.data import load
 from rlsac.data.lines import LineDataConf, generate, write
 from rlsac.env import EnvConf
 from rlsac.policy import PolicyConf
-from rlsac.rollout import checkpoint_env, load_actor, rlsac_estimate
+from rlsac.rollout import rlsac_estimate
 from rlsac.sac import SACAgent, SACConf, train_loop
 from rlsac.tasks.line import LineTask
 from rlsac.train import train, validation_metrics
@@ -84,7 +85,7 @@ def test_kept_checkpoint_revalidates_to_its_recorded_score(data_files):
     assert ckpt["step"] == hist[int(np.argmax(scores))]["step"] == summary["best_step"]
     actor, conf = load_actor(opts["out"])
     again = validation_metrics(LineTask(), load("line", opts["val_data"]), types.SimpleNamespace(actor=actor),
-                               types.SimpleNamespace(val_iterations=30, env=checkpoint_env(conf)), "cpu")
+                               types.SimpleNamespace(val_iterations=30, env=env_conf(conf)), "cpu")
     assert again[SEL["inlier_ratio"]] == pytest.approx(max(scores), abs=1e-6)
     assert ckpt["val"][SEL["inlier_ratio"]] == max(scores)
 

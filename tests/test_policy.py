@@ -10,12 +10,13 @@ import numpy as np
 import pytest
 import torch
 
+from rlsac.checkpoint import env_conf, load_actor
 from rlsac.config import build, to_dict
 from rlsac.data.lines import LineDataConf, generate, to_batch, write
 from rlsac.errors import RlsacError
 from rlsac.evaluate import evaluate
 from rlsac.policy import Actor, Critic, EdgeConv, PolicyConf, knn
-from rlsac.rollout import checkpoint_env, load_actor, rlsac_estimate
+from rlsac.rollout import rlsac_estimate
 from rlsac.sampling import set_keys
 from rlsac.tasks.line import LineTask
 from rlsac.train import TrainConf
@@ -312,7 +313,7 @@ def test_checkpoint_env_settings_drive_the_real_test_time_rollout(workdir, monke
     seen = {}
     for name in ("a", "b"):
         loaded, ck = load_actor(workdir / f"{name}.pt")
-        assert checkpoint_env(ck).steps_per_episode == (5 if name == "a" else 15)
+        assert env_conf(ck).steps_per_episode == (5 if name == "a" else 15)
         with monkeypatch.context() as mp:
             spy = Spy(mp)
             s = evaluate({"task": "line", "method": "rlsac", "data": "d.h5", "checkpoint": f"{name}.pt",
@@ -324,14 +325,14 @@ def test_checkpoint_env_settings_drive_the_real_test_time_rollout(workdir, monke
 
 def test_checkpoint_env_reads_the_env_section_and_overrides_psi():
     conf = {"env": {"steps_per_episode": 5, "residual_clip": 2.0, "kappa": 4}}
-    env = checkpoint_env(conf)
+    env = env_conf(conf)
     assert (env.steps_per_episode, env.residual_clip, env.kappa, env.candidates) == (5, 2.0, 4, 16)
-    env = checkpoint_env(conf, steps_per_episode=7.0)
+    env = env_conf(conf, steps_per_episode=7.0)
     assert env.steps_per_episode == 7 and isinstance(env.steps_per_episode, int) and env.residual_clip == 2.0
     assert conf["env"]["steps_per_episode"] == 5  # the checkpoint's conf is not modified
-    assert checkpoint_env({}) == checkpoint_env(None) == build(type(env), {})
+    assert env_conf({}) == env_conf(None) == build(type(env), {})
     with pytest.raises(RlsacError, match=r"unknown config key.*\['bogus'\] in checkpoint env"):
-        checkpoint_env({"env": {"bogus": 1}})
+        env_conf({"env": {"bogus": 1}})
 
 
 def test_load_actor_errors_are_one_line(tmp_path):

@@ -18,8 +18,8 @@ from dvc.cli import DvcParserError, parse_args
 
 from rlsac import ablate as ablate_mod
 from rlsac.cli import cli
-from rlsac.commands import parse_sets, train_options
-from rlsac.config import build
+from rlsac.commands import train_options
+from rlsac.config import build, parse_sets
 from rlsac.data.lines import LineDataConf
 from rlsac.data.scenes import ImportConf
 from rlsac.data.tutorial import PrepareConf

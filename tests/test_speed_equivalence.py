@@ -18,10 +18,11 @@ import numpy as np
 import pytest
 import torch
 
+from rlsac.checkpoint import env_conf, load_actor
 from rlsac.data import lines
 from rlsac.env import EnvConf, SampleConsensusEnv
 from rlsac.policy import Actor, Critic, PolicyConf
-from rlsac.rollout import checkpoint_env, load_actor, rlsac_estimate, select_lazily
+from rlsac.rollout import rlsac_estimate, select_lazily
 from rlsac.tasks.fundamental import FundamentalTask
 from rlsac.tasks.line import LineTask
 
@@ -144,7 +145,7 @@ def test_checkpoint_logits_match_reference(ckpt, task_name):
     task = FundamentalTask() if task_name == "fundamental" else LineTask()
     batch = two_view_batch(2) if task_name == "fundamental" else line_batch(4)
     E = 6
-    feats, states, mask, graph = rollout_states(actor, task, batch, E, steps=4, env_conf=checkpoint_env(conf))
+    feats, states, mask, graph = rollout_states(actor, task, batch, E, steps=4, env_conf=env_conf(conf))
     prep = actor.precompute(feats, batch["mask"], E)
     with torch.no_grad():
         for state, memory in states:
@@ -189,7 +190,7 @@ def test_select_lazily_is_env_select(sample, n_points, candidates):
 @pytest.mark.parametrize("sampling", ["max", "prob"])
 def test_line_rollout_same_final_hypotheses(sampling):
     actor, conf = load_actor(ROOT / "checkpoints/line_o0.7.pt")
-    task, env = LineTask(), checkpoint_env(conf)
+    task, env = LineTask(), env_conf(conf)
     batch = line_batch(24, rate=0.7)
     outs = [rlsac_estimate(task, batch, actor, 150, env, sampling=sampling,
                            generator=torch.Generator().manual_seed(4), reference=ref) for ref in (True, False)]
@@ -200,7 +201,7 @@ def test_line_rollout_same_final_hypotheses(sampling):
 
 def test_fundamental_rollout_same_final_hypotheses():
     actor, conf = load_actor(ROOT / "checkpoints/fundamental.pt")
-    task, env = FundamentalTask(), checkpoint_env(conf)
+    task, env = FundamentalTask(), env_conf(conf)
     batch = two_view_batch(3, pad=10, seed=1)
     outs = [rlsac_estimate(task, batch, actor, 200, env, generator=torch.Generator().manual_seed(5), reference=ref)
             for ref in (True, False)]

@@ -141,17 +141,17 @@ def _save(fig, out_dir: Path, name: str) -> list[str]:
 def _load_policy(path: str | None, task_name: str, device: str):
     """-> (actor, task, env conf, note), or (None, default task, EnvConf(), why) when no checkpoint is asked for
     (empty option). A checkpoint path that does not exist is an error, never a silent fallback."""
-    from rlsac.evaluate import checkpoint_task_options, task_from
-    from rlsac.rollout import checkpoint_env, load_actor
+    from rlsac.checkpoint import env_conf, load_actor, task_options
+    from rlsac.evaluate import task_from
 
     if not path:
-        return None, task_from(task_name), checkpoint_env({}), "no checkpoint asked for: uniform random minimal sets"
+        return None, task_from(task_name), env_conf({}), "no checkpoint asked for: uniform random minimal sets"
     if not Path(path).is_file():
         raise RlsacError(f"{path}: no such checkpoint (an empty option draws uniform random minimal sets instead)")
     actor, conf = load_actor(path, device)
     conf = dict(conf or {})
-    task = task_from(task_name, checkpoint_task_options(conf))
-    return actor, task, checkpoint_env(conf), ""
+    task = task_from(task_name, task_options(conf))
+    return actor, task, env_conf(conf), ""
 
 
 def _episode(task, batch, actor, env, gen: torch.Generator) -> list[dict]:

@@ -1,0 +1,74 @@
+"""The RLSAC checkpoint format, in one place: written by ``rlsac train``, read by evaluate, the
+figures, the benchmarks and the tests through the functions below.
+
+A checkpoint is ``torch.save`` of a dict:
+    actor        the Actor's state_dict (rlsac.policy)
+    conf         the resolved training configuration (rlsac.train.TrainConf as a dict): task, task_options,
+                 env (the environment it was trained in), policy (the network's shape), sac, selection, ...
+    in_channels  the actor's input channels (the task's data features + the environment's memory)
+    step         the training step of this actor; val: its validation metrics; selection: how it was kept
+    history      every validation of the run (the learning curve)
+Training state for ``--resume`` (rlsac.train) is a separate file beside it and never read here.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from rlsac.config import build
+from rlsac.env import EnvConf
+from rlsac.errors import RlsacError
+from rlsac.io import atomic_path, load_torch
+from rlsac.policy import Actor, PolicyConf
+
+
+def actor_payload(actor: torch.nn.Module, conf: dict[str, Any], in_channels: int, step: int, val: dict,
+                  selection: str, history: list) -> dict[str, Any]:
+    """The checkpoint dict of ``actor`` (its weights copied: later optimiser steps do not change it)."""
+    return {"actor": {k: v.detach().clone() for k, v in actor.state_dict().items()}, "conf": conf,
+            "in_channels": int(in_channels), "step": step, "val": val, "selection": selection, "history": list(history)}
+
+
+def write(path: str | Path, payload: dict[str, Any]) -> None:
+    """Write a checkpoint atomically (a killed write leaves the previous file)."""
+    with atomic_path(path) as tmp:
+        torch.save(payload, tmp)
+
+
+def load_actor(path: str | Path, device: str | torch.device = "cpu") -> tuple[Actor, dict]:
+    """Load an actor checkpoint -> (actor in eval mode, training conf); RlsacError on a missing or bad file."""
+    path = Path(path)
+    if not path.is_file():
+        raise RlsacError(f"{path}: no such checkpoint")
+    try:
+        ckpt = load_torch(path, device)  # a text or h5 file: one-line error
+        conf = ckpt["conf"]
+        actor = Actor(ckpt["in_channels"], build(PolicyConf, conf["policy"])).to(device)
+        actor.load_state_dict(ckpt["actor"])
+    except (KeyError, RuntimeError, EOFError, ValueError, TypeError) as e:
+        raise RlsacError(f"{path}: not an rlsac checkpoint ({e.__class__.__name__}: {str(e)[:80]})") from None
+    actor.eval()
+    return actor, conf
+
+
+def env_conf(ckpt_conf: dict | None, steps_per_episode: int | None = None) -> EnvConf:
+    """The environment a checkpoint was trained with (its ``env`` section), psi optionally overridden."""
+    env = dict((ckpt_conf or {}).get("env") or {})
+    if steps_per_episode is not None:
+        env["steps_per_episode"] = int(steps_per_episode)
+    return build(EnvConf, env, "checkpoint env")
+
+
+def task_options(ckpt_conf: dict[str, Any]) -> dict[str, Any]:
+    """Task options stored in a checkpoint conf: ``task`` as a dict of options (with an optional
+    ``name``), or ``task`` as the task name beside a ``task_options`` dict (rlsac.train.TrainConf)."""
+    stored = ckpt_conf.get("task")
+    if isinstance(stored, dict):
+        return dict(stored)
+    options = dict(ckpt_conf.get("task_options") or {})
+    if isinstance(stored, str):
+        options["name"] = stored
+    return options
