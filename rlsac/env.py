@@ -146,48 +146,71 @@ class SampleConsensusEnv:
 
     def step(self, idx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Apply minimal sets idx (R, m). Returns reward (R,), done (R,), active-before-step (R,)."""
-        task, conf, psi = self.task, self.conf, self.conf.steps_per_episode
         act = self.active
+        hyps, valid, res, count = self._score(idx)
+        reward = self._reward(count)
+        self._update_memory(idx, res, act)
+        self._remember_sets(idx, act)
+        self._update_best(hyps, count, res, act)
+        done = self._terminate(count, act)
+        newly = act & done
+        self.done = self.done | done
+        return reward * act, newly, act
+
+    def _score(self, idx: torch.Tensor):
+        """Hypotheses of the sets idx (R, m) -> hyps, valid (R,), residuals (R, N) (+inf for invalid rows
+        and padding), inlier counts (R,) (0 for invalid rows)."""
+        task = self.task
         hyps, valid, res, _ = score_sets(task, gather_points(self.coords, idx), self.coords, self.mask)
         res = torch.where(valid[:, None] & self.mask, res, torch.full_like(res, float("inf")))
         inl = (res <= task.threshold) & self.mask
-        count = inl.sum(-1).masked_fill(~valid, 0)
-        reward = count.float() / self.n_valid
-        if conf.reward == "improvement":
-            reward = (reward - self.ep_best.clamp_min(0).float() / self.n_valid).clamp_min(0.0)
+        self.last_hyps, self.last_inliers = hyps, inl
+        return hyps, valid, res, inl.sum(-1).masked_fill(~valid, 0)
 
-        # memory features of the next state (only rows that acted change)
+    def _reward(self, count: torch.Tensor) -> torch.Tensor:
+        """The inlier ratio (paper), or its gain over the episode's best so far (``reward="improvement"``)."""
+        reward = count.float() / self.n_valid
+        if self.conf.reward == "improvement":
+            reward = (reward - self.ep_best.clamp_min(0).float() / self.n_valid).clamp_min(0.0)
+        return reward
+
+    def _update_memory(self, idx: torch.Tensor, res: torch.Tensor, act: torch.Tensor) -> None:
+        """The memory features of the next state; only rows that acted change."""
+        conf = self.conf
         onehot = torch.zeros_like(self.action, dtype=torch.bool).scatter_(1, idx, True)
         a = act[:, None]
         self.action = torch.where(a, onehot.float() * 2 - 1, self.action)
-        r_feat = (res / task.threshold).clamp(max=conf.residual_clip) / conf.residual_clip
+        r_feat = (res / self.task.threshold).clamp(max=conf.residual_clip) / conf.residual_clip
         self.residual = torch.where(a, r_feat.masked_fill(~self.mask, 1.0), self.residual)
         self.history = self.history + (onehot & a).float()
 
-        # de-duplication memory, then the best hypothesis of each instance over all episodes
+    def _remember_sets(self, idx: torch.Tensor, act: torch.Tensor) -> None:
+        """The de-duplication memory: this step's set keys of the active rows, per instance."""
         keys = set_keys(idx, self.N).masked_fill(~act, -1).view(self.B, self.E)
         self.used[:, self.t * self.E : (self.t + 1) * self.E] = keys
+
+    def _update_best(self, hyps: torch.Tensor, count: torch.Tensor, res: torch.Tensor, act: torch.Tensor) -> None:
+        """The best hypothesis of each instance over all its episodes (with LO if ``conf.lo``)."""
         c = count.masked_fill(~act, -1).view(self.B, self.E)
         coords, mask = self.instances()
-        self.best = update_best(task, conf.lo, coords, mask, self.best, hyps.view(self.B, self.E, *hyps.shape[1:]),
-                                c, res.view(self.B, self.E, -1), self.gen)
+        self.best = update_best(self.task, self.conf.lo, coords, mask, self.best,
+                                hyps.view(self.B, self.E, *hyps.shape[1:]), c, res.view(self.B, self.E, -1), self.gen)
         self.best_hyp, self.best_count = self.best.hyp, self.best.count
         self.hypotheses += int(act.sum())
-        self.last_hyps, self.last_inliers = hyps, inl
 
-        # termination: psi always; kappa and varsigma only while training
+    def _terminate(self, count: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
+        """Advance the clock; -> done (R,): psi steps always, kappa / varsigma only while training."""
+        conf = self.conf
         self.same_count = torch.where(count == self.count, self.same_count + 1, torch.zeros_like(count))
         improved = count > self.ep_best
         self.no_better = torch.where(improved, torch.zeros_like(count), self.no_better + 1)
         self.ep_best = torch.maximum(self.ep_best, count)
         self.count = torch.where(act, count, self.count)
         self.t += 1
-        done = torch.full_like(act, self.t >= psi)
+        done = torch.full_like(act, self.t >= conf.steps_per_episode)
         if self.training:
             done = done | (self.same_count >= conf.kappa) | (self.no_better >= conf.varsigma)
-        newly = act & done
-        self.done = self.done | done
-        return reward * act, newly, act
+        return done
 
     # ---------------------------------------------------------------- output
     def instances(self) -> tuple[torch.Tensor, torch.Tensor]:

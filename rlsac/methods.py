@@ -20,6 +20,7 @@ class Method:
     needs: str | None = None  # task capability: "match_quality", "opencv_fit", "true_inlier_data"
     checkpoint: bool = False  # needs --checkpoint
     lo: bool = False  # the *-lo variant of a base method (rlsac.lo), not in the paper
+    label: str = ""  # its name in tables and figures
 
     def unsupported(self, task_cls: type, tasks: dict[str, type]) -> str | None:
         """Why this method cannot run on ``task_cls`` (None when it can); ``tasks``: the registry."""
@@ -35,18 +36,18 @@ CAPABILITIES = {"match_quality": "per-point match quality (the SNN ratio)", "ope
 METHODS: dict[str, Method] = {}
 
 
-def register_method(name: str, needs: str | None = None, checkpoint: bool = False, lo: bool = False):
-    """Decorator: register ``build`` as method ``name`` (unique)."""
+def register_method(name: str, label: str, needs: str | None = None, checkpoint: bool = False, lo: bool = False):
+    """Decorator: register ``build`` as method ``name`` (unique), shown as ``label`` in tables and figures."""
     def deco(build):
         if name in METHODS:
             raise ValueError(f"method '{name}' is registered twice")
-        METHODS[name] = Method(name, build, needs, checkpoint, lo)
+        METHODS[name] = Method(name, build, needs, checkpoint, lo, label)
         return build
     return deco
 
 
 # ------------------------------------------------------------------------------ our samplers
-@register_method("ransac")
+@register_method("ransac", "RANSAC (our batched torch)")
 def _ransac(o, device, lo=None):
     """Our batched RANSAC (uniform sets, inlier count, refinement), any task."""
     from rlsac.baselines import ransac
@@ -56,7 +57,7 @@ def _ransac(o, device, lo=None):
     return task, lambda batch, g: ransac(task, batch, o["iterations"], g, lo=lo), {}
 
 
-@register_method("oracle", needs="true_inlier_data")
+@register_method("oracle", "Oracle (refit on the true inliers)", needs="true_inlier_data")
 def _oracle(o, device, lo=None):
     """The refinement on the true inliers: the headroom of any sampler (synthetic data only)."""
     from rlsac.baselines import oracle
@@ -81,13 +82,13 @@ def _environment(o, lo, guide=None):
     return task, estimate, {"steps_per_episode": env.steps_per_episode}
 
 
-@register_method("uniform")
+@register_method("uniform", "Uniform (RLSAC env., uniform sets)")
 def _uniform(o, device, lo=None):
     """The RLSAC environment with uniform minimal sets: RLSAC - uniform is the learned sampler alone."""
     return _environment(o, lo)
 
 
-@register_method("guided", needs="match_quality")
+@register_method("guided", "Guided (RLSAC env., sets drawn by SNN; not in the paper)", needs="match_quality")
 def _guided(o, device, lo=None):
     """The same environment, sets drawn ~ exp(-quality / guide_temperature): a hand-made guided sampler
     with the policy's side information (not in the paper)."""
@@ -96,7 +97,7 @@ def _guided(o, device, lo=None):
     return task, estimate, {**extra, "guide_temperature": tau}
 
 
-@register_method("rlsac", checkpoint=True)
+@register_method("rlsac", "RLSAC", checkpoint=True)
 def _rlsac(o, device, lo=None):
     """The learned sampler of ``o['checkpoint']`` in its own environment."""
     from rlsac.checkpoint import env_conf, load_actor, task_options
@@ -134,10 +135,12 @@ def _opencv(flag: str):
     return build
 
 
-OPENCV_METHODS = {"opencv_ransac": "ransac", "usac": "usac", "usac_accurate": "usac_accurate", "magsac": "magsac",
-                  "prosac": "prosac"}  # method name -> rlsac.baselines.OPENCV_FLAGS (prosac orders by match_quality)
-for _name, _flag in OPENCV_METHODS.items():
-    register_method(_name, needs="opencv_fit")(_opencv(_flag))
+# method name -> (rlsac.baselines.OPENCV_FLAGS preset, label); prosac orders the matches by match_quality
+OPENCV_METHODS = {"opencv_ransac": ("ransac", "OpenCV RANSAC"), "usac": ("usac", "OpenCV USAC"),
+                  "usac_accurate": ("usac_accurate", "OpenCV USAC_ACCURATE"), "magsac": ("magsac", "OpenCV MAGSAC++"),
+                  "prosac": ("prosac", "OpenCV PROSAC (matches ordered by SNN)")}
+for _name, (_flag, _label) in OPENCV_METHODS.items():
+    register_method(_name, _label, needs="opencv_fit")(_opencv(_flag))
 
 
 # ------------------------------------------------------------------------------ local optimisation
@@ -155,8 +158,8 @@ def _with_lo(base: str):
     return build
 
 
-for _base in ("ransac", "uniform", "rlsac"):  # not in the paper
-    register_method(f"{_base}-lo", needs=METHODS[_base].needs, checkpoint=METHODS[_base].checkpoint,
-                    lo=True)(_with_lo(_base))
+for _base, _label in (("ransac", "RANSAC"), ("uniform", "Uniform"), ("rlsac", "RLSAC")):  # not in the paper
+    register_method(f"{_base}-lo", f"{_label} + LO (not in the paper)", needs=METHODS[_base].needs,
+                    checkpoint=METHODS[_base].checkpoint, lo=True)(_with_lo(_base))
 
 LO_METHODS = tuple(m for m, spec in METHODS.items() if spec.lo)

@@ -32,7 +32,7 @@ from rlsac.io import atomic_path, check_writable, clean_stale_temps, load_torch
 from rlsac.policy import PolicyConf
 from rlsac.rollout import in_channels, rlsac_estimate
 from rlsac.sac import ReplayBuffer, SACAgent, SACConf, seed_everything, train_loop
-from rlsac.tasks import TASKS, get_task, task_class
+from rlsac.tasks import TASKS, Task, get_task, task_class
 from rlsac.tracking import check_store, start_run
 
 SELECTIONS = ("inlier_ratio", "val_mAA", "last")
@@ -70,21 +70,50 @@ class TrainConf:
 
 
 def train(options: dict, track: bool = True) -> dict:
-    conf = build(TrainConf, options, "train")
+    """``rlsac train``: options -> TrainConf; train, keep the selected actor in ``out``; -> a summary."""
+    conf = build(TrainConf, options, "train")  # types and ranges of every section (task, selection, sac, env, ...)
     if not conf.data:
         raise RlsacError("train needs --data")
     out = check_writable(conf.out, "checkpoint")
     state_path = check_writable(out.with_suffix(".state.pt"), "training state")
     check_store(track)
-    if conf.sac.train_sampling not in ("prob", "max"):
-        raise RlsacError(f"sac.train_sampling must be 'prob' or 'max', got {conf.sac.train_sampling!r}")
-    if conf.selection not in SELECTIONS:
-        raise RlsacError(f"selection must be one of {', '.join(SELECTIONS)}, got {conf.selection!r}")
-    if conf.env.reward not in ("inlier_ratio", "improvement"):
-        raise RlsacError(f"env.reward must be 'inlier_ratio' or 'improvement', got {conf.env.reward!r}")
     if conf.threads > 0:
         torch.set_num_threads(conf.threads)
     device = resolve_device(conf.device)
+    task, data, val = _load_data(conf, device)
+    gen = seed_everything(conf.seed)
+    if device.type != "cpu":
+        gen = torch.Generator(device=device).manual_seed(conf.seed)
+    agent = SACAgent(in_channels(task), conf.policy, conf.sac).to(device)
+    for p in (out, state_path):  # left by a process killed while saving
+        clean_stale_temps(p)
+    run = _TrainingRun(conf, task, agent, gen, val, out, state_path, device)
+    if conf.resume:
+        run.resume(data)
+
+    stop = run.stop = _StopOnSignal()
+    with start_run(task_experiment(conf.task), run.name(), run.logged_conf(), tags=run.tags(), enabled=track,
+                   run_id=run.old_run_id) as mlflow_run, stop:
+        run.mlflow_id = mlflow_run.run_id
+        t0 = time.time()
+        run.buffer = train_loop(agent, task, data, conf.env, run.start, gen, log=mlflow_run.metrics,
+                                validate=run.validate if val is not None else None, val_every=conf.val_every,
+                                checkpoint=run.save_state, ckpt_every=conf.ckpt_every, buffer=run.buffer, stop=stop)
+        if stop.signum and run.saved["after_signal"] and run.saved["step"] < conf.sac.total_steps:
+            raise Interrupted(f"interrupted by {signal.Signals(stop.signum).name} at step {run.saved['step']} of "
+                              f"{conf.sac.total_steps}: state saved to {state_path}; continue with --resume",
+                              stop.signum)
+        final = run.finish()
+        seconds = time.time() - t0
+        mlflow_run.metrics({"time/train_seconds": seconds})
+        mlflow_run.artifact(out, "checkpoint")
+    return {"checkpoint": str(out), "state": str(state_path), "steps": conf.sac.total_steps,
+            "seconds": round(seconds, 1), "selection": conf.selection, "best_score": run.best["score"],
+            "best_step": run.best.get("step"), "final_val": final}
+
+
+def _load_data(conf: TrainConf, device) -> tuple[Task, dict, dict | None]:
+    """-> (task, training batch with the network's features, validation batch or None)."""
     try:
         task = get_task(conf.task, **conf.task_options)
     except TypeError as e:  # an unknown task option
@@ -98,106 +127,114 @@ def train(options: dict, track: bool = True) -> dict:
     val = load(conf.task, conf.val_data, device) if conf.val_data else None
     if val is not None:
         val = slice_batch(val, slice(0, conf.val_instances))
+    return task, data, val
 
-    gen = seed_everything(conf.seed)
-    if device.type != "cpu":
-        gen = torch.Generator(device=device).manual_seed(conf.seed)
-    agent = SACAgent(in_channels(task), conf.policy, conf.sac).to(device)
-    for p in (out, state_path):  # left by a process killed while saving
-        clean_stale_temps(p)
-    start, best, history = 0, {"score": -1.0}, []
-    buffer, old_run_id, kept = None, None, {"payload": None}
-    if conf.resume:
-        if not state_path.is_file():
-            raise RlsacError(f"{state_path}: nothing to resume from")
-        st = load_torch(state_path, device, "training state")
+
+class _TrainingRun:
+    """What one training run keeps between the training loop's callbacks: the validation history, the
+    best score, the kept actor (``out``) and the training state (``out.state.pt``) with their writes."""
+
+    def __init__(self, conf: TrainConf, task: Task, agent: SACAgent, gen: torch.Generator, val: dict | None,
+                 out: Path, state_path: Path, device) -> None:
+        self.conf, self.task, self.agent, self.gen, self.val = conf, task, agent, gen, val
+        self.out, self.state_path, self.device = out, state_path, device
+        self.conf_dict = to_dict(conf)
+        self.start, self.best, self.history = 0, {"score": -1.0}, []
+        self.buffer: ReplayBuffer | None = None
+        self.kept: dict | None = None  # the checkpoint payload of the kept actor
+        self.old_run_id: str | None = None
+        self.mlflow_id: str | None = None
+        self.saved = {"step": 0, "after_signal": False}  # the last state saved, and whether a signal preceded it
+        self.stop: _StopOnSignal | None = None
+
+    # ------------------------------------------------------------ MLflow run
+    def name(self) -> str:
+        conf = self.conf
+        name = conf.run_name or f"train {conf.task} {self.out.stem} ({Path(conf.data).stem})"
+        return name + (f" resumed at {self.start}" if conf.resume else "")
+
+    def logged_conf(self) -> dict:
+        return {k: v for k, v in self.conf_dict.items() if k != "resume"}
+
+    def tags(self) -> dict:
+        tags = {"command": "train", **self.conf.tags, "out": str(self.out)}
+        if self.old_run_id:
+            tags["resumed_from"] = self.old_run_id
+        return tags
+
+    # ------------------------------------------------------------ resume
+    def resume(self, data: dict) -> None:
+        """Restore agent, optimisers, RNG, buffer, history and kept actor from the state file; rewrite
+        ``out`` from it when a kill between the two writes left another step there."""
+        agent = self.agent
+        if not self.state_path.is_file():
+            raise RlsacError(f"{self.state_path}: nothing to resume from")
+        st = load_torch(self.state_path, self.device, "training state")
         try:
             agent.load_state_dict(st["agent"])
             for name in ("q_opt", "actor_opt", "alpha_opt"):
                 getattr(agent, name).load_state_dict(st[name])
-            start, best, history = st["step"], {"score": -1.0, **st["best"]}, st.get("history", [])
-            gen.set_state(st["generator"].to(gen.device) if device.type == "cpu" else st["generator"])
+            self.start, self.best, self.history = st["step"], {"score": -1.0, **st["best"]}, st.get("history", [])
+            self.gen.set_state(st["generator"].to(self.gen.device) if self.device.type == "cpu" else st["generator"])
             if st.get("buffer") is not None:
-                buffer = ReplayBuffer(conf.sac.buffer_size, data["mask"].shape[1], task.sample_size, device)
-                buffer.load_state_dict(st["buffer"])
+                self.buffer = ReplayBuffer(self.conf.sac.buffer_size, data["mask"].shape[1], self.task.sample_size,
+                                           self.device)
+                self.buffer.load_state_dict(st["buffer"])
         except (KeyError, RuntimeError, ValueError, TypeError) as e:
-            raise RlsacError(f"{state_path}: does not fit this configuration and data "
+            raise RlsacError(f"{self.state_path}: does not fit this configuration and data "
                              f"({e.__class__.__name__}: {' '.join(str(e).split())[:100]})") from None
-        old_run_id, kept["payload"] = st.get("mlflow_run_id"), st.get("kept_actor")
-        if kept["payload"] is not None:  # the pair: out must hold the actor the state kept
+        self.old_run_id, self.kept = st.get("mlflow_run_id"), st.get("kept_actor")
+        self.saved["step"] = self.start
+        if self.kept is not None:  # the pair: out must hold the actor the state kept
             try:
-                on_disk = load_torch(out, "cpu")
+                on_disk = load_torch(self.out, "cpu")
             except RlsacError:
                 on_disk = {}
-            if on_disk.get("step") != kept["payload"].get("step"):
-                checkpoint.write(out, kept["payload"])
-    conf_dict = to_dict(conf)
-    logged_conf = {k: v for k, v in conf_dict.items() if k != "resume"}
-    run_name = conf.run_name or f"train {conf.task} {out.stem} ({Path(conf.data).stem})"
-    if conf.resume:
-        run_name += f" resumed at {start}"
-    tags = {"command": "train", **conf.tags, "out": str(out)}
-    if old_run_id:
-        tags["resumed_from"] = old_run_id
-    mlflow_run: dict = {}
+            if on_disk.get("step") != self.kept.get("step"):
+                checkpoint.write(self.out, self.kept)
 
-    def save_actor(step: int, metrics: dict) -> None:
-        kept["payload"] = checkpoint.actor_payload(agent.actor, conf_dict, in_channels(task), step, metrics,
-                                                   conf.selection, history)
-        checkpoint.write(out, kept["payload"])
+    # ------------------------------------------------------------ callbacks of the training loop
+    def validate(self, step: int) -> dict:
+        """Validate the actor; keep it (``out``) when it beats the best score of the selection rule."""
+        summ = validation_metrics(self.task, self.val, self.agent, self.conf, self.device)
+        self.history.append({"step": step, **summ})
+        score = summ[SELECTION_KEY.get(self.conf.selection, "charts/val_mAA")]
+        if self.conf.selection != "last" and score > self.best["score"]:
+            self.best.update(score=score, step=step, **summ)
+            self.save_actor(step, summ)
+        return summ
 
-    def save_state(step: int, buf=None) -> None:
-        nonlocal buffer
-        buffer = buf if buf is not None else buffer
-        if val is None or conf.selection == "last":  # the latest actor is the one to keep
-            save_actor(step, history[-1] if history else {})
-        # one file holds everything a resume needs, the kept actor included: a kill between this write and
-        # the actor's leaves a pair that --resume repairs from here
-        with atomic_path(state_path) as tmp:
+    def save_actor(self, step: int, metrics: dict) -> None:
+        self.kept = checkpoint.actor_payload(self.agent.actor, self.conf_dict, in_channels(self.task), step, metrics,
+                                             self.conf.selection, self.history)
+        checkpoint.write(self.out, self.kept)
+
+    def save_state(self, step: int, buf=None) -> None:
+        """Everything a resume needs, the kept actor included, in one file: a kill between this write and
+        the actor's leaves a pair that --resume repairs from here."""
+        agent = self.agent
+        self.buffer = buf if buf is not None else self.buffer
+        if self.val is None or self.conf.selection == "last":  # the latest actor is the one to keep
+            self.save_actor(step, self.history[-1] if self.history else {})
+        with atomic_path(self.state_path) as tmp:
             torch.save({"agent": agent.state_dict(), "q_opt": agent.q_opt.state_dict(),
                         "actor_opt": agent.actor_opt.state_dict(), "alpha_opt": agent.alpha_opt.state_dict(),
-                        "step": step, "best": best, "history": history, "generator": gen.get_state(),
-                        "buffer": buffer.state_dict() if buffer is not None else None,
-                        "kept_actor": kept["payload"], "mlflow_run_id": mlflow_run.get("id"),
-                        "conf": conf_dict}, tmp)
-        saved.update(step=step, after_signal=bool(stop.signum))
+                        "step": step, "best": self.best, "history": self.history, "generator": self.gen.get_state(),
+                        "buffer": self.buffer.state_dict() if self.buffer is not None else None,
+                        "kept_actor": self.kept, "mlflow_run_id": self.mlflow_id, "conf": self.conf_dict}, tmp)
+        self.saved.update(step=step, after_signal=bool(self.stop is not None and self.stop.signum))
 
-    saved = {"step": start, "after_signal": False}
-    stop = _StopOnSignal()
-    with start_run(task_experiment(conf.task), run_name, logged_conf, tags=tags, enabled=track,
-                   run_id=old_run_id) as run, stop:
-        mlflow_run["id"] = run.run_id
-
-        def validate(step: int) -> dict:
-            summ = validation_metrics(task, val, agent, conf, device)
-            history.append({"step": step, **summ})
-            score = summ[SELECTION_KEY.get(conf.selection, "charts/val_mAA")]
-            if conf.selection != "last" and score > best["score"]:
-                best.update(score=score, step=step, **summ)
-                save_actor(step, summ)
-            return summ
-
-        t0 = time.time()
-        buffer = train_loop(agent, task, data, conf.env, start, gen, log=run.metrics,
-                            validate=validate if val is not None else None, val_every=conf.val_every,
-                            checkpoint=save_state, ckpt_every=conf.ckpt_every, buffer=buffer, stop=stop)
-        if stop.signum and saved["after_signal"] and saved["step"] < conf.sac.total_steps:
-            raise Interrupted(f"interrupted by {signal.Signals(stop.signum).name} at step {saved['step']} of "
-                              f"{conf.sac.total_steps}: state saved to {state_path}; continue with --resume",
-                              stop.signum)
-        done_before = bool(history) and history[-1]["step"] == conf.sac.total_steps
-        final = ({} if val is None else history[-1] if done_before else validate(conf.sac.total_steps))
-        if kept["payload"] is not None and conf.selection != "last":  # the kept actor carries the whole curve
-            kept["payload"]["history"] = list(history)
-            checkpoint.write(out, kept["payload"])
-        save_state(conf.sac.total_steps)
-        seconds = time.time() - t0
-        run.metrics({"time/train_seconds": seconds})
-        run.artifact(out, "checkpoint")
-    summary = {"checkpoint": str(out), "state": str(state_path), "steps": conf.sac.total_steps,
-               "seconds": round(seconds, 1), "selection": conf.selection, "best_score": best["score"],
-               "best_step": best.get("step"), "final_val": final}
-    return summary
+    def finish(self) -> dict:
+        """The final validation (unless the last one was at the final step), the kept actor with the whole
+        learning curve, and the final state; -> the final validation metrics."""
+        conf, steps = self.conf, self.conf.sac.total_steps
+        done_before = bool(self.history) and self.history[-1]["step"] == steps
+        final = {} if self.val is None else self.history[-1] if done_before else self.validate(steps)
+        if self.kept is not None and conf.selection != "last":  # the kept actor carries the whole curve
+            self.kept["history"] = list(self.history)
+            checkpoint.write(self.out, self.kept)
+        self.save_state(steps)
+        return final
 
 
 SELECTION_KEY = {"inlier_ratio": "charts/val_inlier_ratio", "val_mAA": "charts/val_mAA"}

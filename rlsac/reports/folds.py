@@ -23,19 +23,20 @@ import numpy as np
 import pandas as pd
 
 from rlsac.io import atomic_path, write_text
+from rlsac.methods import METHODS
 from rlsac.metrics import mAA, paired_bootstrap_maa
 
 LIMIT = 10.0  # mAA@10 deg (the tutorial's and Table 2's)
 N_BOOT = 2000
-NAMES = {"uniform": "Uniform (RLSAC env., uniform sets)", "ransac": "RANSAC (our batched torch)",
-         "opencv_ransac": "OpenCV RANSAC", "usac": "OpenCV USAC", "usac_accurate": "OpenCV USAC_ACCURATE",
-         "magsac": "OpenCV MAGSAC++", "prosac": "OpenCV PROSAC (matches ordered by SNN)",
-         "guided": "Guided (RLSAC env., sets drawn by SNN; not in the paper)", "rlsac": "RLSAC (paper recipe)",
-         "rlsac-ws": "RLSAC + warm start, GT selection (not in the paper)",
-         "rlsac-1k": "RLSAC (paper recipe, 1000 SAC steps)",
-         "rlsac-nosnn": "RLSAC without the SNN ratio (not in the paper)",
-         "ransac-lo": "RANSAC + LO (not in the paper)", "rlsac-lo": "RLSAC + LO (not in the paper)",
-         "rlsac-ws-lo": "RLSAC + warm start, GT selection + LO (not in the paper)"}
+# row labels: each registered method's (rlsac.methods), the fold models' (RLSAC variants of folds.models) here;
+# rows follow ROW_ORDER, then any other method or model alphabetically
+MODEL_NAMES = {"rlsac": "RLSAC (paper recipe)", "rlsac-ws": "RLSAC + warm start, GT selection (not in the paper)",
+               "rlsac-1k": "RLSAC (paper recipe, 1000 SAC steps)",
+               "rlsac-nosnn": "RLSAC without the SNN ratio (not in the paper)",
+               "rlsac-ws-lo": "RLSAC + warm start, GT selection + LO (not in the paper)"}
+ROW_ORDER = ("uniform", "ransac", "opencv_ransac", "usac", "usac_accurate", "magsac", "prosac", "guided", "rlsac",
+             "rlsac-ws", "rlsac-1k", "rlsac-nosnn", "ransac-lo", "rlsac-lo", "rlsac-ws-lo")
+NAMES = {**{m: spec.label for m, spec in METHODS.items()}, **MODEL_NAMES}
 REFERENCE = "rlsac"  # paired differences are taken against the paper-recipe RLSAC
 CONTROLS = ("uniform", "guided")  # the learned sampler against uniform sets, and against a hand-made SNN-guided one
 
@@ -85,7 +86,7 @@ def _ci(t: tuple[float, float, float] | None) -> str:
 
 
 def _order(methods) -> list[str]:
-    known = [m for m in NAMES if m in methods]
+    known = [m for m in ROW_ORDER if m in methods]
     return known + sorted(set(methods) - set(known))
 
 
