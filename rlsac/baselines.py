@@ -59,12 +59,14 @@ def oracle(task: Task, batch: dict) -> dict[str, torch.Tensor]:
 
 
 def finalize(task: Task, coords, mask, hyp, valid) -> dict[str, torch.Tensor]:
-    """Refine ``hyp`` on its inliers; keep the unrefined hypothesis where refinement fails."""
+    """Refine ``hyp`` on its inliers (unless the task's ``refit_output`` is off); keep the unrefined
+    hypothesis where refinement fails."""
     inl = (task.residuals(hyp, coords) <= task.threshold) & mask & valid[:, None]
-    ref, ok = task.refine(coords, inl)
-    ok = ok & valid
-    hyp = torch.where(ok.view(-1, *[1] * (hyp.dim() - 1)), ref, hyp)
-    inl = (task.residuals(hyp, coords) <= task.threshold) & mask & valid[:, None]
+    if getattr(task, "refit_output", True):
+        ref, ok = task.refine(coords, inl)
+        ok = ok & valid
+        hyp = torch.where(ok.view(-1, *[1] * (hyp.dim() - 1)), ref, hyp)
+        inl = (task.residuals(hyp, coords) <= task.threshold) & mask & valid[:, None]
     return {"hyp": hyp, "valid": valid, "inliers": inl, "best_count": inl.sum(-1)}
 
 

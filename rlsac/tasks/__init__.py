@@ -30,6 +30,9 @@ class Task(Protocol):
     threshold: float  # inlier threshold on ``residuals``
     feature_dim: int  # c, channels of ``features(batch)``, the network's data features
     solutions: int  # S, hypotheses per minimal set (``solve`` returns (B, S, *H) when S > 1)
+    # (optional, default True) the output is refined on its inliers (rlsac.baselines.finalize); LO's refits
+    # (rlsac.lo) are kept only when they score better, whatever this says
+    refit_output: bool
 
     @staticmethod
     def read(path) -> tuple[dict[str, np.ndarray], dict]:

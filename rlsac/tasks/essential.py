@@ -24,7 +24,7 @@ from rlsac.tasks import register_task
 from rlsac.tasks.fundamental import FundamentalTask, recover_pose
 
 # Our Strecha copy is imported at 1024 x 683 px with f = 920 px (every pair), so thresholds in normalised
-# units are pixels / 920: 2 px as the fundamental task's, 0.75 px as its OpenCV baselines'.
+# units are pixels / 920.
 STRECHA_FOCAL = 920.0
 
 
@@ -36,9 +36,15 @@ class EssentialTask(FundamentalTask):
     residual_dof: ClassVar[int] = 4
     opencv_threshold: ClassVar[float] = 0.75 / STRECHA_FOCAL
 
-    # Sampson distance in normalised image coordinates; 2 px at f = 920 px, as the fundamental task's 2 px
-    threshold: float = 2.0 / STRECHA_FOCAL
+    # Sampson distance in normalised image coordinates: 0.75 px at f = 920 px, as the OpenCV baselines'. Chosen on
+    # the castle fold's validation pairs (hard, 80 pairs, our RANSAC at 1k, no refit): 0.75 / 1 / 1.5 / 2 px gave
+    # mAA R 0.844 / 0.833 / 0.832 / 0.847, t 0.836 / 0.814 / 0.802 / 0.780
+    threshold: float = 0.75 / STRECHA_FOCAL
     residual: str = "sampson"
+    # The output is the best minimal model (as OpenCV's RANSAC): the 8-point least-squares refit projected onto the
+    # essential manifold loses inliers on the near-planar facades (same validation pairs, 1 px: mAA R 0.753 with
+    # the refit, 0.833 without). LO (the *-lo methods) still refits, keeping a refit only when it scores better.
+    refit_output: bool = False
     name: str = "essential"
     sample_size: int = 5
     solutions: int = 10  # the five-point solver's candidates per minimal set (up to 10 real roots)
