@@ -59,9 +59,10 @@ from rlsac.errors import RlsacError  # noqa: E402
 from rlsac.io import atomic_path  # noqa: E402
 
 FIGURES = ("fundamental_iterations", "line_steps", "fundamental_pair", "fundamental_steps", "folds_iterations",
-           "learning_curves")
+           "learning_curves", "essential_iterations")
 SHORT = {"iterations": "fundamental_iterations", "line": "line_steps", "pair": "fundamental_pair",
-         "steps": "fundamental_steps", "folds": "folds_iterations", "curves": "learning_curves"}
+         "steps": "fundamental_steps", "folds": "folds_iterations", "curves": "learning_curves",
+         "essential": "essential_iterations"}
 DEFAULTS: dict[str, Any] = {
     "which": "all",
     "out_dir": "reports/figures",
@@ -69,6 +70,7 @@ DEFAULTS: dict[str, Any] = {
     "reports_dir": "reports",
     "iterations_csv": None,
     "folds_iterations_csv": "reports/folds_iterations.csv",  # rlsac table --which folds
+    "essential_iterations_csv": "reports/essential_iterations.csv",  # rlsac table --which essential
     "folds_checkpoints": "checkpoints/folds",  # <regime>/<fold>/<model>.pt with their validation history
     "line_data": "data/lines/test_o0.7.h5",
     "line_checkpoint": "checkpoints/line_o0.7.pt",
@@ -436,6 +438,8 @@ def check_inputs(o: dict[str, Any]) -> list[str]:
         problems.append(f"{o['iterations_csv']}: no such iterations CSV")
     if "folds_iterations" in o["which"] and not Path(o["folds_iterations_csv"]).is_file():
         problems.append(f"{o['folds_iterations_csv']}: no such file (rlsac table --which folds)")
+    if "essential_iterations" in o["which"] and not Path(o["essential_iterations_csv"]).is_file():
+        problems.append(f"{o['essential_iterations_csv']}: no such file (rlsac table --which essential)")
     if "learning_curves" in o["which"] and not list(Path(o["folds_checkpoints"]).glob("*/*/*.pt")):
         problems.append(f"{o['folds_checkpoints']}: no fold checkpoints (rlsac folds --stage train)")
     if "line_steps" in o["which"]:
@@ -561,12 +565,14 @@ def plot(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
 
                         df = iterations_csv(o["eval_root"], tmp)  # rebuilt, not written over reports/
                     paths, note = plot_iterations(df, Path(tmp))
-                elif name in ("folds_iterations", "learning_curves"):
+                elif name in ("folds_iterations", "essential_iterations"):
                     from rlsac.reports import fold_figures
 
-                    paths, note = (fold_figures.plot_folds_iterations(o["folds_iterations_csv"], Path(tmp))
-                                   if name == "folds_iterations"
-                                   else fold_figures.plot_learning_curves(o["folds_checkpoints"], Path(tmp)))
+                    paths, note = fold_figures.plot_folds_iterations(o[f"{name}_csv"], Path(tmp), name)
+                elif name == "learning_curves":
+                    from rlsac.reports import fold_figures
+
+                    paths, note = fold_figures.plot_learning_curves(o["folds_checkpoints"], Path(tmp))
                 elif name == "line_steps":
                     paths, note = plot_line_steps(o, Path(tmp))
                 elif name == "fundamental_pair":

@@ -1,7 +1,8 @@
 """Figures of the fold benchmark: pooled mAA against the budget, and the models' learning curves.
 
 * ``folds_iterations``: reports/folds_iterations.csv (``rlsac table --which folds``), one panel per regime and
-  error (R, t), every method's pooled mAA@10° against the iteration budget (log x).
+  error (R, t), every method's pooled mAA@10° against the iteration budget (log x); ``essential_iterations``:
+  the same of Table E (reports/essential_iterations.csv, ``rlsac table --which essential``).
 * ``learning_curves``: the validation history every fold checkpoint carries (``history``: validation mAA and
   mean inlier ratio of the final hypotheses per SAC step, the same values MLflow logs as ``charts/val_*``),
   one line per fold, one column per model; the kept step is marked.
@@ -38,10 +39,12 @@ def _save(fig, out_dir: Path, name: str) -> list[str]:
     return paths
 
 
-def plot_folds_iterations(csv: str | Path, out_dir: Path) -> tuple[list[str], str]:
+def plot_folds_iterations(csv: str | Path, out_dir: Path, name: str = "folds_iterations") -> tuple[list[str], str]:
+    """Pooled mAA against the budget from a fold table's iterations CSV (Table 2 folds: folds_iterations,
+    Table E: essential_iterations), saved as ``name``."""
     csv = Path(csv)
     if not csv.is_file():
-        raise RlsacError(f"{csv}: no such file (run `rlsac table --which folds` first)")
+        raise RlsacError(f"{csv}: no such file (run `rlsac table --which {name.split('_')[0]}` first)")
     df = pd.read_csv(csv)
     if df.empty:
         raise RlsacError(f"{csv}: no results to plot")
@@ -61,7 +64,7 @@ def plot_folds_iterations(csv: str | Path, out_dir: Path) -> tuple[list[str], st
             ax.set_title(f"{regime} regime, {int(d['n_pairs'].max())} test pairs over all folds")
             ax.grid(alpha=0.3)
     axes[0, 1].legend(loc="lower right", fontsize=8)
-    return _save(fig, out_dir, "folds_iterations"), ""
+    return _save(fig, out_dir, name), ""
 
 
 def plot_learning_curves(ckpt_root: str | Path, out_dir: Path) -> tuple[list[str], str]:

@@ -442,7 +442,8 @@ def build(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
                 from rlsac.reports import folds
 
                 extra = {} if key == "folds" else {"sub": "essential", "stem": "tableE_essential",
-                                                   "iterations_stem": None, "head": folds.TABLE_E_HEAD}
+                                                   "iterations_stem": "essential_iterations",
+                                                   "head": folds.TABLE_E_HEAD}
                 got = folds.build(eval_root, out_dir, Path(out_dir) / "folds" / "data", **extra)
                 files += got["files"]
                 missing += got["missing"]
