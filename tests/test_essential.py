@@ -220,6 +220,14 @@ def test_essential_through_train_and_evaluate(workdir):
     md = (workdir / "reports/tableE_essential.md").read_text()
     assert md.startswith("# Table E (not in the paper)") and "4 test pairs pooled over 1 folds" in md
     assert "RANSAC (our batched torch)" in md and "R − rlsac" in md
+    # each cell's config.json must match its folder: a result moved under another budget is refused
+    cfg = workdir / ev / "ransac/i200/config.json"
+    cfg.write_text(json.dumps({**json.loads(cfg.read_text()), "iterations": 100}))
+    before = md
+    r = run("table", "--which", "essential", "--no-tracking")
+    assert r.exit_code == 2 and "holds method 'ransac' (no checkpoint) at 100 iterations" in r.stderr
+    assert (workdir / "reports/tableE_essential.md").read_text() == before
+    cfg.write_text(json.dumps({**json.loads(cfg.read_text()), "iterations": 200}))
     r = run("plot", "--set", "which=essential", "--no-tracking")
     assert r.exit_code == 0, r.output
     assert (workdir / "reports/figures/essential_iterations.png").is_file()

@@ -63,9 +63,29 @@ def collect(eval_root: str | Path = "reports/eval", sub: str = "folds") -> dict[
                     df = _errors(idir)
                     if df is None:
                         continue
+                    _check_cell(idir, mdir.name, int(idir.name[1:]))
                     df = df.assign(fold=fold_dir.name)
                     out.setdefault((regime, mdir.name, int(idir.name[1:])), []).append(df)
     return {k: pd.concat(v, ignore_index=True) for k, v in out.items()}
+
+
+def _check_cell(path: Path, name: str, iterations: int) -> None:
+    """The cell's resolved configuration (config.json, written by evaluate) must be what its folder says:
+    the budget, and the method (an RLSAC model: method rlsac / rlsac-lo with the checkpoint of that name)."""
+    from rlsac.errors import RlsacError
+
+    f = path / "config.json"
+    if not f.is_file():  # results written before evaluate kept its configuration
+        return
+    try:
+        conf = json.loads(f.read_text())
+    except (OSError, ValueError):
+        raise RlsacError(f"{f}: unreadable") from None
+    method, ckpt = conf.get("method"), Path(conf.get("checkpoint") or "").stem
+    is_model = method in ("rlsac", "rlsac-lo") and name in (ckpt, f"{ckpt}-lo", "rlsac", "rlsac-lo")
+    if conf.get("iterations") != iterations or not (method == name or is_model):
+        raise RlsacError(f"{f}: holds method {method!r} ({ckpt or 'no checkpoint'}) at {conf.get('iterations')} "
+                         f"iterations, not the {name!r} at {iterations} its folder names")
 
 
 def _key(df: pd.DataFrame) -> pd.Series:
