@@ -217,8 +217,7 @@ def evaluate_fold(p: dict, regime: str, fold: str, o: dict, track: bool, lo: dic
             s = evaluate({"task": "fundamental", "method": method, "data": str(test),
                           "checkpoint": str(ckpt) if ckpt else None, "iterations": int(it), "seed": int(p["seed"]),
                           "device": o["device"], "out_dir": str(eval_dir(regime, fold, name, it)), "tags": tags,
-                          "lo": lo if method.endswith("-lo") else None,
-                          "guide_temperature": guide_temperature if method == "guided" else None}, track=track)
+                          "lo": lo, "guide_temperature": guide_temperature}, track=track)  # used by those needing them
             out.append({"method": name, "iterations": int(it), "mAA_R": s["mAA_R"], "mAA_t": s["mAA_t"],
                         "seconds": round(s["seconds"], 1)})
     return out

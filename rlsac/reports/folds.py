@@ -82,7 +82,8 @@ def _check_cell(path: Path, name: str, iterations: int) -> None:
     except (OSError, ValueError):
         raise RlsacError(f"{f}: unreadable") from None
     method, ckpt = conf.get("method"), Path(conf.get("checkpoint") or "").stem
-    is_model = method in ("rlsac", "rlsac-lo") and name in (ckpt, f"{ckpt}-lo", "rlsac", "rlsac-lo")
+    spec = METHODS.get(method)
+    is_model = spec is not None and spec.checkpoint and name in (ckpt, f"{ckpt}-lo", method)
     if conf.get("iterations") != iterations or not (method == name or is_model):
         raise RlsacError(f"{f}: holds method {method!r} ({ckpt or 'no checkpoint'}) at {conf.get('iterations')} "
                          f"iterations, not the {name!r} at {iterations} its folder names")
