@@ -76,7 +76,7 @@ def test_quick_profile_is_its_own_dvc_project():
 def test_profiles_have_the_same_keys():
     paper, quick = (_load(p / "params.yaml") for p in PROFILES.values())
     assert sorted(paper) == sorted(quick)
-    for section in ("lines", "fundamental", "ablation", "evaluate"):
+    for section in ("lines", "fundamental", "ablation", "evaluate", "essential"):
         assert sorted(paper[section]) == sorted(quick[section]), section
         for k, v in paper[section].items():
             if isinstance(v, dict) and k not in ("models", "variants"):

@@ -25,7 +25,7 @@ STYLE = {"uniform": ("tab:blue", "x"), "guided": ("tab:cyan", "<"), "prosac": ("
          "ransac": ("tab:purple", "o"), "opencv_ransac": ("tab:gray", "s"),
          "usac": ("tab:orange", "^"), "usac_accurate": ("tab:brown", "v"), "magsac": ("tab:green", "D"),
          "rlsac": ("tab:red", "*"), "rlsac-ws": ("darkred", "P"), "rlsac-1k": ("salmon", "X"),
-         "rlsac-nosnn": ("black", "1"), "ransac-lo": ("violet", "h"),
+         "rlsac-nosnn": ("black", "1"), "rlsac-lean": ("orchid", "2"), "ransac-lo": ("violet", "h"),
          "rlsac-lo": ("crimson", "p"), "rlsac-ws-lo": ("crimson", "p")}
 
 

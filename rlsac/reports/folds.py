@@ -33,9 +33,10 @@ N_BOOT = 2000
 MODEL_NAMES = {"rlsac": "RLSAC (paper recipe)", "rlsac-ws": "RLSAC + warm start, GT selection (not in the paper)",
                "rlsac-1k": "RLSAC (paper recipe, 1000 SAC steps)",
                "rlsac-nosnn": "RLSAC without the SNN ratio (not in the paper)",
-               "rlsac-ws-lo": "RLSAC + warm start, GT selection + LO (not in the paper)"}
+               "rlsac-ws-lo": "RLSAC + warm start, GT selection + LO (not in the paper)",
+               "rlsac-lean": "RLSAC, lean network (~1/6 the multiply-adds; not in the paper)"}
 ROW_ORDER = ("uniform", "ransac", "opencv_ransac", "usac", "usac_accurate", "magsac", "prosac", "guided", "rlsac",
-             "rlsac-ws", "rlsac-1k", "rlsac-nosnn", "ransac-lo", "rlsac-lo", "rlsac-ws-lo")
+             "rlsac-ws", "rlsac-1k", "rlsac-nosnn", "rlsac-lean", "ransac-lo", "rlsac-lo", "rlsac-ws-lo")
 NAMES = {**{m: spec.label for m, spec in METHODS.items()}, **MODEL_NAMES}
 REFERENCE = "rlsac"  # paired differences are taken against the paper-recipe RLSAC
 CONTROLS = ("uniform", "guided")  # the learned sampler against uniform sets, and against a hand-made SNN-guided one
