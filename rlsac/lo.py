@@ -258,9 +258,6 @@ class Best:
                    torch.zeros(B, dtype=torch.long, device=device), torch.zeros(B, dtype=torch.long, device=device),
                    raw=torch.full((B,), -math.inf, dtype=torch.float64, device=device))
 
-    def stats(self) -> dict[str, torch.Tensor | float]:
-        return {"lo_calls": self.lo_calls, "lo_fits": self.lo_fits, "lo_seconds": self.lo_seconds}
-
 
 @torch.no_grad()
 def update_best(task: Task, conf: LOConf | None, coords: torch.Tensor, mask: torch.Tensor, best: Best,

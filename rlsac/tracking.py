@@ -121,16 +121,6 @@ def run_status(run_id: str) -> str | None:
         return None
 
 
-def close_run(run_id: str, status: str = "KILLED", reason: str = "") -> None:
-    """End a run left RUNNING by a killed process (status KILLED, reason as the ``error`` tag)."""
-    import mlflow
-
-    client = mlflow.MlflowClient()
-    if reason:
-        client.set_tag(run_id, "error", reason[:5000])
-    client.set_terminated(run_id, status=status)
-
-
 def _error_tags(e: BaseException) -> dict[str, str]:
     message = " ".join(str(e).split()) or e.__class__.__name__
     if isinstance(e, KeyboardInterrupt) and not str(e):
