@@ -190,6 +190,8 @@ def train(task: str, tracking: bool, params_path: str, sets: tuple[str, ...], **
 @click.option("--iterations", type=int, help="Hypotheses per instance [default: params.yaml evaluate.<task>].")
 @click.option("--steps-per-episode", type=int, help="RLSAC episode length [default: checkpoint's, else 15].")
 @click.option("--sampling", type=click.Choice(["max", "prob"]), help="RLSAC test-time sampling [default: max].")
+@click.option("--policy-every", type=int, help="RLSAC: recompute the policy every N steps, reusing its logits "
+                                               "in between (not in the paper; reports/speed.md) [default: 1].")
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--batch-size", type=int, default=256, show_default=True)
 @click.option("--threads", type=int, help="torch CPU threads on cpu, 0 = torch's default [default: 1, the fastest "

@@ -60,6 +60,9 @@ DEFAULTS: dict[str, Any] = {
     # of {0.02, 0.05, 0.1, 0.2} on the hard-regime fold validation pairs at 100 iterations (reports/folds.md)
     "guide_temperature": 0.1,
     "lo": None,  # *-lo methods: rlsac.lo.LOConf options (params.yaml evaluate.<task>.lo); ignored by the others
+    # RLSAC: recompute the policy's logits every this many steps (1 = every step, the paper; a speed lever of
+    # issue #17 that changes the algorithm: reports/speed.md)
+    "policy_every": 1,
 }
 
 
@@ -124,6 +127,7 @@ def check_options(options: dict[str, Any]) -> dict[str, Any]:
             raise RlsacError(f"steps_per_episode must be positive, got {o['steps_per_episode']}")
     o["seed"] = check_value("seed", o["seed"], int, SEED_RANGE)
     o["sampling"] = check_value("sampling", o["sampling"], str, ("max", "prob"))
+    o["policy_every"] = check_value("policy_every", o["policy_every"], int, "[1, inf)")
     if not Path(o["data"]).is_file():
         raise RlsacError(f"{o['data']}: no such file")
     if o["out_dir"] is None:

@@ -110,7 +110,8 @@ def _rlsac(o, device, lo=None):
     env = with_lo(env_conf(ckpt_conf, o["steps_per_episode"]), lo)
 
     def estimate(batch, g):
-        return rlsac_estimate(task, batch, actor, o["iterations"], env, sampling=o["sampling"], generator=g)
+        return rlsac_estimate(task, batch, actor, o["iterations"], env, sampling=o["sampling"], generator=g,
+                              policy_every=o["policy_every"])
 
     return task, estimate, {"steps_per_episode": env.steps_per_episode}
 

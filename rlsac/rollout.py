@@ -16,7 +16,8 @@ from rlsac.tasks import Task
 @torch.no_grad()
 def rlsac_estimate(task: Task, batch: dict, actor: Actor | None, iterations: int, env_conf: EnvConf | None = None,
                    sampling: str = "max", generator: torch.Generator | None = None,
-                   record: bool = False, reference: bool = False, guide: torch.Tensor | None = None) -> dict:
+                   record: bool = False, reference: bool = False, guide: torch.Tensor | None = None,
+                   policy_every: int = 1) -> dict:
     """Run ceil(iterations / psi) episodes per instance in parallel, at most ``iterations`` hypotheses.
 
     batch: coords (B, N, d), mask (B, N), plus what ``task.features`` needs.
@@ -33,11 +34,17 @@ def rlsac_estimate(task: Task, batch: dict, actor: Actor | None, iterations: int
     (``actor.precompute``) and only the 3 memory channels per step (``actor.forward_memory``), and
     picks minimal sets with ``select_lazily``: the same function, the same final hypotheses
     (tests/test_speed_equivalence.py).
+    policy_every: the policy's logits are recomputed every ``policy_every`` steps and reused in between
+    (the memory features still change every step; a reused set is taken, so the environment's fallback draws
+    from the same probabilities). 1 = every step (the paper). Not in the paper: a speed lever (issue #17,
+    reports/speed.md).
     """
     if sampling not in ("max", "prob"):
         raise RlsacError(f"sampling must be 'max' or 'prob', got {sampling!r}")
     if iterations < 1:
         raise RlsacError(f"iterations must be positive, got {iterations}")
+    if policy_every < 1 or (policy_every > 1 and reference):
+        raise RlsacError(f"policy_every must be >= 1 (1 on the reference path), got {policy_every}")
     if guide is not None and (actor is not None or guide.shape != batch["mask"].shape):
         raise RlsacError(f"guide must be (B, N) = {tuple(batch['mask'].shape)} logits without an actor")
     conf = env_conf or EnvConf()
@@ -56,7 +63,8 @@ def rlsac_estimate(task: Task, batch: dict, actor: Actor | None, iterations: int
         steps.append(_snapshot(env))
     if guide is not None:
         guide = guide.to(feats.dtype).repeat_interleave(episodes, 0)
-    for _ in range(1, psi):
+    logits = None
+    for t in range(1, psi):
         if not env.active.any():
             break
         if guide is not None:  # the guided control: a fixed, hand-made sampling distribution
@@ -69,7 +77,8 @@ def rlsac_estimate(task: Task, batch: dict, actor: Actor | None, iterations: int
                 env.step(env.select(logits, sample=sampling == "prob"))
                 state = env.state()
             else:
-                logits = actor.forward_memory(prepared, env.memory())
+                if logits is None or (t - 1) % policy_every == 0:
+                    logits = actor.forward_memory(prepared, env.memory())
                 env.step(select_lazily(env, logits, sample=sampling == "prob"))
         if record:
             steps.append(_snapshot(env))

@@ -191,9 +191,9 @@ def test_evaluate_rlsac_uses_the_checkpoint_task_options(workdir, monkeypatch):
         return "actor", {"task": "line", "task_options": {"threshold": 0.2},
                          "env": {"steps_per_episode": 5, "residual_clip": 3.0, "candidates": 4}}
 
-    def rlsac_estimate(task, batch, actor, iterations, env_conf, sampling, generator):
+    def rlsac_estimate(task, batch, actor, iterations, env_conf, sampling, generator, policy_every):
         seen.update(threshold=task.threshold, steps=env_conf.steps_per_episode, clip=env_conf.residual_clip,
-                    candidates=env_conf.candidates, sampling=sampling, actor=actor)
+                    candidates=env_conf.candidates, sampling=sampling, actor=actor, policy_every=policy_every)
         return ransac(task, batch, iterations, generator)
 
     from rlsac import checkpoint, rollout
@@ -206,7 +206,7 @@ def test_evaluate_rlsac_uses_the_checkpoint_task_options(workdir, monkeypatch):
                   "device": "cpu", "out_dir": "ev"}, track=False)
     # the checkpoint's own env settings (not code defaults) drive the test-time environment
     assert seen == {"device": "cpu", "threshold": 0.2, "steps": 5, "clip": 3.0, "candidates": 4, "sampling": "max",
-                    "actor": "actor"}
+                    "actor": "actor", "policy_every": 1}
     assert s["steps_per_episode"] == 5 and (workdir / "ev/errors.csv").is_file()
 
 

@@ -21,6 +21,7 @@ import torch
 from rlsac.checkpoint import env_conf, load_actor
 from rlsac.data import lines
 from rlsac.env import EnvConf, SampleConsensusEnv
+from rlsac.errors import RlsacError
 from rlsac.policy import Actor, Critic, PolicyConf
 from rlsac.rollout import rlsac_estimate, select_lazily
 from rlsac.tasks.fundamental import FundamentalTask
@@ -208,3 +209,27 @@ def test_fundamental_rollout_same_final_hypotheses():
     assert torch.equal(outs[0]["hyp"], outs[1]["hyp"])
     assert torch.equal(outs[0]["inliers"], outs[1]["inliers"])
     assert outs[0]["valid"].all()
+
+
+@pytest.mark.parametrize("every,calls", [(1, 14), (3, 5), (14, 1), (100, 1)])
+def test_policy_every_reuses_the_logits_between_network_calls(every, calls, monkeypatch):
+    """policy_every = k: the network runs at steps 1, 1 + k, ... of the psi = 15 step episode (14 policy steps),
+    the environment still steps every time; k = 1 is the default rollout exactly."""
+    torch.manual_seed(0)
+    actor = Actor(5, PolicyConf()).eval()
+    task, batch = LineTask(), line_batch(3)
+    seen = []
+    forward = Actor.forward_memory
+
+    def counting(self, prep, memory):
+        seen.append(memory.clone())
+        return forward(self, prep, memory)
+
+    monkeypatch.setattr(Actor, "forward_memory", counting)
+    out = rlsac_estimate(task, batch, actor, 30, generator=torch.Generator().manual_seed(1), policy_every=every)
+    assert len(seen) == calls and out["hypotheses"] == 3 * 30
+    if every == 1:
+        ref = rlsac_estimate(task, batch, actor, 30, generator=torch.Generator().manual_seed(1))
+        assert torch.equal(out["hyp"], ref["hyp"])
+    with pytest.raises(RlsacError, match="policy_every"):
+        rlsac_estimate(task, batch, actor, 30, policy_every=0)
