@@ -76,6 +76,8 @@ def main() -> None:
     ap.add_argument("--device", choices=["auto", "cpu", "cuda"], default="cpu")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--no-reference", action="store_true", help="skip the reference (before) path")
+    ap.add_argument("--policy-every", type=int, default=1,
+                    help="RLSAC after: recompute the policy every N steps (not in the paper; 1 = the paper)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
@@ -109,7 +111,7 @@ def main() -> None:
         batch = fundamental.to_batch(data, idx, device=device)
         with split.timed() if split else nullcontext():
             out = rlsac_estimate(task, batch, actor, args.iterations, env_conf, generator=gen(idx[0]),
-                                 reference=reference)
+                                 reference=reference, policy_every=1 if reference else args.policy_every)
             sync()
         return out, batch
 

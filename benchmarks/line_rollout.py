@@ -56,6 +56,8 @@ def main() -> None:
     ap.add_argument("--compare-threads", default="1,2", help="'' skips the thread comparison")
     ap.add_argument("--train-steps", type=int, default=12, help="0 skips the training benchmark")
     ap.add_argument("--no-reference", action="store_true")
+    ap.add_argument("--policy-every", type=int, default=1,
+                    help="RLSAC after: recompute the policy every N steps (not in the paper; 1 = the paper)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     device = resolve_device(args.device)
@@ -83,7 +85,8 @@ def main() -> None:
             yield s, lines.to_batch(data, slice(s, min(s + b, n)), device=device)
 
     def after(batch, g):
-        return rlsac_estimate(task, batch, actor, args.iterations, env_conf, generator=g)
+        return rlsac_estimate(task, batch, actor, args.iterations, env_conf, generator=g,
+                              policy_every=args.policy_every)
 
     def before(batch, g):
         return rlsac_estimate(task, batch, actor, args.iterations, env_conf, generator=g, reference=True)
