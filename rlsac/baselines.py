@@ -105,7 +105,7 @@ def opencv_estimate(task: Task, batch: dict, method: str, iterations: int, thres
     conf = OPENCV_CONFIDENCE if confidence is None else float(confidence)
     coords, mask = _numpy(batch["coords"]), _numpy(batch["mask"]).astype(bool)
     B, N = mask.shape
-    hyp, valid, inliers = None, np.zeros(B, dtype=bool), np.zeros((B, N), dtype=bool)
+    hyp, valid, inliers = np.zeros((B, *task.hypothesis_shape)), np.zeros(B, dtype=bool), np.zeros((B, N), dtype=bool)
     rng = np.random.default_rng(seed)
     if method == "prosac" and quality is None:
         raise RlsacError("prosac needs the matches' quality to order them (quality=task.match_quality(batch))")
@@ -120,13 +120,8 @@ def opencv_estimate(task: Task, batch: dict, method: str, iterations: int, thres
         out = task.opencv_fit(np.ascontiguousarray(coords[b, idx], dtype=np.float64), flag, thr, conf, int(iterations))
         if out is None:
             continue
-        h, inl = out
-        if hyp is None:
-            hyp = np.zeros((B, *np.shape(h)))
-        hyp[b], valid[b] = h, True
-        inliers[b, idx] = inl
-    if hyp is None:
-        hyp = np.zeros((B, *task.hypothesis_shape))
+        hyp[b], valid[b] = out[0], True
+        inliers[b, idx] = out[1]
     return {"hyp": hyp, "valid": valid, "inliers": inliers}
 
 

@@ -38,13 +38,19 @@ def write(path: str | Path, payload: dict[str, Any]) -> None:
         torch.save(payload, tmp)
 
 
-def load_actor(path: str | Path, device: str | torch.device = "cpu") -> tuple[Actor, dict]:
-    """Load an actor checkpoint -> (actor in eval mode, training conf); RlsacError on a missing or bad file."""
+def read(path: str | Path, device: str | torch.device = "cpu") -> dict[str, Any]:
+    """The checkpoint dict (tensors on ``device``); RlsacError on a missing file or one that is not a
+    torch file (a text or h5 file: one-line error)."""
     path = Path(path)
     if not path.is_file():
         raise RlsacError(f"{path}: no such checkpoint")
+    return load_torch(path, device)
+
+
+def load_actor(path: str | Path, device: str | torch.device = "cpu") -> tuple[Actor, dict]:
+    """Load an actor checkpoint -> (actor in eval mode, training conf); RlsacError on a missing or bad file."""
+    ckpt = read(path, device)
     try:
-        ckpt = load_torch(path, device)  # a text or h5 file: one-line error
         conf = ckpt["conf"]
         actor = Actor(ckpt["in_channels"], build(PolicyConf, conf["policy"])).to(device)
         actor.load_state_dict(ckpt["actor"])

@@ -321,11 +321,9 @@ def score_sets(task: Task, pts: torch.Tensor, coords: torch.Tensor, mask: torch.
     among the valid points (callers mask invalid rows).
     """
     hyps, valid = task.solve(pts)
-    S = getattr(task, "solutions", 1)
-    if S == 1:
-        res = task.residuals(hyps, coords)
+    res = task.residuals(hyps, coords)  # (R, N); (R, S, N) from a multi-solution task's (R, S, *H)
+    if getattr(task, "solutions", 1) == 1:
         return hyps, valid, res, ((res <= task.threshold) & mask).sum(-1)
-    res = task.residuals(hyps, coords)  # (R, S, N): multi-solution tasks take (R, S, *H)
     count = ((res <= task.threshold) & mask[:, None]).sum(-1).masked_fill(~valid, -1)  # (R, S)
     pick = count.argmax(-1)
     rows = torch.arange(mask.shape[0], device=pick.device)

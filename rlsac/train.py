@@ -187,7 +187,7 @@ class _TrainingRun:
         self.saved["step"] = self.start
         if self.kept is not None:  # the pair: out must hold the actor the state kept
             try:
-                on_disk = load_torch(self.out, "cpu")
+                on_disk = checkpoint.read(self.out)
             except RlsacError:
                 on_disk = {}
             if on_disk.get("step") != self.kept.get("step"):

@@ -17,8 +17,8 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import pandas as pd  # noqa: E402
-import torch  # noqa: E402
 
+from rlsac import checkpoint  # noqa: E402
 from rlsac.errors import RlsacError  # noqa: E402
 
 STYLE = {"uniform": ("tab:blue", "x"), "guided": ("tab:cyan", "<"), "prosac": ("olive", ">"),
@@ -77,7 +77,7 @@ def plot_learning_curves(ckpt_root: str | Path, out_dir: Path) -> tuple[list[str
     fig, axes = plt.subplots(2, len(models), figsize=(5.5 * len(models), 7), squeeze=False)
     for c, model in enumerate(models):
         for p in (q for q in ckpts if q.stem == model):
-            ck = torch.load(p, map_location="cpu", weights_only=False)
+            ck = checkpoint.read(p)
             hist = pd.DataFrame(ck.get("history") or [])
             if hist.empty:
                 continue

@@ -68,7 +68,8 @@ class Task(Protocol):
     # Optional capabilities, looked up by the methods that need them (rlsac.methods):
     #   match_quality(batch) -> (B, N), lower = better match: methods guided and prosac
     #   opencv_fit(pts (n, d) float64 numpy, flag, threshold, confidence, iterations) -> (hyp, inliers (n,)) or
-    #       None, with opencv_threshold: OpenCV's robust estimator of the task (opencv_ransac, usac, magsac, ...)
+    #       None, with opencv_threshold and hypothesis_shape (H): OpenCV's robust estimator of the task
+    #       (opencv_ransac, usac, magsac, ...)
 
 
 TASKS: dict[str, type] = {}

@@ -21,7 +21,7 @@ from rlsac import geometry
 from rlsac.data import fundamental as fundamental_data
 from rlsac.errors import RlsacError
 from rlsac.tasks import register_task
-from rlsac.tasks.fundamental import FundamentalTask, recover_pose
+from rlsac.tasks.fundamental import FundamentalTask, opencv_model, recover_pose
 
 # Our Strecha copy is imported at 1024 x 683 px with f = 920 px (every pair), so thresholds in normalised
 # units are pixels / 920.
@@ -110,10 +110,4 @@ class EssentialTask(FundamentalTask):
                                           np.eye(3), flag, confidence, threshold, iterations)
         except cv2.error:
             return None
-        if E is None or E.size < 9 or inl is None:
-            return None
-        E = np.asarray(E, np.float64)[:3, :3]
-        norm = np.linalg.norm(E)
-        if not np.isfinite(E).all() or norm == 0:
-            return None
-        return E / norm, np.asarray(inl).ravel().astype(bool)
+        return opencv_model(E, inl)

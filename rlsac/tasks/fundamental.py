@@ -136,13 +136,7 @@ class FundamentalTask:
                                             flag, threshold, confidence, iterations)
         except cv2.error:
             return None
-        if F is None or F.size < 9 or inl is None:
-            return None
-        F = np.asarray(F, np.float64)[:3, :3]
-        norm = np.linalg.norm(F)
-        if not np.isfinite(F).all() or norm == 0:
-            return None
-        return F / norm, np.asarray(inl).ravel().astype(bool)
+        return opencv_model(F, inl)
 
     # ----------------------------------------------------------------------------- evaluation
     def errors(self, hyps, valid, inliers, batch) -> dict[str, np.ndarray]:
@@ -176,6 +170,18 @@ class FundamentalTask:
             "mAA_R": metrics.mAA(eR, lim), "mAA_t": metrics.mAA(et, lim), "mAA": metrics.mAA(np.maximum(eR, et), lim),
             "median_R": metrics.median(eR), "median_t": metrics.median(et), "n": int(eR.size),
         }
+
+
+def opencv_model(M, inl) -> tuple[np.ndarray, np.ndarray] | None:
+    """An OpenCV two-view estimator's output (a (3k, 3) stack of 3 x 3 models, the inlier mask) -> (its first
+    model with unit Frobenius norm, inliers (n,) bool); None when there is none or it is not finite / zero."""
+    if M is None or M.size < 9 or inl is None:
+        return None
+    M = np.asarray(M, np.float64)[:3, :3]
+    norm = np.linalg.norm(M)
+    if not np.isfinite(M).all() or norm == 0:
+        return None
+    return M / norm, np.asarray(inl).ravel().astype(bool)
 
 
 def relative_pose_from_fundamental(F: np.ndarray, K1: np.ndarray, K2: np.ndarray, pts: np.ndarray
