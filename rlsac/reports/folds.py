@@ -155,7 +155,8 @@ def build(eval_root: str | Path = "reports/eval", out_dir: str | Path = "reports
           iterations_stem: str | None = "folds_iterations", head: str = TABLE2_HEAD) -> dict[str, Any]:
     """Write <stem>.{md,csv} and <iterations_stem>.csv from <eval_root>/<sub>; -> {"files", "missing"}."""
     res = collect(eval_root, sub)
-    recs = {k: v for k, v in load_records(records).items() if k[0] in {r for r, _, _ in res}}
+    regimes_found = {r for r, _, _ in res}
+    recs = {k: v for k, v in load_records(records).items() if k[0] in regimes_found}
     out_dir = Path(out_dir)
     rows, it_rows, md = [], [], []
     regimes = sorted({k[0] for k in res})
