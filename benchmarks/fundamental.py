@@ -78,6 +78,10 @@ def main() -> None:
     ap.add_argument("--no-reference", action="store_true", help="skip the reference (before) path")
     ap.add_argument("--policy-every", type=int, default=1,
                     help="RLSAC after: recompute the policy every N steps (not in the paper; 1 = the paper)")
+    ap.add_argument("--sets-per-step", type=int, default=1,
+                    help="RLSAC after: minimal sets per environment step (not in the paper; 1 = the paper)")
+    ap.add_argument("--confidence", type=float, default=0.0,
+                    help="RLSAC after: stop at RANSAC's bound for this confidence (not in the paper; 0 = never)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
@@ -111,7 +115,9 @@ def main() -> None:
         batch = fundamental.to_batch(data, idx, device=device)
         with split.timed() if split else nullcontext():
             out = rlsac_estimate(task, batch, actor, args.iterations, env_conf, generator=gen(idx[0]),
-                                 reference=reference, policy_every=1 if reference else args.policy_every)
+                                 reference=reference, policy_every=1 if reference else args.policy_every,
+                                 sets_per_step=1 if reference else args.sets_per_step,
+                                 confidence=0.0 if reference else args.confidence)
             sync()
         return out, batch
 

@@ -58,6 +58,10 @@ def main() -> None:
     ap.add_argument("--no-reference", action="store_true")
     ap.add_argument("--policy-every", type=int, default=1,
                     help="RLSAC after: recompute the policy every N steps (not in the paper; 1 = the paper)")
+    ap.add_argument("--sets-per-step", type=int, default=1,
+                    help="RLSAC after: minimal sets per environment step (not in the paper; 1 = the paper)")
+    ap.add_argument("--confidence", type=float, default=0.0,
+                    help="RLSAC after: stop at RANSAC's bound for this confidence (not in the paper; 0 = never)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     device = resolve_device(args.device)
@@ -86,7 +90,8 @@ def main() -> None:
 
     def after(batch, g):
         return rlsac_estimate(task, batch, actor, args.iterations, env_conf, generator=g,
-                              policy_every=args.policy_every)
+                              policy_every=args.policy_every, sets_per_step=args.sets_per_step,
+                              confidence=args.confidence)
 
     def before(batch, g):
         return rlsac_estimate(task, batch, actor, args.iterations, env_conf, generator=g, reference=True)

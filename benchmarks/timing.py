@@ -49,6 +49,7 @@ class Split:
                 self._undo.append(lambda n=name: delattr(self.actor, n))
         env = SampleConsensusEnv
         for owner, name, bucket in ((rollout, "select_lazily", "selection"), (env, "select", "selection"),
+                                    (env, "select_many", "selection"),
                                     (env, "step", "solver+scoring"), (env, "state", "state"),
                                     (env, "result", "refine")):
             orig = getattr(owner, name)

@@ -32,11 +32,8 @@ def ransac(task: Task, batch: dict, iterations: int, generator: torch.Generator 
     for start in range(0, iterations, chunk):
         k = min(chunk, iterations - start)
         idx = uniform_minimal_sets(mask, task.sample_size, k, generator)  # (B, k, m)
-        pts = gather_points(coords, idx).flatten(0, 1)  # (B k, m, d)
-        hyps, valid, res, count = score_sets(task, pts, coords.repeat_interleave(k, 0), mask.repeat_interleave(k, 0))
-        res = res.view(B, k, N)
-        count = count.view(B, k).masked_fill(~valid.view(B, k), -1)
-        best = update_best(task, lo, coords, mask, best, hyps.view(B, k, *hyps.shape[1:]), count, res, generator)
+        hyps, valid, res, count = score_sets(task, gather_points(coords, idx), coords, mask)  # (B, k, ...)
+        best = update_best(task, lo, coords, mask, best, hyps, count.masked_fill(~valid, -1), res, generator)
     if active(lo):
         return finish(task, lo, coords, mask, best, generator)
     return finalize(task, coords, mask, best.hyp, best.count >= task.sample_size)

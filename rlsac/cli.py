@@ -192,6 +192,12 @@ def train(task: str, tracking: bool, params_path: str, sets: tuple[str, ...], **
 @click.option("--sampling", type=click.Choice(["max", "prob"]), help="RLSAC test-time sampling [default: max].")
 @click.option("--policy-every", type=int, help="RLSAC: recompute the policy every N steps, reusing its logits "
                                                "in between (not in the paper; reports/speed.md) [default: 1].")
+@click.option("--sets-per-step", type=int, help="RLSAC / uniform / guided: minimal sets drawn and scored per "
+                                                "episode step, one network call for all (not in the paper; "
+                                                "reports/speed.md) [default: params.yaml, else 1].")
+@click.option("--confidence", type=float, help="RLSAC / uniform / guided: stop an instance at RANSAC's termination "
+                                               "bound for this confidence, 0 = use the whole budget (not in the "
+                                               "paper) [default: params.yaml, else 0].")
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--batch-size", type=int, default=256, show_default=True)
 @click.option("--threads", type=int, help="torch CPU threads on cpu, 0 = torch's default [default: 1, the fastest "

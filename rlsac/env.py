@@ -16,6 +16,7 @@ The output is the best hypothesis (most inliers) over all episodes, refined on i
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import torch
@@ -54,26 +55,34 @@ class SampleConsensusEnv:
 
     # ---------------------------------------------------------------- setup
     def reset(self, batch: dict, features: torch.Tensor, episodes: int = 1, budget: int | None = None,
-              generator: torch.Generator | None = None, first: torch.Tensor | None = None) -> torch.Tensor:
+              generator: torch.Generator | None = None, first: torch.Tensor | None = None,
+              sets_per_step: int = 1, confidence: float = 0.0) -> torch.Tensor:
         """Start ``episodes`` episodes per instance; returns the first state (R, N, c + 3).
 
         batch: coords (B, N, d), mask (B, N); features (B, N, c) network data features.
         budget: total hypotheses per instance (test time); rows past it stay inactive.
         first: (R, m) initial minimal sets instead of uniformly random ones (tests, figures).
+        sets_per_step: k minimal sets per row and step (test time, not in the paper): all k are scored and
+        compete for the output; the best of them is the step's action (memory, reward). 1 = the paper.
+        confidence: test time, not in the paper; > 0 stops an instance once RANSAC's termination bound
+        log(1 - confidence) / log(1 - w^m) (w = its best inlier ratio) is below its hypotheses so far.
         """
         coords, mask = batch["coords"], batch["mask"]
         B, N, _ = coords.shape
         E, psi, dev = episodes, self.conf.steps_per_episode, coords.device
-        self.B, self.E, self.N = B, E, N
+        self.B, self.E, self.N, self.k = B, E, N, int(sets_per_step)
+        self.confidence = float(confidence)
         self.gen = generator
+        self.inst_coords, self.inst_mask = coords, mask
         self.coords = coords.repeat_interleave(E, 0)
         self.mask = mask.repeat_interleave(E, 0)
         self.data = features.repeat_interleave(E, 0)
         self.n_valid = self.mask.sum(-1).clamp_min(1)
-        self.budget = budget if budget is not None else E * psi
+        self.budget = budget if budget is not None else E * psi * self.k
         R = B * E
         self.t = 0
-        self.used = torch.full((B, E * psi), -1, dtype=torch.int64, device=dev)
+        self.used = torch.full((B, E * psi * self.k), -1, dtype=torch.int64, device=dev)
+        self.spent = torch.zeros(B, dtype=torch.long, device=dev)  # hypotheses per instance so far
         self.history = torch.zeros((R, N), device=dev)
         self.action = torch.full((R, N), -1.0, device=dev)
         self.residual = torch.ones((R, N), device=dev)
@@ -86,7 +95,9 @@ class SampleConsensusEnv:
         self.best_count = self.best.count
         self.best_hyp: torch.Tensor | None = None
         self.hypotheses = 0
-        self.step(first if first is not None else self.select(self.action, random=True))
+        if first is None:
+            first = self.select(self.action, random=True) if self.k == 1 else self.select_many(self.action, random=True)
+        self.step(first)
         return self.state()
 
     def state(self) -> torch.Tensor:
@@ -100,7 +111,14 @@ class SampleConsensusEnv:
     def active(self) -> torch.Tensor:
         """(R,) rows that still produce hypotheses: episode running and within the budget."""
         e = torch.arange(self.B * self.E, device=self.done.device) % self.E
-        return ~self.done & (e * self.conf.steps_per_episode + self.t < self.budget)
+        return ~self.done & ((e * self.conf.steps_per_episode + self.t) * self.k < self.budget)
+
+    def counted(self, active: torch.Tensor) -> torch.Tensor:
+        """(R, k) the sets of this step within the budget: row e's j-th set is hypothesis (e psi + t) k + j;
+        active (R,) = ``self.active``."""
+        e = torch.arange(self.B * self.E, device=self.done.device) % self.E
+        first = (e * self.conf.steps_per_episode + self.t) * self.k
+        return active[:, None] & (first[:, None] + torch.arange(self.k, device=first.device) < self.budget)
 
     # ---------------------------------------------------------------- acting
     def select(self, logits: torch.Tensor, sample: bool = False, random: bool = False) -> torch.Tensor:
@@ -144,28 +162,77 @@ class SampleConsensusEnv:
             taken[rows[dup], ptr[dup]] = True  # an earlier episode of the instance took it this step
         return cand[rows, ptr]
 
+    def select_many(self, logits: torch.Tensor, sample: bool = False, random: bool = False) -> torch.Tensor:
+        """k = ``sets_per_step`` unused minimal sets per row from per-point scores. logits (R, N) -> (R, k, m).
+
+        Candidates in order: the top-m (max sampling) or a Gumbel top-m draw, then 2k - 1 more draws without
+        replacement from softmax(logits) (``random``: 2k uniform sets); 2k uniform sets are appended while a row
+        has fewer than k free ones (a peaked policy; four times at most). A candidate is taken if any episode of its instance used it
+        before or an earlier candidate of the instance this step equals it; each row gets its first k
+        free candidates (a row short of free ones repeats taken ones, as ``select`` does).
+        """
+        m, k, B, E = self.task.sample_size, self.k, self.B, self.E
+        R, N = logits.shape
+        used = self.used.sort(dim=-1).values
+        if random:
+            cand = uniform_minimal_sets(self.mask, m, 2 * k, self.gen)
+        else:
+            logits = logits.masked_fill(~self.mask, float("-inf"))
+            u = torch.rand((R, 2 * k, N), generator=self.gen, device=logits.device).clamp_(1e-12, 1 - 1e-12)
+            cand = (logits[:, None, :] - torch.log(-torch.log(u))).topk(m, dim=-1).indices
+            if not sample:
+                cand[:, 0] = logits.topk(m, dim=-1).indices
+        taken = self._taken(cand, used)
+        for _ in range(4):  # a row short of free sets (a peaked policy): 2k more uniform sets, a few times at most
+            if not bool(((~taken).sum(-1) < k).any()):
+                break
+            cand = torch.cat([cand, uniform_minimal_sets(self.mask, m, 2 * k, self.gen)], dim=1)
+            taken = self._taken(cand, used)
+        J = cand.shape[1]
+        rank = torch.arange(J, device=cand.device).expand(R, J) + J * taken
+        pick = rank.topk(k, dim=-1, largest=False).indices.sort(dim=-1).values  # the first k free ones
+        return cand.gather(1, pick[..., None].expand(R, k, m))
+
+    def _taken(self, cand: torch.Tensor, used: torch.Tensor) -> torch.Tensor:
+        """cand (R, J, m) candidate sets, used (B, U) sorted keys -> (R, J): used before by the instance, or
+        equal to an earlier candidate of the instance (rows in order, then candidates)."""
+        R, J, _ = cand.shape
+        keys = set_keys(cand, self.N).view(self.B, self.E * J)
+        pos = torch.searchsorted(used, keys).clamp_max_(used.shape[1] - 1)
+        taken = used.gather(1, pos) == keys
+        srt, order = keys.sort(dim=-1, stable=True)  # equal keys keep their order: the first one is free
+        again = torch.cat([torch.zeros_like(srt[:, :1], dtype=torch.bool), srt[:, 1:] == srt[:, :-1]], dim=1)
+        return (taken | torch.zeros_like(again).scatter_(1, order, again)).view(R, J)
+
     def step(self, idx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Apply minimal sets idx (R, m). Returns reward (R,), done (R,), active-before-step (R,)."""
+        """Apply minimal sets idx (R, m), or (R, k, m) with k = ``sets_per_step``. Returns reward (R,),
+        done (R,), active-before-step (R,)."""
         act = self.active
-        hyps, valid, res, count = self._score(idx)
-        reward = self._reward(count)
-        self._update_memory(idx, res, act)
-        self._remember_sets(idx, act)
-        self._update_best(hyps, count, res, act)
-        done = self._terminate(count, act)
+        idx = idx[:, None] if idx.dim() == 2 else idx
+        counted = self.counted(act) if idx.shape[1] > 1 else act[:, None]
+        hyps, valid, res, count = self._score(idx)  # (R, k, ...)
+        pick = count.masked_fill(~counted, -1).argmax(-1)  # the step's action: its best set
+        rows = torch.arange(idx.shape[0], device=idx.device)
+        self.last_hyps, self.last_inliers = hyps[rows, pick], (res[rows, pick] <= self.task.threshold) & self.mask
+        reward = self._reward(count[rows, pick])
+        self._update_memory(idx[rows, pick], res[rows, pick], act)
+        self._remember_sets(idx, counted)
+        self._update_best(hyps, count, res, counted)
+        done = self._terminate(count[rows, pick], act)
         newly = act & done
         self.done = self.done | done
         return reward * act, newly, act
 
     def _score(self, idx: torch.Tensor):
-        """Hypotheses of the sets idx (R, m) -> hyps, valid (R,), residuals (R, N) (+inf for invalid rows
-        and padding), inlier counts (R,) (0 for invalid rows)."""
-        task = self.task
-        hyps, valid, res, _ = score_sets(task, gather_points(self.coords, idx), self.coords, self.mask)
-        res = torch.where(valid[:, None] & self.mask, res, torch.full_like(res, float("inf")))
-        inl = (res <= task.threshold) & self.mask
-        self.last_hyps, self.last_inliers = hyps, inl
-        return hyps, valid, res, inl.sum(-1).masked_fill(~valid, 0)
+        """Hypotheses of the sets idx (R, k, m) -> hyps (R, k, *H), valid (R, k), residuals (R, k, N) (+inf for
+        invalid sets and padding), inlier counts (R, k) (0 for invalid sets); scored per instance."""
+        task, (B, E, N) = self.task, (self.B, self.E, self.N)
+        R, k, m = idx.shape
+        pts = gather_points(self.inst_coords, idx.reshape(B, E * k, m))
+        hyps, valid, res, count = score_sets(task, pts, self.inst_coords, self.inst_mask)  # (B, E k, ...)
+        res = torch.where(valid[..., None] & self.inst_mask[:, None], res, torch.full_like(res, float("inf")))
+        return (hyps.reshape(R, k, *hyps.shape[2:]), valid.reshape(R, k), res.reshape(R, k, N),
+                count.masked_fill(~valid, 0).reshape(R, k))
 
     def _reward(self, count: torch.Tensor) -> torch.Tensor:
         """The inlier ratio (paper), or its gain over the episode's best so far (``reward="improvement"``)."""
@@ -184,19 +251,22 @@ class SampleConsensusEnv:
         self.residual = torch.where(a, r_feat.masked_fill(~self.mask, 1.0), self.residual)
         self.history = self.history + (onehot & a).float()
 
-    def _remember_sets(self, idx: torch.Tensor, act: torch.Tensor) -> None:
-        """The de-duplication memory: this step's set keys of the active rows, per instance."""
-        keys = set_keys(idx, self.N).masked_fill(~act, -1).view(self.B, self.E)
-        self.used[:, self.t * self.E : (self.t + 1) * self.E] = keys
+    def _remember_sets(self, idx: torch.Tensor, counted: torch.Tensor) -> None:
+        """The de-duplication memory: this step's set keys idx (R, k, m) of the counted sets, per instance."""
+        k = idx.shape[1]
+        keys = set_keys(idx, self.N).masked_fill(~counted, -1).view(self.B, self.E * k)
+        self.used[:, self.t * self.E * k: (self.t + 1) * self.E * k] = keys
 
-    def _update_best(self, hyps: torch.Tensor, count: torch.Tensor, res: torch.Tensor, act: torch.Tensor) -> None:
+    def _update_best(self, hyps: torch.Tensor, count: torch.Tensor, res: torch.Tensor, counted: torch.Tensor) -> None:
         """The best hypothesis of each instance over all its episodes (with LO if ``conf.lo``)."""
-        c = count.masked_fill(~act, -1).view(self.B, self.E)
-        coords, mask = self.instances()
-        self.best = update_best(self.task, self.conf.lo, coords, mask, self.best,
-                                hyps.view(self.B, self.E, *hyps.shape[1:]), c, res.view(self.B, self.E, -1), self.gen)
+        B, n = self.B, count.numel() // self.B
+        c = count.masked_fill(~counted, -1).view(B, n)
+        self.best = update_best(self.task, self.conf.lo, self.inst_coords, self.inst_mask, self.best,
+                                hyps.reshape(B, n, *hyps.shape[2:]), c, res.reshape(B, n, -1), self.gen)
         self.best_hyp, self.best_count = self.best.hyp, self.best.count
-        self.hypotheses += int(act.sum())
+        spent = counted.view(B, n).sum(-1)
+        self.spent += spent
+        self.hypotheses += int(spent.sum())
 
     def _terminate(self, count: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
         """Advance the clock; -> done (R,): psi steps always, kappa / varsigma only while training."""
@@ -210,7 +280,17 @@ class SampleConsensusEnv:
         done = torch.full_like(act, self.t >= conf.steps_per_episode)
         if self.training:
             done = done | (self.same_count >= conf.kappa) | (self.no_better >= conf.varsigma)
+        elif self.confidence > 0:
+            done = done | self.confident().repeat_interleave(self.E)
         return done
+
+    def confident(self) -> torch.Tensor:
+        """(B,) instances whose hypotheses so far reach RANSAC's bound log(1 - p) / log(1 - w^m) for
+        confidence p and best inlier ratio w (as OpenCV's and MAGSAC++'s termination)."""
+        w = (self.best_count.clamp_min(0) / self.inst_mask.sum(-1).clamp_min(1)).double()
+        miss = 1.0 - w.pow(self.task.sample_size)  # a minimal set not all inliers
+        need = math.log1p(-self.confidence) / torch.log(miss.clamp(1e-300, 1.0 - 1e-16))
+        return (self.best_count >= self.task.sample_size) & (self.spent >= need)
 
     # ---------------------------------------------------------------- output
     def instances(self) -> tuple[torch.Tensor, torch.Tensor]:

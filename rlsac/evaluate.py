@@ -63,6 +63,11 @@ DEFAULTS: dict[str, Any] = {
     # RLSAC: recompute the policy's logits every this many steps (1 = every step, the paper; a speed lever of
     # issue #17 that changes the algorithm: reports/speed.md)
     "policy_every": 1,
+    # RLSAC and its uniform / guided controls (the environment; not in the paper, issue #17 speed levers,
+    # reports/speed.md): minimal sets drawn and scored per episode step (1 = the paper), and the confidence of
+    # RANSAC's termination bound at which an instance stops before its budget (0 = never, the paper)
+    "sets_per_step": 1,
+    "confidence": 0.0,
 }
 
 
@@ -128,6 +133,8 @@ def check_options(options: dict[str, Any]) -> dict[str, Any]:
     o["seed"] = check_value("seed", o["seed"], int, SEED_RANGE)
     o["sampling"] = check_value("sampling", o["sampling"], str, ("max", "prob"))
     o["policy_every"] = check_value("policy_every", o["policy_every"], int, "[1, inf)")
+    o["sets_per_step"] = check_value("sets_per_step", o["sets_per_step"], int, "[1, inf)")
+    o["confidence"] = check_value("confidence", o["confidence"], float, "[0, 1)")
     if not Path(o["data"]).is_file():
         raise RlsacError(f"{o['data']}: no such file")
     if o["out_dir"] is None:

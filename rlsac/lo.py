@@ -313,21 +313,31 @@ def update_best(task: Task, conf: LOConf | None, coords: torch.Tensor, mask: tor
 def score_sets(task: Task, pts: torch.Tensor, coords: torch.Tensor, mask: torch.Tensor
                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """The one hypothesis-scoring step of every sampler (RANSAC, the RLSAC environment, the figures):
-    solve each minimal set, score it by its inlier count, and of a multi-solution solver's S candidates
+    solve each minimal set, score it by its inlier count, and of a multi-solution solver's candidates
     (``task.solutions`` > 1) keep the one with the most inliers.
 
-    pts (R, m, d) minimal sets, coords (R, N, d) and mask (R, N) of each set's instance ->
-    hyps (R, *H), valid (R,), residuals (R, N) (as ``task.residuals``, not masked), count (R,) inliers
-    among the valid points (callers mask invalid rows).
+    pts (B, S, m, d): S minimal sets of each of B instances; coords (B, N, d), mask (B, N) the instances ->
+    hyps (B, S, *H), valid (B, S), residuals (B, S, N) (as ``task.residuals``, not masked), count (B, S)
+    inliers among the valid points (callers mask invalid sets). The residuals of an instance's S x solutions
+    hypotheses are one grouped ``task.residuals`` call on its points, not S copies of them.
     """
-    hyps, valid = task.solve(pts)
-    res = task.residuals(hyps, coords)  # (R, N); (R, S, N) from a multi-solution task's (R, S, *H)
-    if getattr(task, "solutions", 1) == 1:
-        return hyps, valid, res, ((res <= task.threshold) & mask).sum(-1)
-    count = ((res <= task.threshold) & mask[:, None]).sum(-1).masked_fill(~valid, -1)  # (R, S)
-    pick = count.argmax(-1)
-    rows = torch.arange(mask.shape[0], device=pick.device)
-    return hyps[rows, pick], valid[rows, pick], res[rows, pick], count[rows, pick].clamp_min(0)
+    if pts.dim() != 4 or coords.dim() != 3 or pts.shape[0] != coords.shape[0] or mask.shape != coords.shape[:2]:
+        raise RlsacError(f"score_sets: pts (B, S, m, d), coords (B, N, d), mask (B, N) expected, got "
+                         f"{tuple(pts.shape)}, {tuple(coords.shape)}, {tuple(mask.shape)}")
+    B, S = pts.shape[:2]
+    sol = getattr(task, "solutions", 1)
+    hyps, valid = task.solve(pts.flatten(0, 1))  # (B S, *H), or (B S, sol, *H) for a multi-solution task
+    H = hyps.shape[1 + (sol > 1):]
+    res = task.residuals(hyps.reshape(B, S * sol, *H), coords).view(B, S, sol, -1)
+    count = ((res <= task.threshold) & mask[:, None, None]).sum(-1)  # (B, S, sol)
+    hyps, valid = hyps.reshape(B, S, sol, *H), valid.reshape(B, S, sol)
+    if sol == 1:
+        return hyps[:, :, 0], valid[:, :, 0], res[:, :, 0], count[:, :, 0]
+    count = count.masked_fill(~valid, -1)
+    pick = count.argmax(-1, keepdim=True)  # (B, S, 1)
+    hyp = hyps.gather(2, pick.view(B, S, 1, *[1] * len(H)).expand(B, S, 1, *H)).squeeze(2)
+    res = res.gather(2, pick[..., None].expand(B, S, 1, res.shape[-1])).squeeze(2)
+    return hyp, valid.gather(2, pick).squeeze(2), res, count.gather(2, pick).squeeze(2).clamp_min(0)
 
 
 def inlier_count(task: Task, hyp: torch.Tensor, coords: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:

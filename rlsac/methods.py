@@ -78,7 +78,8 @@ def _environment(o, lo, guide=None):
 
     def estimate(batch, g):
         return rlsac_estimate(task, batch, None, o["iterations"], env, generator=g,
-                              guide=None if guide is None else guide(task, batch))
+                              guide=None if guide is None else guide(task, batch),
+                              sets_per_step=o["sets_per_step"], confidence=o["confidence"])
     return task, estimate, {"steps_per_episode": env.steps_per_episode}
 
 
@@ -111,7 +112,8 @@ def _rlsac(o, device, lo=None):
 
     def estimate(batch, g):
         return rlsac_estimate(task, batch, actor, o["iterations"], env, sampling=o["sampling"], generator=g,
-                              policy_every=o["policy_every"])
+                              policy_every=o["policy_every"], sets_per_step=o["sets_per_step"],
+                              confidence=o["confidence"])
 
     return task, estimate, {"steps_per_episode": env.steps_per_episode}
 

@@ -13,12 +13,12 @@ from rlsac.sampling import set_keys
 from rlsac.tasks import Task
 
 
-@torch.no_grad()
+@torch.inference_mode()
 def rlsac_estimate(task: Task, batch: dict, actor: Actor | None, iterations: int, env_conf: EnvConf | None = None,
                    sampling: str = "max", generator: torch.Generator | None = None,
                    record: bool = False, reference: bool = False, guide: torch.Tensor | None = None,
-                   policy_every: int = 1) -> dict:
-    """Run ceil(iterations / psi) episodes per instance in parallel, at most ``iterations`` hypotheses.
+                   policy_every: int = 1, sets_per_step: int = 1, confidence: float = 0.0) -> dict:
+    """Run ceil(iterations / (psi k)) episodes per instance in parallel, at most ``iterations`` hypotheses.
 
     batch: coords (B, N, d), mask (B, N), plus what ``task.features`` needs.
     actor None = the uniform control: the same environment (episodes, de-duplication, scoring,
@@ -38,6 +38,10 @@ def rlsac_estimate(task: Task, batch: dict, actor: Actor | None, iterations: int
     (the memory features still change every step; a reused set is taken, so the environment's fallback draws
     from the same probabilities). 1 = every step (the paper). Not in the paper: a speed lever (issue #17,
     reports/speed.md).
+    sets_per_step: k minimal sets drawn per row and step from the policy's probabilities (``env.select_many``),
+    all scored, the best of them the step's action; one network call per k hypotheses. 1 = the paper.
+    confidence: > 0 stops an instance at RANSAC's termination bound (``SampleConsensusEnv.confident``); 0 = the
+    whole budget (the paper). Both not in the paper: speed levers (reports/speed.md).
     """
     if sampling not in ("max", "prob"):
         raise RlsacError(f"sampling must be 'max' or 'prob', got {sampling!r}")
@@ -45,19 +49,26 @@ def rlsac_estimate(task: Task, batch: dict, actor: Actor | None, iterations: int
         raise RlsacError(f"iterations must be positive, got {iterations}")
     if policy_every < 1 or (policy_every > 1 and reference):
         raise RlsacError(f"policy_every must be >= 1 (1 on the reference path), got {policy_every}")
+    if sets_per_step < 1 or (sets_per_step > 1 and reference):
+        raise RlsacError(f"sets_per_step must be >= 1 (1 on the reference path), got {sets_per_step}")
+    if not 0.0 <= confidence < 1.0:
+        raise RlsacError(f"confidence must be in [0, 1), got {confidence}")
     if guide is not None and (actor is not None or guide.shape != batch["mask"].shape):
         raise RlsacError(f"guide must be (B, N) = {tuple(batch['mask'].shape)} logits without an actor")
     conf = env_conf or EnvConf()
     psi = conf.steps_per_episode
     env = SampleConsensusEnv(task, conf, training=False)
-    episodes = math.ceil(iterations / psi)
+    k = int(sets_per_step)
+    episodes = math.ceil(iterations / (psi * k))
     feats = task.features(batch)
     graph = prepared = None
     if actor is not None and reference:
         graph = actor.graph(feats, batch["mask"]).repeat_interleave(episodes, 0)
     elif actor is not None:
         prepared = actor.precompute(feats, batch["mask"], episodes)
-    state = env.reset(batch, feats, episodes, budget=iterations, generator=generator)
+    state = env.reset(batch, feats, episodes, budget=iterations, generator=generator, sets_per_step=k,
+                      confidence=confidence)
+    select = select_lazily if k == 1 else SampleConsensusEnv.select_many
     steps = []
     if record:
         steps.append(_snapshot(env))
@@ -68,9 +79,9 @@ def rlsac_estimate(task: Task, batch: dict, actor: Actor | None, iterations: int
         if not env.active.any():
             break
         if guide is not None:  # the guided control: a fixed, hand-made sampling distribution
-            env.step(select_lazily(env, guide, sample=True))
+            env.step(select(env, guide, sample=True))
         elif actor is None:  # the uniform control
-            env.step(env.select(env.action, random=True))
+            env.step(env.select(env.action, random=True) if k == 1 else env.select_many(env.action, random=True))
         else:
             if reference:
                 logits = actor.reference_forward(state, env.mask, graph)
@@ -79,7 +90,7 @@ def rlsac_estimate(task: Task, batch: dict, actor: Actor | None, iterations: int
             else:
                 if logits is None or (t - 1) % policy_every == 0:
                     logits = actor.forward_memory(prepared, env.memory())
-                env.step(select_lazily(env, logits, sample=sampling == "prob"))
+                env.step(select(env, logits, sample=sampling == "prob"))
         if record:
             steps.append(_snapshot(env))
     out = env.result()

@@ -30,8 +30,8 @@ def set_keys(idx: torch.Tensor, n: int) -> torch.Tensor:
     idx (..., m) -> (...). Exact while n^m < 2^63 (n=150, m=8 gives 2.6e17); beyond that it is a
     hash whose collisions only make de-duplication slightly over-cautious.
     """
-    s = idx.sort(dim=-1).values
-    key = torch.zeros(s.shape[:-1], dtype=torch.int64, device=idx.device)
-    for j in range(s.shape[-1]):
-        key = key * n + s[..., j]
-    return key
+    m = idx.shape[-1]
+    # sum_j s_j n^(m-1-j) in one product: int64 arithmetic wraps modulo 2^64 like the Horner loop it replaces
+    pw = [(n ** (m - 1 - j)) % 2**64 for j in range(m)]
+    pw = torch.tensor([p - 2**64 if p >= 2**63 else p for p in pw], dtype=torch.int64, device=idx.device)
+    return (idx.sort(dim=-1).values * pw).sum(-1)

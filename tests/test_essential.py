@@ -131,13 +131,14 @@ def test_score_sets_keeps_the_solution_with_most_inliers():
     coords = torch.stack([x, torch.full_like(x, 2.0)], -1)[None]  # ten points on y = 2
     mask = torch.ones(1, 10, dtype=torch.bool)
     task = TwoLines()
-    hyp, valid, res, count = score_sets(task, coords[:, :2], coords, mask)
-    assert valid.all() and count.tolist() == [10] and res.abs().max() < 1e-6
-    assert torch.allclose(hyp.abs(), torch.tensor([[0.0, 1.0, 2.0]]), atol=1e-6)  # y = 2, not x = 0
+    hyp, valid, res, count = score_sets(task, coords[:, None, :2], coords, mask)  # one set of one instance
+    assert hyp.shape == (1, 1, 3) and res.shape == (1, 1, 10)
+    assert valid.all() and count.tolist() == [[10]] and res.abs().max() < 1e-6
+    assert torch.allclose(hyp.abs(), torch.tensor([[[0.0, 1.0, 2.0]]]), atol=1e-6)  # y = 2, not x = 0
     # when the better candidate is invalid the other one is kept
     task.solve = lambda pts: (TwoLines.solve(task, pts)[0], torch.tensor([[True, False]]))
-    hyp, valid, _, count = score_sets(task, coords[:, :2], coords, mask)
-    assert valid.all() and count.tolist() == [1] and torch.allclose(hyp.abs(), torch.tensor([[1.0, 0.0, 0.0]]))
+    hyp, valid, _, count = score_sets(task, coords[:, None, :2], coords, mask)
+    assert valid.all() and count.tolist() == [[1]] and torch.allclose(hyp.abs(), torch.tensor([[[1.0, 0.0, 0.0]]]))
 
 
 def test_refine_returns_an_essential_matrix_close_to_the_truth():

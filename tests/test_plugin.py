@@ -54,8 +54,8 @@ class ToyTask:
     def solve(self, pts):
         return pts[:, 0], torch.ones(pts.shape[0], dtype=torch.bool)
 
-    def residuals(self, hyps, coords):
-        return (coords[..., 0] - hyps).abs()
+    def residuals(self, hyps, coords):  # hyps (B, 1) -> (B, N); (B, S, 1) -> (B, S, N)
+        return (coords[..., 0] - hyps).abs() if hyps.dim() == 2 else (coords[:, None, :, 0] - hyps).abs()
 
     def refine(self, coords, inliers):
         w = inliers.to(coords.dtype)

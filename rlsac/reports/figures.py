@@ -170,7 +170,8 @@ def _episode(task, batch, actor, env, gen: torch.Generator) -> list[dict]:
     idx = uniform_minimal_sets(mask, task.sample_size, steps, gen)  # (B, steps, m)
     out = []
     for t in range(steps):
-        hyps, valid, res, _ = score_sets(task, gather_points(coords, idx[:, t]), coords, mask)
+        hyps, valid, res, _ = score_sets(task, gather_points(coords, idx[:, t, None]), coords, mask)
+        hyps, valid, res = hyps[:, 0], valid[:, 0], res[:, 0]
         inl = (res <= task.threshold) & mask & valid[:, None]
         out.append({"minimal_set": idx[:, t], "hyp": hyps, "inliers": inl, "count": inl.sum(-1)})
     return out
@@ -474,9 +475,8 @@ def plot_fundamental_pair(o: dict[str, Any], out_dir: Path) -> tuple[list[str], 
 
         # plain RANSAC written out, so that the minimal set shown is the one behind the estimate
         idx = uniform_minimal_sets(batch["mask"], task.sample_size, iters, gen)[0]  # (iters, m)
-        hyps, valid, _, cnt = score_sets(task, gather_points(batch["coords"], idx[None])[0],
-                                         batch["coords"].expand(len(idx), -1, -1), batch["mask"].expand(len(idx), -1))
-        cnt = cnt.masked_fill(~valid, -1)
+        hyps, valid, _, cnt = score_sets(task, gather_points(batch["coords"], idx[None]), batch["coords"], batch["mask"])
+        hyps, cnt = hyps[0], cnt[0].masked_fill(~valid[0], -1)
         best = int(cnt.argmax())
         minimal = idx[best].numpy()
         out = finalize(task, batch["coords"], batch["mask"], hyps[best: best + 1],

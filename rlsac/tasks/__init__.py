@@ -50,8 +50,8 @@ class Task(Protocol):
         with S > 1 solutions: (B, S, *H), (B, S). Scored by ``rlsac.lo.score_sets`` only."""
 
     def residuals(self, hyps: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
-        """hyps (B, *H), coords (B, N, d) -> residuals (B, N), compared against ``threshold``; a
-        multi-solution task (S > 1) also takes hyps (B, S, *H) -> (B, S, N)."""
+        """hyps (B, *H), coords (B, N, d) -> residuals (B, N), compared against ``threshold``; also
+        hyps (B, S, *H), S hypotheses per instance -> (B, S, N) (``rlsac.lo.score_sets`` scores so)."""
 
     def true_inliers(self, batch: dict) -> torch.Tensor:
         """Ground-truth inlier labels (B, N) bool, for the supervised warm start (not in the paper)."""

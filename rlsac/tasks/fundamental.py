@@ -97,11 +97,15 @@ class FundamentalTask:
         return geometry.eight_point(pts)
 
     def residuals(self, hyps: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
-        """hyps (B, 3, 3), coords (B, N, 4) -> (B, N) in the unit of ``residual``; +inf for F = 0."""
+        """hyps (B, 3, 3), coords (B, N, 4) -> (B, N) in the unit of ``residual``; +inf for F = 0.
+        hyps (B, S, 3, 3) -> (B, S, N)."""
         if self.residual == "sampson":
             return geometry.sampson_distance(hyps, coords)
         if self.residual == "sampson_sq":
             return geometry.sampson_distance(hyps, coords, squared=True)
+        if hyps.dim() == 4:
+            B, S = hyps.shape[:2]
+            return self.residuals(hyps.flatten(0, 1), coords.repeat_interleave(S, 0)).view(B, S, -1)
         return (geometry.symmetric_epipolar_distance(hyps, coords, squared=True) / 2).sqrt()
 
     def refine(self, coords: torch.Tensor, inliers: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -50,7 +50,9 @@ class LineTask:
         return torch.cat([normal, c[:, None]], dim=-1), valid
 
     def residuals(self, hyps: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
-        """hyps (B, 3), coords (B, N, 2) -> distances (B, N)."""
+        """hyps (B, 3), coords (B, N, 2) -> distances (B, N); hyps (B, S, 3) -> (B, S, N)."""
+        if hyps.dim() == 3:  # S lines per instance: one (S, 2) x (2, N) product per instance
+            return (hyps[..., :2] @ coords.transpose(1, 2)).add(hyps[..., 2:3]).abs()
         return (coords @ hyps[:, :2, None]).squeeze(-1).add(hyps[:, 2:3]).abs()
 
     def refine(self, coords: torch.Tensor, inliers: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
