@@ -192,9 +192,10 @@ def train_model(p: dict, params: dict, regime: str, fold: str, model: str, o: di
 
 
 def evaluate_fold(p: dict, regime: str, fold: str, o: dict, track: bool, lo: dict | None = None,
-                  guide_temperature: float | None = None) -> list[dict]:
-    """Every method and every model at every budget on the fold's test file (``lo``, ``guide_temperature``:
-    params.yaml evaluate.fundamental's options of the *-lo methods and of ``guided``)."""
+                  guide_temperature: float | None = None, sampler: dict | None = None) -> list[dict]:
+    """Every method and every model at every budget on the fold's test file (``lo``, ``guide_temperature``,
+    ``sampler`` = {sets_per_step, confidence}: params.yaml evaluate.fundamental's options of the *-lo methods,
+    of ``guided`` and of the RLSAC environment's methods)."""
     from rlsac.evaluate import evaluate
 
     test = data_dir(regime, fold) / "test.h5"
@@ -217,7 +218,8 @@ def evaluate_fold(p: dict, regime: str, fold: str, o: dict, track: bool, lo: dic
             s = evaluate({"task": "fundamental", "method": method, "data": str(test),
                           "checkpoint": str(ckpt) if ckpt else None, "iterations": int(it), "seed": int(p["seed"]),
                           "device": o["device"], "out_dir": str(eval_dir(regime, fold, name, it)), "tags": tags,
-                          "lo": lo, "guide_temperature": guide_temperature}, track=track)  # used by those needing them
+                          "lo": lo, "guide_temperature": guide_temperature, **(sampler or {})},
+                         track=track)  # used by those needing them
             out.append({"method": name, "iterations": int(it), "mAA_R": s["mAA_R"], "mAA_t": s["mAA_t"],
                         "seconds": round(s["seconds"], 1)})
     return out
@@ -248,7 +250,8 @@ def folds(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
         result["models"] = {m: train_model(p, params, regime, fold, m, o, track) for m in models}
     else:
         ev = section(params, "evaluate", "fundamental")  # the *-lo methods' (rlsac.lo) and guided's options
-        result["evaluations"] = evaluate_fold(p, regime, fold, o, track, ev.get("lo"), ev.get("guide_temperature"))
+        result["evaluations"] = evaluate_fold(p, regime, fold, o, track, ev.get("lo"), ev.get("guide_temperature"),
+                                              {k: ev[k] for k in ("sets_per_step", "confidence") if k in ev})
     result["seconds"] = round(time.time() - t0, 1)
     return result
 
