@@ -7,10 +7,14 @@
 All methods see the same first ``--pairs`` pairs of the prepared file (synthetic pairs when it is
 missing), in one process:
 
-* RLSAC after: the default ``rlsac_estimate`` path, one pair per call (what ``rlsac evaluate`` does
-  for named pairs), each pair seeded as ``rlsac evaluate`` seeds it;
-* RLSAC before: ``reference=True``, the original per-step path, same pairs and seeds; the final
-  hypotheses of the two are compared (they must be identical);
+* RLSAC after: the default ``rlsac_estimate`` path with the evaluation defaults (params.yaml
+  evaluate.fundamental: ``--sets-per-step``, ``--confidence``), one pair per call (what ``rlsac evaluate``
+  does for named pairs), each pair seeded as ``rlsac evaluate`` seeds it;
+* RLSAC paper setting: the same path with one minimal set per step and the whole budget (the paper's
+  algorithm);
+* RLSAC before: ``reference=True``, the original per-step path (the paper's algorithm as first written),
+  same pairs and seeds; its final hypotheses are compared with the paper setting's (identical: the same
+  function);
 * OpenCV MAGSAC++ (``USAC_MAGSAC``, confidence 0.999, maxIters = ``--iterations``) and our batched
   RANSAC at the same budget, one pair at a time.
 
@@ -39,6 +43,7 @@ from timing import Clocks, Split, format_split, opencv_hypotheses  # noqa: E402
 
 from rlsac import checkpoint  # noqa: E402
 from rlsac.baselines import opencv_estimate, ransac  # noqa: E402
+from rlsac.config import read_params, section  # noqa: E402
 from rlsac.evaluate import pair_seed, resolve_device, task_from  # noqa: E402
 from rlsac.policy import Actor, PolicyConf  # noqa: E402
 from rlsac.rollout import in_channels, rlsac_estimate  # noqa: E402
@@ -78,11 +83,14 @@ def main() -> None:
     ap.add_argument("--no-reference", action="store_true", help="skip the reference (before) path")
     ap.add_argument("--policy-every", type=int, default=1,
                     help="RLSAC after: recompute the policy every N steps (not in the paper; 1 = the paper)")
-    ap.add_argument("--sets-per-step", type=int, default=1,
-                    help="RLSAC after: minimal sets per environment step (not in the paper; 1 = the paper)")
-    ap.add_argument("--confidence", type=float, default=0.0,
-                    help="RLSAC after: stop at RANSAC's bound for this confidence (not in the paper; 0 = never)")
+    ap.add_argument("--sets-per-step", type=int, default=None,
+                    help="RLSAC after: minimal sets per environment step [default: params.yaml evaluate.fundamental]")
+    ap.add_argument("--confidence", type=float, default=None,
+                    help="RLSAC after: stop at RANSAC's bound for this confidence [default: params.yaml]")
     args = ap.parse_args()
+    ev = section(read_params("params.yaml"), "evaluate", "fundamental")
+    args.sets_per_step = int(ev.get("sets_per_step", 1)) if args.sets_per_step is None else args.sets_per_step
+    args.confidence = float(ev.get("confidence", 0.0)) if args.confidence is None else args.confidence
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
     device = resolve_device(args.device)
@@ -100,9 +108,10 @@ def main() -> None:
         torch.manual_seed(0)
         actor = Actor(in_channels(task), PolicyConf(graph_dims=4)).to(device).eval()
         env_conf, who = checkpoint.env_conf({}), "randomly initialised actor"
-    episodes = -(-args.iterations // env_conf.steps_per_episode)
+    episodes = -(-args.iterations // (env_conf.steps_per_episode * args.sets_per_step))
     print(f"device {device}, {torch.get_num_threads()} thread(s); data: {what}; {args.iterations} iterations "
-          f"({episodes} episodes x {env_conf.steps_per_episode} steps per pair); actor: {who}")
+          f"; RLSAC after: {episodes} episodes x {env_conf.steps_per_episode} steps x {args.sets_per_step} sets "
+          f"per pair, confidence {args.confidence}; actor: {who}")
 
     def sync():
         if device == "cuda":
@@ -111,13 +120,13 @@ def main() -> None:
     def gen(p):
         return torch.Generator(device=device).manual_seed(pair_seed(0, data["scene"][p], data["pair"][p]))
 
-    def run_rlsac(idx, reference, split=None):
+    def run_rlsac(idx, reference, split=None, paper=False):
         batch = fundamental.to_batch(data, idx, device=device)
         with split.timed() if split else nullcontext():
             out = rlsac_estimate(task, batch, actor, args.iterations, env_conf, generator=gen(idx[0]),
-                                 reference=reference, policy_every=1 if reference else args.policy_every,
-                                 sets_per_step=1 if reference else args.sets_per_step,
-                                 confidence=0.0 if reference else args.confidence)
+                                 reference=reference, policy_every=1 if reference or paper else args.policy_every,
+                                 sets_per_step=1 if reference or paper else args.sets_per_step,
+                                 confidence=0.0 if reference or paper else args.confidence)
             sync()
         return out, batch
 
@@ -132,21 +141,23 @@ def main() -> None:
         return out, batch
 
     run_rlsac([0], False)  # warm-up
+    run_rlsac([0], False, paper=True)
     run_rlsac([0], True)
     run_magsac(0)
     run_ransac(0)
-    names = ["rlsac after", "rlsac before", "opencv magsac++", "ransac (ours)"]
+    names = ["rlsac after", "rlsac paper setting", "rlsac before", "opencv magsac++", "ransac (ours)"]
     if args.no_reference:
         names.remove("rlsac before")
     clocks = {k: Clocks() for k in names}
     outs = {k: [] for k in names}
-    splits = {k: Split(actor) for k in names[:2] if k.startswith("rlsac")}
+    splits = {k: Split(actor) for k in names if k.startswith("rlsac")}
     for p in range(P):  # methods interleaved pair by pair: they share the machine's load
         for name in names:
             with clocks[name]:
                 if name.startswith("rlsac"):
                     with splits[name]:
-                        outs[name].append(run_rlsac([p], name == "rlsac before", splits[name]))
+                        outs[name].append(run_rlsac([p], name == "rlsac before", splits[name],
+                                                    paper=name == "rlsac paper setting"))
                 elif name.startswith("opencv"):
                     outs[name].append(run_magsac(p))
                 else:
@@ -177,8 +188,9 @@ def main() -> None:
           f"it stops early and never spends the {args.iterations} budget on these pairs)")
     if "rlsac before" in outs:
         same = sum(torch.equal(a["hyp"], b["hyp"]) for (a, _), (b, _) in
-                   zip(outs["rlsac after"], outs["rlsac before"], strict=True))
+                   zip(outs["rlsac paper setting"], outs["rlsac before"], strict=True))
         print(f"rlsac after vs before: {clocks['rlsac before'].cpu / clocks['rlsac after'].cpu:.2f}x less CPU time; "
+              f"paper setting vs before: {clocks['rlsac before'].cpu / clocks['rlsac paper setting'].cpu:.2f}x, "
               f"identical final hypothesis on {same}/{P} pairs")
     print()
     print(format_split(splits, P, "pair"))

@@ -6,8 +6,10 @@
 
 1. Evaluation: ``--instances`` synthetic line instances (outlier rate ``--outlier-rate``, N = 100), run
    ``b`` instances per call for every ``b`` in ``--batch``: RLSAC after (the default ``rlsac_estimate``
-   path), RLSAC before (``reference=True``: the original per-step path; same seeds, and the final
-   hypotheses are compared) and our batched RANSAC at the same budget; ms per instance and the ratios.
+   path with the evaluation defaults, params.yaml evaluate.line: ``--sets-per-step``, ``--confidence``),
+   RLSAC paper setting (the same path, one set per step and the whole budget), RLSAC before
+   (``reference=True``: the original per-step path; same seeds, its final hypotheses compared with the
+   paper setting's) and our batched RANSAC at the same budget; ms per instance and the ratios.
    Then where RLSAC's time goes (model / selection / solver+scoring / state / refinement / other) at
    the smallest and largest batch, and RLSAC after / RANSAC at each of ``--compare-threads``.
 2. Training: ``rlsac.sac.train_loop`` for ``--train-steps`` vector-env steps with an update every step
@@ -34,6 +36,7 @@ from timing import CLOCK, Clocks, Split, format_split  # noqa: E402
 
 from rlsac import checkpoint  # noqa: E402
 from rlsac.baselines import ransac  # noqa: E402
+from rlsac.config import read_params, section  # noqa: E402
 from rlsac.data import lines  # noqa: E402
 from rlsac.env import EnvConf  # noqa: E402
 from rlsac.evaluate import resolve_device  # noqa: E402
@@ -58,11 +61,14 @@ def main() -> None:
     ap.add_argument("--no-reference", action="store_true")
     ap.add_argument("--policy-every", type=int, default=1,
                     help="RLSAC after: recompute the policy every N steps (not in the paper; 1 = the paper)")
-    ap.add_argument("--sets-per-step", type=int, default=1,
-                    help="RLSAC after: minimal sets per environment step (not in the paper; 1 = the paper)")
-    ap.add_argument("--confidence", type=float, default=0.0,
-                    help="RLSAC after: stop at RANSAC's bound for this confidence (not in the paper; 0 = never)")
+    ap.add_argument("--sets-per-step", type=int, default=None,
+                    help="RLSAC after: minimal sets per environment step [default: params.yaml evaluate.line]")
+    ap.add_argument("--confidence", type=float, default=None,
+                    help="RLSAC after: stop at RANSAC's bound for this confidence [default: params.yaml]")
     args = ap.parse_args()
+    ev = section(read_params("params.yaml"), "evaluate", "line")
+    args.sets_per_step = int(ev.get("sets_per_step", 1)) if args.sets_per_step is None else args.sets_per_step
+    args.confidence = float(ev.get("confidence", 0.0)) if args.confidence is None else args.confidence
     torch.set_num_threads(args.threads)
     device = resolve_device(args.device)
     task = LineTask()
@@ -75,10 +81,11 @@ def main() -> None:
         torch.manual_seed(0)
         actor = Actor(in_channels(task), PolicyConf()).to(device).eval()
         env_conf, what = EnvConf(), "randomly initialised actor"
-    episodes = -(-args.iterations // env_conf.steps_per_episode)
+    episodes = -(-args.iterations // (env_conf.steps_per_episode * args.sets_per_step))
     batches = [int(b) for b in args.batch.split(",") if b]
     print(f"device {device}, {torch.get_num_threads()} thread(s); {n} instances x N=100, outlier rate "
-          f"{args.outlier_rate}; {args.iterations} iterations ({episodes} episodes per instance); actor: {what}")
+          f"{args.outlier_rate}; {args.iterations} iterations ({episodes} episodes x {args.sets_per_step} sets per "
+          f"step per instance after, confidence {args.confidence}); actor: {what}")
 
     def sync():
         if device == "cuda":
@@ -93,6 +100,9 @@ def main() -> None:
                               policy_every=args.policy_every, sets_per_step=args.sets_per_step,
                               confidence=args.confidence)
 
+    def paper(batch, g):  # the same path with the paper's one set per step and whole budget
+        return rlsac_estimate(task, batch, actor, args.iterations, env_conf, generator=g)
+
     def before(batch, g):
         return rlsac_estimate(task, batch, actor, args.iterations, env_conf, generator=g, reference=True)
 
@@ -100,19 +110,20 @@ def main() -> None:
         return ransac(task, batch, args.iterations, g)
 
     b0 = lines.to_batch(data, slice(0, 2), device=device)  # warm-up
-    for fn in (after, before, ours_ransac):
+    for fn in (after, paper, before, ours_ransac):
         fn(b0, torch.Generator(device=device).manual_seed(0))
 
     print(f"\n== evaluation, CPU ms per instance ({n} instances, b per call; wall ms in brackets)")
-    print(f"{'b':>5s} {'after':>17s} {'before':>17s} {'ransac':>15s} {'after/ransac':>13s} {'before/ransac':>14s} "
-          f"{'before/after':>13s} {'same final hyp':>15s}")
-    methods = {"after": after, "ransac": ours_ransac}
+    print(f"{'b':>5s} {'after':>17s} {'paper setting':>17s} {'before':>17s} {'ransac':>15s} {'after/ransac':>13s} "
+          f"{'paper/ransac':>13s} {'before/ransac':>14s} {'before/after':>13s} {'same final hyp':>15s}")
+    print("(same final hyp: paper setting vs before, the same function)")
+    methods = {"after": after, "paper": paper, "ransac": ours_ransac}
     if not args.no_reference:
         methods["before"] = before
     splits, final = {}, {}
     for b in batches:
         clocks = {k: Clocks() for k in methods}
-        sp = {k: Split(actor) for k in ("after", "before") if k in methods}
+        sp = {k: Split(actor) for k in ("after", "paper", "before") if k in methods}
         outs = {k: [] for k in methods}
         for s, batch in chunks(b):  # interleaved call by call: the methods share the machine's load
             for name, fn in methods.items():
@@ -127,21 +138,22 @@ def main() -> None:
         w.setdefault("before", float("nan"))
         same = "-"
         if "before" in outs:
-            pairs = zip(outs["after"], outs["before"], strict=True)
+            pairs = zip(outs["paper"], outs["before"], strict=True)
             same = f"{sum(int((x['hyp'] == y['hyp']).all(-1).sum()) for x, y in pairs)}/{n}"
         cell = {k: f"{1e3 * c[k] / n:.2f} ({1e3 * w[k] / n:.1f})" for k in c}
-        print(f"{b:5d} {cell['after']:>17s} {cell['before']:>17s} {cell['ransac']:>15s} "
-              f"{c['after'] / c['ransac']:13.1f} {c['before'] / c['ransac']:14.1f} {c['before'] / c['after']:13.2f} "
-              f"{same:>15s}")
+        print(f"{b:5d} {cell['after']:>17s} {cell['paper']:>17s} {cell['before']:>17s} {cell['ransac']:>15s} "
+              f"{c['after'] / c['ransac']:13.1f} {c['paper'] / c['ransac']:13.1f} {c['before'] / c['ransac']:14.1f} "
+              f"{c['before'] / c['after']:13.2f} {same:>15s}")
         if b in (min(batches), max(batches)):
             splits.update({f"{k}, b={b}": v for k, v in sp.items()})
         final = outs
     errs = {}
-    for name in ("after", "ransac"):
+    for name in ("after", "paper", "ransac"):
         hyp = torch.cat([o["hyp"] for o in final[name]]).cpu().numpy()
         valid = torch.cat([o["valid"] for o in final[name]]).cpu().numpy()
         errs[name] = task.summarize(task.errors(hyp, valid, None, data))["mAA"]
-    print(f"mAA@0.5: rlsac {errs['after']:.3f}, ransac {errs['ransac']:.3f} (hypotheses per instance: "
+    print(f"mAA@0.5: rlsac after {errs['after']:.3f}, paper setting {errs['paper']:.3f}, ransac {errs['ransac']:.3f} "
+          f"(hypotheses per instance: "
           f"{args.iterations} for both)")
     print()
     print(format_split(splits, n, "instance"))

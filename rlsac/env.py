@@ -80,6 +80,8 @@ class SampleConsensusEnv:
         self.n_valid = self.mask.sum(-1).clamp_min(1)
         self.budget = budget if budget is not None else E * psi * self.k
         R = B * E
+        self.ep_first = torch.arange(R, device=dev) % E * psi  # (R,) first step of each row's episode (instance-major)
+        self.set_index = torch.arange(self.k, device=dev)
         self.t = 0
         self.used = torch.full((B, E * psi * self.k), -1, dtype=torch.int64, device=dev)
         self.spent = torch.zeros(B, dtype=torch.long, device=dev)  # hypotheses per instance so far
@@ -110,15 +112,13 @@ class SampleConsensusEnv:
     @property
     def active(self) -> torch.Tensor:
         """(R,) rows that still produce hypotheses: episode running and within the budget."""
-        e = torch.arange(self.B * self.E, device=self.done.device) % self.E
-        return ~self.done & ((e * self.conf.steps_per_episode + self.t) * self.k < self.budget)
+        return ~self.done & ((self.ep_first + self.t) * self.k < self.budget)
 
     def counted(self, active: torch.Tensor) -> torch.Tensor:
         """(R, k) the sets of this step within the budget: row e's j-th set is hypothesis (e psi + t) k + j;
         active (R,) = ``self.active``."""
-        e = torch.arange(self.B * self.E, device=self.done.device) % self.E
-        first = (e * self.conf.steps_per_episode + self.t) * self.k
-        return active[:, None] & (first[:, None] + torch.arange(self.k, device=first.device) < self.budget)
+        first = (self.ep_first + self.t) * self.k
+        return active[:, None] & (first[:, None] + self.set_index < self.budget)
 
     # ---------------------------------------------------------------- acting
     def select(self, logits: torch.Tensor, sample: bool = False, random: bool = False) -> torch.Tensor:
@@ -167,11 +167,11 @@ class SampleConsensusEnv:
 
         Candidates in order: the top-m (max sampling) or a Gumbel top-m draw, then 2k - 1 more draws without
         replacement from softmax(logits) (``random``: 2k uniform sets); 2k uniform sets are appended while a row
-        has fewer than k free ones (a peaked policy; four times at most). A candidate is taken if any episode of its instance used it
-        before or an earlier candidate of the instance this step equals it; each row gets its first k
-        free candidates (a row short of free ones repeats taken ones, as ``select`` does).
+        has fewer than k free ones (a peaked policy; four times at most). A candidate is taken if any episode
+        of its instance used it before or an earlier candidate of the instance this step equals it; each row
+        gets its first k free candidates (a row short of free ones repeats taken ones, as ``select`` does).
         """
-        m, k, B, E = self.task.sample_size, self.k, self.B, self.E
+        m, k = self.task.sample_size, self.k
         R, N = logits.shape
         used = self.used.sort(dim=-1).values
         if random:

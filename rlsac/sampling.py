@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import torch
 
 
@@ -30,8 +32,12 @@ def set_keys(idx: torch.Tensor, n: int) -> torch.Tensor:
     idx (..., m) -> (...). Exact while n^m < 2^63 (n=150, m=8 gives 2.6e17); beyond that it is a
     hash whose collisions only make de-duplication slightly over-cautious.
     """
-    m = idx.shape[-1]
-    # sum_j s_j n^(m-1-j) in one product: int64 arithmetic wraps modulo 2^64 like the Horner loop it replaces
+    return (idx.sort(dim=-1).values * _powers(n, idx.shape[-1], idx.device)).sum(-1)
+
+
+@functools.lru_cache(maxsize=64)
+def _powers(n: int, m: int, device: torch.device) -> torch.Tensor:
+    """(m,) int64 n^(m-1), ..., n, 1 modulo 2^64 (as signed), so that sum_j s_j n^(m-1-j) in one product wraps
+    like the Horner loop key * n + s it replaced."""
     pw = [(n ** (m - 1 - j)) % 2**64 for j in range(m)]
-    pw = torch.tensor([p - 2**64 if p >= 2**63 else p for p in pw], dtype=torch.int64, device=idx.device)
-    return (idx.sort(dim=-1).values * pw).sum(-1)
+    return torch.tensor([p - 2**64 if p >= 2**63 else p for p in pw], dtype=torch.int64, device=device)

@@ -191,9 +191,11 @@ def test_evaluate_rlsac_uses_the_checkpoint_task_options(workdir, monkeypatch):
         return "actor", {"task": "line", "task_options": {"threshold": 0.2},
                          "env": {"steps_per_episode": 5, "residual_clip": 3.0, "candidates": 4}}
 
-    def rlsac_estimate(task, batch, actor, iterations, env_conf, sampling, generator, policy_every):
+    def rlsac_estimate(task, batch, actor, iterations, env_conf, sampling, generator, policy_every, sets_per_step,
+                       confidence):
         seen.update(threshold=task.threshold, steps=env_conf.steps_per_episode, clip=env_conf.residual_clip,
-                    candidates=env_conf.candidates, sampling=sampling, actor=actor, policy_every=policy_every)
+                    candidates=env_conf.candidates, sampling=sampling, actor=actor, policy_every=policy_every,
+                    sets_per_step=sets_per_step, confidence=confidence)
         return ransac(task, batch, iterations, generator)
 
     from rlsac import checkpoint, rollout
@@ -203,10 +205,10 @@ def test_evaluate_rlsac_uses_the_checkpoint_task_options(workdir, monkeypatch):
     synth("d.h5", 4)
     (workdir / "ck.pt").write_bytes(b"x")
     s = evaluate({"task": "line", "method": "rlsac", "data": "d.h5", "checkpoint": "ck.pt", "iterations": 10,
-                  "device": "cpu", "out_dir": "ev"}, track=False)
-    # the checkpoint's own env settings (not code defaults) drive the test-time environment
+                  "device": "cpu", "out_dir": "ev", "sets_per_step": 3, "confidence": 0.9}, track=False)
+    # the checkpoint's own env settings (not code defaults) drive the test-time environment, with the options'
     assert seen == {"device": "cpu", "threshold": 0.2, "steps": 5, "clip": 3.0, "candidates": 4, "sampling": "max",
-                    "actor": "actor", "policy_every": 1}
+                    "actor": "actor", "policy_every": 1, "sets_per_step": 3, "confidence": 0.9}
     assert s["steps_per_episode"] == 5 and (workdir / "ev/errors.csv").is_file()
 
 

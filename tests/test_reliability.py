@@ -310,6 +310,8 @@ CASES = [
     ("eval-steps-0", evaluate("--steps-per-episode", "0"), "steps_per_episode must be positive"),
     ("eval-seed", evaluate("--seed", "-1"), "seed must be in"),
     ("eval-policy-every-0", evaluate("--policy-every", "0"), "policy_every must be in [1, inf), got 0"),
+    ("eval-sets-per-step-0", evaluate("--sets-per-step", "0"), "sets_per_step must be in [1, inf), got 0"),
+    ("eval-confidence-1", evaluate("--confidence", "1"), "confidence must be in [0, 1), got 1.0"),
     ("eval-e-lines-file", evaluate(data="{lines}", task="essential"), "not a prepared file"),
     ("eval-e-oracle", evaluate("--method", "oracle", data="{fund}", task="essential"),
      "needs the true inlier mask in its data"),

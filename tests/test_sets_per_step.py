@@ -7,6 +7,7 @@ import math
 
 import pytest
 import torch
+from test_speed_equivalence import line_batch, two_view_batch
 
 from rlsac import geometry
 from rlsac.env import EnvConf, SampleConsensusEnv
@@ -17,7 +18,6 @@ from rlsac.rollout import in_channels, rlsac_estimate
 from rlsac.sampling import gather_points, set_keys, uniform_minimal_sets
 from rlsac.tasks.fundamental import FundamentalTask
 from rlsac.tasks.line import LineTask
-from test_speed_equivalence import line_batch, two_view_batch
 
 # four points on y = 0, three off it; threshold 0.1 (as tests/test_env.py)
 PTS = torch.tensor([[0, 0], [1, 0], [2, 0], [3, 0], [0, 5], [0, 3], [3, 5]], dtype=torch.float32)
@@ -70,6 +70,10 @@ def test_grouped_scoring_equals_scoring_each_set_against_its_own_copy(task):
     # one (S, 2) x (2, N) product instead of S (N, 2) x (2, 1) ones may round the last bit differently
     torch.testing.assert_close(res, one[2].view(res.shape), rtol=1e-6, atol=1e-6)
     assert hyps.shape[:2] == (B, S) and res.shape == (B, S, coords.shape[1]) and count.shape == (B, S)
+    # against the task's own per-row residuals of each hypothesis on its instance's points
+    own = task.residuals(hyps.flatten(0, 1), coords.repeat_interleave(S, 0)).view(B, S, -1)
+    torch.testing.assert_close(res, own, rtol=1e-6, atol=1e-6)
+    assert torch.equal(count, ((own <= task.threshold) & mask[:, None]).sum(-1))
 
 
 def test_score_sets_rejects_per_row_shapes():
@@ -106,7 +110,7 @@ def test_step_scores_all_k_sets_and_acts_with_the_best():
     reward, _, _ = env.step(torch.tensor([[[5, 6], [0, 1]]]))  # (0, 1) gives y = 0, four inliers: the action
     assert torch.allclose(reward, torch.tensor([4 / 7])) and env.count.tolist() == [4]
     assert env.action[0].tolist() == [1, 1, -1, -1, -1, -1, -1]
-    assert env.history[0].tolist() == [1, 1, 0, 0, 1, 1, 0]  # actions: (4, 5), the first of two equal bests, then (0, 1)
+    assert env.history[0].tolist() == [1, 1, 0, 0, 1, 1, 0]  # actions: (4, 5) (first of two equal bests), (0, 1)
     assert env.hypotheses == 4 and env.best_count.tolist() == [4]
 
 
@@ -133,7 +137,9 @@ def test_rollout_budget_and_episodes_with_sets_per_step():
     assert out["hypotheses"] == 3 * 100 and out["hyp"].shape == (3, 3)  # ceil(100 / 60) = 2 episodes
     again = rlsac_estimate(task, batch, actor, 100, generator=torch.Generator().manual_seed(0), sets_per_step=4)
     assert torch.equal(out["hyp"], again["hyp"])  # seeded
-    for bad in ({"sets_per_step": 0}, {"confidence": 1.0}, {"confidence": -0.1}, {"sets_per_step": 2, "reference": True}):
+    bad_options = ({"sets_per_step": 0}, {"confidence": 1.0}, {"confidence": -0.1},
+                   {"sets_per_step": 2, "reference": True})
+    for bad in bad_options:
         with pytest.raises(RlsacError):
             rlsac_estimate(task, batch, actor, 100, **bad)
 

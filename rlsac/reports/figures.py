@@ -475,7 +475,8 @@ def plot_fundamental_pair(o: dict[str, Any], out_dir: Path) -> tuple[list[str], 
 
         # plain RANSAC written out, so that the minimal set shown is the one behind the estimate
         idx = uniform_minimal_sets(batch["mask"], task.sample_size, iters, gen)[0]  # (iters, m)
-        hyps, valid, _, cnt = score_sets(task, gather_points(batch["coords"], idx[None]), batch["coords"], batch["mask"])
+        hyps, valid, _, cnt = score_sets(task, gather_points(batch["coords"], idx[None]), batch["coords"],
+                                         batch["mask"])
         hyps, cnt = hyps[0], cnt[0].masked_fill(~valid[0], -1)
         best = int(cnt.argmax())
         minimal = idx[best].numpy()
