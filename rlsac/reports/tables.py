@@ -217,7 +217,10 @@ def table1(eval_root: str | Path = "reports/eval", out_dir: str | Path = "report
                + "Columns: mAA@0.5° and median angular error (°) per outlier rate o. "
                + "Ours = a model trained at each rate; Ours-0.5 = the model trained at 0.5, tested at every rate; "
                + "Oracle = total least squares on the true inliers (not in the paper: the estimate a sampler aims at)"
-               + (f" (checkpoints: {', '.join(ckpts)})." if ckpts else "."))
+               + (f" (checkpoints: {', '.join(ckpts)})." if ckpts else ".")
+               + " Ours and Ours-0.5 run with the evaluation defaults of params.yaml `evaluate.line` (several minimal "
+               + "sets per episode step; not in the paper, `reports/speed.md`), Ours-LO with one set per step; each "
+               + "result's `config.json` / MLflow run records its settings.")
     paired = _paired_vs_ransac(root, rates)
     notes = ""
     if paired is not None:
