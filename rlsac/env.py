@@ -12,6 +12,10 @@ of a row is the instance's data features (N x c) concatenated with three memory 
 Reward = inlier ratio of the hypothesis. A minimal set already used for this instance (by any of its
 episodes) is never used again: the next candidate drawn from the policy's probabilities is taken.
 The output is the best hypothesis (most inliers) over all episodes, refined on its inliers.
+
+Not in the paper (test time, issue #17): ``sets_per_step`` k > 1 draws k sets per row and step
+(``select_many``), scores all of them and acts with the best; ``confidence`` stops an instance at
+RANSAC's termination bound (``confident``). k = 1 and confidence 0 are the paper's environment.
 """
 
 from __future__ import annotations
