@@ -39,11 +39,10 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from timing import Clocks, Split, format_split, opencv_hypotheses  # noqa: E402
+from timing import Clocks, Split, add_sampler_args, format_split, opencv_hypotheses, sampler_args  # noqa: E402
 
 from rlsac import checkpoint  # noqa: E402
 from rlsac.baselines import opencv_estimate, ransac  # noqa: E402
-from rlsac.config import read_params, section  # noqa: E402
 from rlsac.evaluate import pair_seed, resolve_device, task_from  # noqa: E402
 from rlsac.policy import Actor, PolicyConf  # noqa: E402
 from rlsac.rollout import in_channels, rlsac_estimate  # noqa: E402
@@ -81,16 +80,9 @@ def main() -> None:
     ap.add_argument("--device", choices=["auto", "cpu", "cuda"], default="cpu")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--no-reference", action="store_true", help="skip the reference (before) path")
-    ap.add_argument("--policy-every", type=int, default=1,
-                    help="RLSAC after: recompute the policy every N steps (not in the paper; 1 = the paper)")
-    ap.add_argument("--sets-per-step", type=int, default=None,
-                    help="RLSAC after: minimal sets per environment step [default: params.yaml evaluate.fundamental]")
-    ap.add_argument("--confidence", type=float, default=None,
-                    help="RLSAC after: stop at RANSAC's bound for this confidence [default: params.yaml]")
+    add_sampler_args(ap, "fundamental")
     args = ap.parse_args()
-    ev = section(read_params("params.yaml"), "evaluate", "fundamental")
-    args.sets_per_step = int(ev.get("sets_per_step", 1)) if args.sets_per_step is None else args.sets_per_step
-    args.confidence = float(ev.get("confidence", 0.0)) if args.confidence is None else args.confidence
+    sampler_args(args, "fundamental")
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
     device = resolve_device(args.device)

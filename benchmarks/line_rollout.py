@@ -32,11 +32,10 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from timing import CLOCK, Clocks, Split, format_split  # noqa: E402
+from timing import CLOCK, Clocks, Split, add_sampler_args, format_split, sampler_args  # noqa: E402
 
 from rlsac import checkpoint  # noqa: E402
 from rlsac.baselines import ransac  # noqa: E402
-from rlsac.config import read_params, section  # noqa: E402
 from rlsac.data import lines  # noqa: E402
 from rlsac.env import EnvConf  # noqa: E402
 from rlsac.evaluate import resolve_device  # noqa: E402
@@ -59,16 +58,9 @@ def main() -> None:
     ap.add_argument("--compare-threads", default="1,2", help="'' skips the thread comparison")
     ap.add_argument("--train-steps", type=int, default=12, help="0 skips the training benchmark")
     ap.add_argument("--no-reference", action="store_true")
-    ap.add_argument("--policy-every", type=int, default=1,
-                    help="RLSAC after: recompute the policy every N steps (not in the paper; 1 = the paper)")
-    ap.add_argument("--sets-per-step", type=int, default=None,
-                    help="RLSAC after: minimal sets per environment step [default: params.yaml evaluate.line]")
-    ap.add_argument("--confidence", type=float, default=None,
-                    help="RLSAC after: stop at RANSAC's bound for this confidence [default: params.yaml]")
+    add_sampler_args(ap, "line")
     args = ap.parse_args()
-    ev = section(read_params("params.yaml"), "evaluate", "line")
-    args.sets_per_step = int(ev.get("sets_per_step", 1)) if args.sets_per_step is None else args.sets_per_step
-    args.confidence = float(ev.get("confidence", 0.0)) if args.confidence is None else args.confidence
+    sampler_args(args, "line")
     torch.set_num_threads(args.threads)
     device = resolve_device(args.device)
     task = LineTask()

@@ -23,6 +23,28 @@ import rlsac.rollout as rollout
 from rlsac.env import SampleConsensusEnv
 
 BUCKETS = ("model", "selection", "solver+scoring", "state", "refine", "other")
+
+
+def add_sampler_args(ap, task: str) -> None:
+    """``--policy-every``, ``--sets-per-step`` and ``--confidence`` of "RLSAC after" (see ``sampler_args``)."""
+    ap.add_argument("--policy-every", type=int, default=1,
+                    help="RLSAC after: recompute the policy every N steps (not in the paper; 1 = the paper)")
+    ap.add_argument("--sets-per-step", type=int, default=None,
+                    help=f"RLSAC after: minimal sets per environment step [default: params.yaml evaluate.{task}]")
+    ap.add_argument("--confidence", type=float, default=None,
+                    help="RLSAC after: stop at RANSAC's bound for this confidence [default: params.yaml]")
+
+
+def sampler_args(args, task: str) -> None:
+    """Fill ``args.sets_per_step`` / ``args.confidence`` left unset from params.yaml evaluate.<task>, as
+    ``rlsac evaluate`` does (1 and 0, the paper, without a params file)."""
+    from rlsac.config import read_params, section
+    from rlsac.evaluate import sampler_options
+
+    params = read_params("params.yaml")
+    given = {"sets_per_step": 1, "confidence": 0.0, **sampler_options(section(params, "evaluate", task))}
+    args.sets_per_step = int(given["sets_per_step"]) if args.sets_per_step is None else args.sets_per_step
+    args.confidence = float(given["confidence"]) if args.confidence is None else args.confidence
 CLOCK = time.process_time
 
 

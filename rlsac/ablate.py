@@ -200,6 +200,7 @@ def plan(o: dict[str, Any], params: dict[str, Any]) -> dict[str, Any]:
 
 def _plan_generalisation(o: dict[str, Any], params: dict[str, Any]) -> dict[str, Any]:
     from rlsac.config import section
+    from rlsac.evaluate import sampler_options
 
     lines = section(params, "lines")
     p = protocol(params)
@@ -218,7 +219,7 @@ def _plan_generalisation(o: dict[str, Any], params: dict[str, Any]) -> dict[str,
     if o["models"] and o["models"] != [f"line_o{src}"]:
         raise RlsacError(f"the generalisation study has one model, line_o{src}")
     # Table 1's column beside Ours: the same environment settings (params.yaml evaluate.line)
-    sampler = {k: v for k, v in section(params, "evaluate", "line").items() if k in ("sets_per_step", "confidence")}
+    sampler = sampler_options(section(params, "evaluate", "line"))
     variants = {n: {"task": "line", "method": "rlsac", "data": str(ldir / f"test_o{r}.h5"), "checkpoint": str(ckpt),
                     "iterations": int(lines.get("iterations", 150)), "seed": 0, "sampling": "max", **sampler,
                     "out_dir": str(Path(o["eval_dir"]) / "lines" / f"ours-{src}" / f"o{r}"),

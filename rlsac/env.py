@@ -101,9 +101,7 @@ class SampleConsensusEnv:
         self.best_count = self.best.count
         self.best_hyp: torch.Tensor | None = None
         self.hypotheses = 0
-        if first is None:
-            first = self.select(self.action, random=True) if self.k == 1 else self.select_many(self.action, random=True)
-        self.step(first)
+        self.step(self.select_random() if first is None else first)
         return self.state()
 
     def state(self) -> torch.Tensor:
@@ -166,6 +164,12 @@ class SampleConsensusEnv:
             taken[rows[dup], ptr[dup]] = True  # an earlier episode of the instance took it this step
         return cand[rows, ptr]
 
+    def select_random(self) -> torch.Tensor:
+        """Uniformly random unused minimal sets: (R, m) by ``select``, or (R, k, m) by ``select_many`` for k > 1."""
+        if self.k == 1:
+            return self.select(self.action, random=True)
+        return self.select_many(self.action, random=True)
+
     def select_many(self, logits: torch.Tensor, sample: bool = False, random: bool = False) -> torch.Tensor:
         """k = ``sets_per_step`` unused minimal sets per row from per-point scores. logits (R, N) -> (R, k, m).
 
@@ -217,12 +221,13 @@ class SampleConsensusEnv:
         hyps, valid, res, count = self._score(idx)  # (R, k, ...)
         pick = count.masked_fill(~counted, -1).argmax(-1)  # the step's action: its best set
         rows = torch.arange(idx.shape[0], device=idx.device)
-        self.last_hyps, self.last_inliers = hyps[rows, pick], (res[rows, pick] <= self.task.threshold) & self.mask
-        reward = self._reward(count[rows, pick])
-        self._update_memory(idx[rows, pick], res[rows, pick], act)
+        res_a, count_a = res[rows, pick], count[rows, pick]
+        self.last_hyps, self.last_inliers = hyps[rows, pick], (res_a <= self.task.threshold) & self.mask
+        reward = self._reward(count_a)
+        self._update_memory(idx[rows, pick], res_a, act)
         self._remember_sets(idx, counted)
         self._update_best(hyps, count, res, counted)
-        done = self._terminate(count[rows, pick], act)
+        done = self._terminate(count_a, act)
         newly = act & done
         self.done = self.done | done
         return reward * act, newly, act
@@ -299,8 +304,7 @@ class SampleConsensusEnv:
     # ---------------------------------------------------------------- output
     def instances(self) -> tuple[torch.Tensor, torch.Tensor]:
         """coords (B, N, d), mask (B, N) of the instances (rows are instance-major)."""
-        coords = self.coords.view(self.B, self.E, *self.coords.shape[1:])[:, 0]
-        return coords, self.mask.view(self.B, self.E, -1)[:, 0]
+        return self.inst_coords, self.inst_mask
 
     def result(self) -> dict[str, torch.Tensor]:
         """Best hypothesis per instance over all episodes, refined on its inliers (with LO: rlsac.lo.finish)."""

@@ -69,6 +69,13 @@ DEFAULTS: dict[str, Any] = {
     "sets_per_step": 1,
     "confidence": 0.0,
 }
+# the options above that a params.yaml evaluate.<task> section passes on to every environment method's run
+SAMPLER_OPTIONS = ("sets_per_step", "confidence")
+
+
+def sampler_options(section: dict[str, Any]) -> dict[str, Any]:
+    """The ``SAMPLER_OPTIONS`` present in a params.yaml evaluate.<task> section."""
+    return {k: section[k] for k in SAMPLER_OPTIONS if k in section}
 
 
 def resolve_device(device: str | None) -> str:

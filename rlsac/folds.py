@@ -228,6 +228,7 @@ def evaluate_fold(p: dict, regime: str, fold: str, o: dict, track: bool, lo: dic
 def folds(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
     """Run one stage of one (regime, fold); -> a summary of what was written where."""
     from rlsac.config import read_params, section
+    from rlsac.evaluate import sampler_options
 
     o = check_options(options)
     params = read_params(o["params"])
@@ -251,7 +252,7 @@ def folds(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
     else:
         ev = section(params, "evaluate", "fundamental")  # the *-lo methods' (rlsac.lo) and guided's options
         result["evaluations"] = evaluate_fold(p, regime, fold, o, track, ev.get("lo"), ev.get("guide_temperature"),
-                                              {k: ev[k] for k in ("sets_per_step", "confidence") if k in ev})
+                                              sampler_options(ev))
     result["seconds"] = round(time.time() - t0, 1)
     return result
 

@@ -81,7 +81,7 @@ def rlsac_estimate(task: Task, batch: dict, actor: Actor | None, iterations: int
         if guide is not None:  # the guided control: a fixed, hand-made sampling distribution
             env.step(select(env, guide, sample=True))
         elif actor is None:  # the uniform control
-            env.step(env.select(env.action, random=True) if k == 1 else env.select_many(env.action, random=True))
+            env.step(env.select_random())
         else:
             if reference:
                 logits = actor.reference_forward(state, env.mask, graph)
