@@ -1,7 +1,7 @@
 """Per-pair time of RLSAC vs OpenCV MAGSAC++ (and our RANSAC) for fundamental matrices at the 1k budget.
 
     python benchmarks/fundamental.py [--data data/fundamental/test.h5] [--pairs 12] [--iterations 1000]
-                                     [--checkpoint checkpoints/fundamental.pt] [--batch-pairs 1,4]
+                                     [--checkpoint checkpoints/folds/hard/fountain/rlsac.pt] [--batch-pairs 1,4]
                                      [--threads 1] [--device cpu] [--no-reference]
 
 All methods see the same first ``--pairs`` pairs of the prepared file (synthetic pairs when it is
@@ -74,7 +74,7 @@ def main() -> None:
     ap.add_argument("--data", default="data/fundamental/test.h5")
     ap.add_argument("--pairs", type=int, default=12)
     ap.add_argument("--iterations", type=int, default=1000)
-    ap.add_argument("--checkpoint", default="checkpoints/fundamental.pt",
+    ap.add_argument("--checkpoint", default="checkpoints/folds/hard/fountain/rlsac.pt",
                     help="'' = a randomly initialised actor (same cost, meaningless accuracy)")
     ap.add_argument("--batch-pairs", default="1,4", help="pairs per RLSAC call for the scaling table")
     ap.add_argument("--device", choices=["auto", "cpu", "cuda"], default="cpu")

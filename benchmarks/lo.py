@@ -23,7 +23,7 @@ from rlsac.config import read_params, section
 from rlsac.evaluate import DEFAULTS, data_module, make_estimator
 
 DEFAULT_DATA = {"fundamental": "data/fundamental/test.h5", "line": "data/lines/test_o0.5.h5"}
-DEFAULT_CKPT = {"fundamental": "checkpoints/fundamental.pt", "line": "checkpoints/line_o0.5.pt"}
+DEFAULT_CKPT = {"fundamental": "checkpoints/folds/hard/fountain/rlsac.pt", "line": "checkpoints/line_o0.5.pt"}
 DEFAULT_ITERATIONS = {"fundamental": 1000, "line": 150}
 
 

@@ -6,10 +6,10 @@
 # (`--wait-for-lock` queues their short dvc.lock updates). Each lane is one `dvc repro` over its
 # stages (and whatever they depend on); `final` builds the tables and figures once all are done.
 # The line models are split in two lanes (rates 0.1-0.3 and 0.4-0.7): with a single lines lane the
-# fundamental lane finishes first and one core sits idle for the last hour.
+# fold lanes finish first and one core sits idle for the last hour.
 #
 #   bash experiments/repro_paper.sh                 # all lanes in parallel, then final
-#   bash experiments/repro_paper.sh lines_low       # one lane: lines_low | lines_high | fundamental |
+#   bash experiments/repro_paper.sh lines_low       # one lane: lines_low | lines_high |
 #                                                   #   folds_a | folds_b | essential | final
 #   bash experiments/repro_paper.sh --list          # "lane stage" per line (a foreach group = all its items)
 #
@@ -31,23 +31,18 @@ line_stages() {  # the line stages of the given outlier rates
   echo "$out"
 }
 
-FOLD_MODELS=$(awk '/^folds:/ {f = 1} f && /^  models:/ {gsub(/.*\[|\].*|,/, " "); print; exit}' params.yaml)
-fold_stages() {  # the leave-one-building-out stages of the given folds (both regimes, every folds.models model)
-  local f r m out=""
-  for f in "$@"; do
-    for r in easy hard; do out="$out fold_data@$r-$f fold_eval@$r-$f"; done
-    for m in $FOLD_MODELS; do out="$out fold_train@$f-$m"; done
-  done
-  echo "$out"
+ALL_STAGES=$($DVC stage list --name-only)
+fold_stages() {  # every leave-one-building-out stage of the given folds (data, models, evaluations; both regimes)
+  local f
+  for f in "$@"; do grep -E "^fold_[a-z_]+@((easy|hard)-)?$f(-|$)" <<<"$ALL_STAGES"; done | tr '\n' ' '
 }
 
 declare -A STAGES=(
   [lines_low]="$(line_stages 0.1 0.2 0.3)"
   [lines_high]="$(line_stages 0.4 0.5 0.6 0.7)"
-  [fundamental]="import_scenes prepare_fundamental train_fundamental eval_fundamental eval_fundamental_rlsac ablation_data ablation_train ablation_eval"
-  [folds_a]="$(fold_stages castle fountain)"
+  [folds_a]="import_scenes $(fold_stages castle fountain)"
   [folds_b]="$(fold_stages herzjesu entry)"
-  [essential]="essential_train essential_eval essential_eval_rlsac"
+  [essential]="$(grep -E '^essential_' <<<"$ALL_STAGES" | tr '\n' ' ')"
   [final]="tables figures"
 )
 lane() {
@@ -61,7 +56,7 @@ lane() {
 }
 
 if [ "${1:-}" = "--list" ]; then
-  for name in lines_low lines_high fundamental folds_a folds_b essential final; do
+  for name in lines_low lines_high folds_a folds_b essential final; do
     for stage in ${STAGES[$name]}; do echo "$name $stage"; done
   done
   exit 0
@@ -72,7 +67,7 @@ if [ $# -gt 0 ]; then
 fi
 start=$(date +%s)
 pids=()
-for name in lines_low lines_high fundamental folds_a folds_b essential; do
+for name in lines_low lines_high folds_a folds_b essential; do
   lane "$name" & pids+=($!)
 done
 failed=0

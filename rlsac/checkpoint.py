@@ -13,6 +13,7 @@ Training state for ``--resume`` (rlsac.train) is a separate file beside it and n
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 from typing import Any
 
@@ -32,10 +33,19 @@ def actor_payload(actor: torch.nn.Module, conf: dict[str, Any], in_channels: int
             "in_channels": int(in_channels), "step": step, "val": val, "selection": selection, "history": list(history)}
 
 
+def to_bytes(payload: dict[str, Any]) -> bytes:
+    """The checkpoint's bytes: equal payloads give equal bytes. (torch.save to a path names the zip archive
+    inside after the file, so the random temporary name of an atomic write would change the md5.)"""
+    buf = io.BytesIO()
+    torch.save(payload, buf)
+    return buf.getvalue()
+
+
 def write(path: str | Path, payload: dict[str, Any]) -> None:
     """Write a checkpoint atomically (a killed write leaves the previous file)."""
+    data = to_bytes(payload)
     with atomic_path(path) as tmp:
-        torch.save(payload, tmp)
+        tmp.write_bytes(data)
 
 
 def read(path: str | Path, device: str | torch.device = "cpu") -> dict[str, Any]:

@@ -312,6 +312,30 @@ def calibrate_lines(tracking: bool, params_path: str, **options) -> None:
     click.echo(f"wrote {s['md']} and {s['csv']}")
 
 
+@cli.command()
+@click.option("--stages", help="Comma-separated stage addresses, foreach names or fnmatch patterns "
+                               "(e.g. 'fold_eval@hard-*') [default: every committed stage].")
+@click.option("--sample", type=int, help="Verify N stages drawn at random from those selected.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of --sample.")
+@click.option("--include-train", is_flag=True, help="Also training stages (minutes to hours each).")
+@click.option("--scratch", type=click.Path(file_okay=False),
+              help="Scratch folder, absent or empty [default: a new folder in the system temp dir].")
+@click.option("--keep", is_flag=True, help="Keep the scratch folder (re-run outputs, logs/<stage>.log).")
+@click.option("--repo", default=".", show_default=True, type=click.Path(file_okay=False),
+              help="The DVC repository to verify.")
+@tracking_option
+def verify(tracking: bool, **options) -> None:
+    """Re-run committed pipeline stages in a scratch copy and compare every output byte for byte
+    (rlsac.verify); exit 1 when one differs or fails."""
+    from rlsac.verify import format_summary
+    from rlsac.verify import verify as run
+
+    s = run(options, track=tracking, report=click.echo)
+    click.echo(format_summary(s))
+    if s["n_identical"] != s["n_stages"]:
+        sys.exit(1)
+
+
 def _echo_result(result) -> None:
     if result is None:
         return

@@ -71,6 +71,9 @@ DEFAULTS: dict[str, Any] = {
 }
 # the options above that a params.yaml evaluate.<task> section passes on to every environment method's run
 SAMPLER_OPTIONS = ("sets_per_step", "confidence")
+# what evaluate measures of time: written to TIMING_FILE beside summary.json (git- and dvc-ignored) and to MLflow
+TIMING_FILE = "timing.json"
+TIMING_KEYS = ("seconds", "seconds_per_instance", "lo_seconds_per_instance", "lo_time_fraction")
 
 
 def sampler_options(section: dict[str, Any]) -> dict[str, Any]:
@@ -209,7 +212,7 @@ def evaluate(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
     """Evaluate ``options['method']`` on ``options['data']``; write CSV + JSON; -> the summary dict."""
     o = check_options(options)
     # before any work: an unwritable output fails now, not at the end
-    for f in ("errors.csv", "summary.json", "config.json"):
+    for f in ("errors.csv", "summary.json", "config.json", TIMING_FILE):
         check_writable(Path(o["out_dir"]) / f)
     check_store(track)
     device = resolve_device(o["device"])
@@ -237,10 +240,11 @@ def evaluate(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
             torch.set_num_threads(torch_threads)
         summary = {k: _plain(v) for k, v in task.summarize(errors).items()}
         summary.update(task=o["task"], method=o["method"], iterations=o["iterations"], data=str(o["data"]),
-                       checkpoint=o["checkpoint"], seed=o["seed"], device=device, n_instances=n,
-                       seconds=seconds, seconds_per_instance=seconds / n, **extra)
+                       checkpoint=o["checkpoint"], seed=o["seed"], device=device, n_instances=n, **extra)
+        timing = {"seconds": seconds, "seconds_per_instance": seconds / n}
         if hasattr(estimate, "summary"):  # *-lo methods: the LO budget actually spent (rlsac.lo.CountingEstimate)
-            summary.update(estimate.summary(n, seconds))
+            for k, v in estimate.summary(n, seconds).items():
+                (timing if k in TIMING_KEYS else summary)[k] = v
         ids = {k: data[k] for k in ("scene", "pair") if k in data and len(data[k]) == n}  # fundamental pairs
         frame = pd.DataFrame({"instance": np.arange(n), **ids, **errors, "n_inliers": counts})
         csv_path, json_path = out_dir / "errors.csv", out_dir / "summary.json"
@@ -249,7 +253,10 @@ def evaluate(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
         # the full resolved configuration of this result (method, budget, sampling, checkpoint, task options)
         write_json(out_dir / "config.json", {k: _plain(v) for k, v in params.items()})
         write_json(json_path, summary)
-        summary["out_dir"] = str(out_dir)
+        # timings vary from run to run: an untracked sidecar (git- and dvc-ignored) and MLflow, never summary.json,
+        # so that a re-run of a stage gives the same bytes
+        write_json(out_dir / TIMING_FILE, timing)
+        summary.update(timing, out_dir=str(out_dir))
         run.metrics({k: v for k, v in summary.items() if isinstance(v, (int, float)) and not isinstance(v, bool)
                      and k not in ("iterations", "seed", "steps_per_episode")})
         run.artifact(csv_path)

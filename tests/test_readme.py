@@ -177,6 +177,9 @@ def check_other(argv: list[str], line: str) -> None:
         pins = [a for a in argv[2:] if "==" in a]
         assert pins and all(f'"{pin}"' in (ROOT / "pyproject.toml").read_text() for pin in pins), \
             f"{line}: its pins are not pyproject.toml's"
+        if "-c" in argv:  # the constraints file pins what changes output bytes; it agrees with pyproject's pins
+            constraints = (ROOT / argv[argv.index("-c") + 1]).read_text().split()
+            assert all(pin in constraints for pin in pins), f"{line}: constraints file disagrees with {pins}"
     elif prog == "python":
         assert argv[1:3] == ["-m", "pytest"], line
     elif prog == "bash":

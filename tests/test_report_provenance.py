@@ -39,6 +39,8 @@ def fresh_clone(workdir):
         "lines_data@0.7": {"cmd": "rlsac lines-data --rate 0.7", "params": {"params.yaml": LINES_PARAMS},
                            "outs": [{"path": "data/lines/test_o0.7.h5", "hash": "md5", "md5": md5, "size": 1}]},
         "prepare_fundamental@test": {"cmd": PREPARE, "outs": [{"path": "data/fundamental/test.h5", "md5": "x"}]},
+        "fold_data@hard-fountain": {"cmd": "rlsac folds --stage data --regime hard --fold fountain",
+                                    "outs": [{"path": "data/folds/hard/fountain", "md5": "y.dir"}]},
     }}
     (workdir / "dvc.lock").write_text(yaml.safe_dump(lock))
     d = workdir / "reports" / "eval" / "fundamental" / "rlsac" / "i1000"
@@ -78,8 +80,9 @@ def test_failed_plot_touches_nothing(fresh_clone):
     r = CliRunner().invoke(cli, ["plot", "--no-tracking"])
     assert r.exit_code == 2
     assert r.output.startswith("error: rlsac plot needs: ") and r.output.count("\n") == 1
-    assert "data/fundamental/test.h5: no prepared two-view file" in r.output  # every problem, in one line
-    assert "dvc repro prepare_fundamental@test" in r.output and "line_o0.7.pt: no such checkpoint" in r.output
+    # every problem, in one line; the pair figures read a fold's test file, made by its (directory) data stage
+    assert "data/folds/hard/fountain/test.h5: no prepared two-view file" in r.output
+    assert "dvc repro fold_data@hard-fountain" in r.output and "line_o0.7.pt: no such checkpoint" in r.output
     assert _committed(fresh_clone) == before
     _no_leftovers(fresh_clone)
 

@@ -149,3 +149,16 @@ def test_import_replaces_existing_scene(tmp_path):
     s = import_scenes(ImportConf(src=str(src.parent), out=str(out), min_matches=0), track=False, progress=False)
     assert s["kept"] == 1 and not (out / "all" / "mini" / "stale.txt").exists()
     assert sorted(p.name for p in (out / "all").iterdir()) == ["import_summary.json", "mini"]
+
+
+def test_import_is_byte_identical_on_a_re_run(tmp_path):
+    # the import's outputs are a function of its inputs: no duration or version string in any file
+    _strecha()
+    src = _mini_source(tmp_path)
+    files, out = [], tmp_path / "out"
+    for _ in range(2):  # the same command twice (the summary names its output folder)
+        s = import_scenes(ImportConf(src=str(src.parent), out=str(out), min_matches=0), track=False, progress=False)
+        assert s["seconds"] >= 0  # returned for the command's summary line, not written
+        files.append({p.relative_to(out): p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()})
+    assert files[0] == files[1] and len(files[0]) > 3
+    assert b"seconds" not in files[0][Path("all/import_summary.json")]

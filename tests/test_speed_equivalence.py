@@ -138,7 +138,7 @@ def test_forward_memory_matches_reference_on_rollout_states(chunk_points):
             close(actor(state, mask, graph), ref)
 
 
-@pytest.mark.parametrize("ckpt,task_name", [("checkpoints/fundamental.pt", "fundamental"),
+@pytest.mark.parametrize("ckpt,task_name", [("checkpoints/folds/hard/fountain/rlsac.pt", "fundamental"),
                                             ("checkpoints/line_o0.7.pt", "line")])
 def test_checkpoint_logits_match_reference(ckpt, task_name):
     """The shipped checkpoints keep loading (same state_dict keys) and give the reference logits."""
@@ -201,7 +201,7 @@ def test_line_rollout_same_final_hypotheses(sampling):
 
 
 def test_fundamental_rollout_same_final_hypotheses():
-    actor, conf = load_actor(ROOT / "checkpoints/fundamental.pt")
+    actor, conf = load_actor(ROOT / "checkpoints/folds/hard/fountain/rlsac.pt")
     task, env = FundamentalTask(), env_conf(conf)
     batch = two_view_batch(3, pad=10, seed=1)
     outs = [rlsac_estimate(task, batch, actor, 200, env, generator=torch.Generator().manual_seed(5), reference=ref)

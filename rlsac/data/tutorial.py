@@ -317,10 +317,11 @@ def prepare(conf: PrepareConf, track: bool = True, progress: bool = True) -> dic
     for s in scenes:  # fail on a missing scene before any work
         scene_dir(conf.root, conf.split, s)
     descriptor = (
-        f"OpenCV {cv2.__version__} SIFT compute at the given location, size {conf.kp_size} px, angle 0 (upright), "
+        f"OpenCV SIFT compute at the given location, size {conf.kp_size} px, angle 0 (upright), "
         f"octave 0; {'RootSIFT (L1-normalise, sqrt)' if conf.rootsift else 'L2-normalised SIFT'}"
     )
-    params = {**asdict(conf), "scenes": ",".join(scenes), "descriptor": descriptor}
+    # the OpenCV version goes to MLflow only: in the h5 it would change the file's hash with every OpenCV build
+    params = {**asdict(conf), "scenes": ",".join(scenes), "descriptor": descriptor, "opencv_version": cv2.__version__}
     with start_run("fundamental", f"prepare-{Path(conf.out).stem}", params, enabled=track) as run:
         skipped: dict[str, list[str]] = defaultdict(list)
         pairs: list[dict] = []
@@ -352,11 +353,11 @@ def prepare(conf: PrepareConf, track: bool = True, progress: bool = True) -> dic
             f"mean_gt_inlier_ratio_sampson_{conf.gt_threshold:g}px": float(inl.mean()),
             "gt_inlier_ratio_quantiles": {f"q{int(q * 100)}": float(np.quantile(inl, q))
                                           for q in (0.1, 0.25, 0.5, 0.75, 0.9)},
-            "seconds": round(time.time() - t0, 2),
         }
+        seconds = round(time.time() - t0, 2)  # MLflow and the returned summary only, not the written files
         run.metrics({"pairs": len(pairs), "skipped": n_skipped, "mean_correspondences": summary["mean_correspondences"],
-                     "mean_gt_inlier_ratio": float(inl.mean()), "seconds": summary["seconds"]})
+                     "mean_gt_inlier_ratio": float(inl.mean()), "seconds": seconds})
         if track:
             with tempfile.TemporaryDirectory() as d:
                 run.artifact(write_json(Path(d) / f"prepare_{Path(conf.out).stem}_summary.json", summary))
-    return summary
+    return {**summary, "seconds": seconds}

@@ -20,6 +20,7 @@ import pandas as pd  # noqa: E402
 
 from rlsac import checkpoint  # noqa: E402
 from rlsac.errors import RlsacError  # noqa: E402
+from rlsac.reports import figfile  # noqa: E402
 
 STYLE = {"uniform": ("tab:blue", "x"), "guided": ("tab:cyan", "<"), "prosac": ("olive", ">"),
          "ransac": ("tab:purple", "o"), "opencv_ransac": ("tab:gray", "s"),
@@ -30,13 +31,7 @@ STYLE = {"uniform": ("tab:blue", "x"), "guided": ("tab:cyan", "<"), "prosac": ("
 
 
 def _save(fig, out_dir: Path, name: str) -> list[str]:
-    paths = []
-    for ext in ("png", "pdf"):
-        p = out_dir / f"{name}.{ext}"
-        fig.savefig(p, dpi=130 if ext == "png" else None, bbox_inches="tight")
-        paths.append(str(p))
-    plt.close(fig)
-    return paths
+    return figfile.save(fig, out_dir, name, dpi=130)
 
 
 def plot_folds_iterations(csv: str | Path, out_dir: Path, name: str = "folds_iterations") -> tuple[list[str], str]:

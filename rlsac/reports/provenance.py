@@ -43,11 +43,16 @@ def lock_stage(path: str | Path, lock: str | Path = LOCK) -> tuple[str, dict[str
     except (OSError, yaml.YAMLError):
         return None
     want = _norm(path)
+    inside = None  # a directory output that holds ``path`` (data/folds/<regime>/<fold> holds its test.h5)
     for name, st in stages.items():
         for out in (st or {}).get("outs") or []:
-            if isinstance(out, dict) and _norm(out.get("path", "")) == want:
+            if not isinstance(out, dict):
+                continue
+            if _norm(out.get("path", "")) == want:
                 return name, st, out
-    return None
+            if inside is None and want.startswith(_norm(out.get("path", "")).rstrip("/") + "/"):
+                inside = name, st, out
+    return inside
 
 
 def cmd_options(cmd: str) -> dict[str, str]:

@@ -1,0 +1,240 @@
+"""``rlsac verify`` on a toy git + DVC repository: a deterministic stage, a stage whose output depends on an
+environment variable, a training stage and a data stage with a DVC-cached output."""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+import shutil
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from rlsac.cli import cli
+
+BIN = Path(sys.executable).parent
+
+SCRIPTS = {
+    # data stage (DVC-cached output): the generated input of `make`, never git-tracked
+    "gen_data.py": """
+        from pathlib import Path
+        Path("data").mkdir(exist_ok=True)
+        Path("data/raw.txt").write_text("1 2 3 4\\n")
+    """,
+    # deterministic: a JSON summary, a CSV and an untracked timing sidecar that verify must ignore
+    "make.py": """
+        import json, time, yaml
+        from pathlib import Path
+        n = yaml.safe_load(open("params.yaml"))["make"]["n"]
+        xs = [float(v) for v in Path("data/raw.txt").read_text().split()][:n]
+        Path("out").mkdir(exist_ok=True)
+        Path("out/a.json").write_text(json.dumps({"summary": {"mAA": 0.8125, "n": len(xs)}, "xs": xs}, indent=2))
+        Path("out/b.csv").write_text("instance,err\\n" + "".join(f"{i},{x / 4}\\n" for i, x in enumerate(xs)))
+        Path("out/timing.json").write_text(json.dumps({"seconds": time.time()}))
+    """,
+    # depends on an environment variable that is no input of the stage: differs when it changes
+    "stamp.py": """
+        import os
+        open("stamp.txt", "w").write(os.environ.get("VERIFY_STAMP", "one") + "\\n")
+    """,
+    "train.py": """
+        open("model.pt", "wb").write(bytes(range(16)))
+    """,
+}
+
+DVC_YAML = """
+stages:
+  data:
+    cmd: python gen_data.py
+    deps: [gen_data.py]
+    outs: [data/raw.txt]
+  make:
+    cmd: python make.py
+    deps: [make.py, data/raw.txt]
+    params: [make.n]
+    outs:
+      - out:
+          cache: false
+  stamp:
+    cmd: python stamp.py
+    deps: [stamp.py]
+    outs:
+      - stamp.txt:
+          cache: false
+  train_toy:
+    cmd: python train.py
+    deps: [train.py]
+    outs:
+      - model.pt:
+          cache: false
+"""
+
+
+def _env(**extra) -> dict:
+    env = {**os.environ, "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}", "OMP_NUM_THREADS": "1",
+           "DVC_NO_ANALYTICS": "1", "VERIFY_STAMP": "one", **extra}
+    env.pop("MLFLOW_TRACKING_URI", None)
+    return env
+
+
+def _sh(*args, cwd):
+    subprocess.run([str(a) for a in args], cwd=cwd, env=_env(), check=True, capture_output=True)
+
+
+@pytest.fixture(scope="module")
+def toy(tmp_path_factory) -> Path:
+    """The committed toy repository, built once (git init, dvc init, dvc repro, git commit)."""
+    root = tmp_path_factory.mktemp("toy") / "repo"
+    root.mkdir()
+    for name, text in SCRIPTS.items():
+        (root / name).write_text(textwrap.dedent(text).lstrip())
+    (root / "dvc.yaml").write_text(DVC_YAML.lstrip())
+    (root / "params.yaml").write_text("make:\n  n: 3\n")
+    (root / ".gitignore").write_text("timing.json\n")
+    _sh("git", "init", "-q", cwd=root)
+    _sh("git", "config", "user.name", "t", cwd=root)
+    _sh("git", "config", "user.email", "t@example.com", cwd=root)
+    _sh(BIN / "dvc", "init", "-q", cwd=root)
+    (root / ".dvcignore").write_text("timing.json\n")
+    _sh(BIN / "dvc", "repro", "-q", cwd=root)
+    _sh("git", "add", "-A", cwd=root)
+    _sh("git", "commit", "-q", "-m", "toy", cwd=root)
+    assert (root / "out/timing.json").is_file() and not (root / "data/raw.txt").is_symlink()
+    return root
+
+
+@pytest.fixture
+def repo(toy, tmp_path) -> Path:
+    """A fresh copy of the toy repository that a test may tamper with."""
+    dst = tmp_path / "repo"
+    shutil.copytree(toy, dst, symlinks=True)
+    return dst
+
+
+def verify(repo, *args, env=None):
+    return CliRunner().invoke(cli, ["verify", "--repo", str(repo), *map(str, args)], env=env or {"VERIFY_STAMP": "one"})
+
+
+def lines(result) -> list[str]:
+    return result.stdout.strip().splitlines()
+
+
+def assert_user_error(result, *fragments):
+    assert result.exit_code == 2, result.output
+    err = result.stderr.strip()
+    assert err.startswith("error: ") and "\n" not in err, err
+    assert "Traceback" not in result.output
+    for f in fragments:
+        assert f in err, err
+
+
+def test_all_committed_stages_identical(repo, tmp_path):
+    scratch = tmp_path / "scratch"
+    r = verify(repo, "--no-tracking", "--scratch", scratch)
+    assert r.exit_code == 0, r.output
+    out = lines(r)
+    # the data stage (cached) and the training stage (not asked for) are not run
+    assert [ln.split()[:2] for ln in out[:-1]] == [["identical", "make"], ["identical", "stamp"]]
+    assert out[-1] == "verify: 2 identical, 0 differ, 0 failed of 2 stages (scratch: removed)"
+    assert not scratch.exists()
+    assert not (repo / "out/a.json").is_symlink() and subprocess.run(
+        ["git", "status", "--porcelain"], cwd=repo, capture_output=True, text=True).stdout == ""
+
+
+def test_tampered_json_differs_with_key_and_values(repo):
+    a = repo / "out/a.json"
+    a.write_text(a.read_text().replace("0.8125", "0.8126"))
+    r = verify(repo, "--stages", "make", "--no-tracking")
+    assert r.exit_code == 1, r.output
+    assert lines(r)[0] == "differs    make: out/a.json: summary.mAA committed 0.8126 re-run 0.8125"
+    assert lines(r)[-1].startswith("verify: 0 identical, 1 differ, 0 failed of 1 stages")
+
+
+def test_tampered_csv_names_line_and_column(repo):
+    b = repo / "out/b.csv"
+    b.write_text(b.read_text().replace("1,0.5", "1,0.55"))
+    r = verify(repo, "--stages", "make", "--no-tracking")
+    assert r.exit_code == 1, r.output
+    assert "out/b.csv: line 3, column err: committed 0.55 re-run 0.5" in lines(r)[0]
+
+
+def test_extra_file_in_output_folder_differs_but_timing_is_ignored(repo):
+    (repo / "out/timing.json").write_text("{}")  # ignored: a per-run sidecar
+    (repo / "out/stale.txt").write_text("x")
+    r = verify(repo, "--stages", "make", "--no-tracking")
+    assert r.exit_code == 1 and "out: missing in re-run: stale.txt" in lines(r)[0], r.output
+
+
+def test_environment_dependent_stage_differs_and_keep_leaves_logs(repo, tmp_path):
+    scratch = tmp_path / "scratch"
+    r = verify(repo, "--stages", "stamp,make", "--keep", "--scratch", scratch, "--no-tracking",
+               env={"VERIFY_STAMP": "two"})
+    assert r.exit_code == 1, r.output
+    out = lines(r)
+    assert out[0].startswith("identical  make  (")
+    assert out[1] == "differs    stamp: stamp.txt: line 1: committed 'one' re-run 'two'"
+    assert out[-1] == f"verify: 1 identical, 1 differ, 0 failed of 2 stages (scratch: {scratch})"
+    assert (scratch / "logs/stamp.log").is_file() and (scratch / "rerun/stamp/stamp.txt").read_text() == "two\n"
+    assert (scratch / "repo/data/raw.txt").is_symlink()  # the untracked input, linked, not copied
+    assert (scratch / "repo/stamp.txt").read_text() == "one\n"  # committed output put back for later stages
+
+
+def test_failing_stage_reports_its_last_line(repo):
+    (repo / "stamp.py").write_text("raise SystemExit('stamp broke')\n")
+    r = verify(repo, "--stages", "stamp", "--no-tracking")
+    assert r.exit_code == 1 and lines(r)[0].startswith("failed     stamp: exit 1: stamp broke"), r.output
+
+
+def test_sample_is_deterministic(repo):
+    expected = random.Random(0).sample(["make", "stamp"], 1)[0]
+    r = verify(repo, "--sample", 1, "--seed", 0, "--no-tracking")
+    assert r.exit_code == 0, r.output
+    assert [ln.split()[1] for ln in lines(r)[:-1]] == [expected]
+
+
+def test_training_stage_only_when_asked(repo):
+    r = verify(repo, "--include-train", "--no-tracking")
+    assert r.exit_code == 0 and [ln.split()[1] for ln in lines(r)[:-1]] == ["make", "stamp", "train_toy"], r.output
+    r = verify(repo, "--stages", "train_*", "--no-tracking")
+    assert r.exit_code == 0 and lines(r)[0].startswith("identical  train_toy"), r.output
+
+
+def test_unknown_stage_is_a_user_error(repo):
+    assert_user_error(verify(repo, "--stages", "make,nope", "--no-tracking"), "no stage matches 'nope'")
+
+
+def test_data_stage_is_refused_by_name(repo):
+    assert_user_error(verify(repo, "--stages", "data", "--no-tracking"), "data cannot be verified", "DVC-cached")
+
+
+def test_missing_dependency_fails_before_any_work(repo, tmp_path):
+    """Through the console script: one error line naming the producing stage; no MLflow store, no scratch."""
+    (repo / "data/raw.txt").unlink()
+    scratch, db = tmp_path / "scratch", tmp_path / "mlflow.db"
+    r = subprocess.run([sys.executable, "-c", "from rlsac.cli import main; main()", "verify", "--repo", str(repo),
+                        "--stages", "make", "--scratch", str(scratch)], cwd=tmp_path, capture_output=True, text=True,
+                       env=_env(MLFLOW_TRACKING_URI=f"sqlite:///{db}"))
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.count("\n") == 1 and r.stderr.startswith(
+        "error: data/raw.txt: missing dependency of make (run `dvc repro -s data` first)"), r.stderr
+    assert not db.exists() and not scratch.exists()
+
+
+def test_tracking_logs_a_finished_run(repo, workdir):
+    r = verify(repo, "--stages", "make", "--tracking")
+    assert r.exit_code == 0, r.output
+    import mlflow
+
+    mlflow.set_tracking_uri(os.environ["MLFLOW_TRACKING_URI"])
+    runs = mlflow.search_runs(experiment_names=["verify"], output_format="list")
+    assert len(runs) == 1 and runs[0].info.status == "FINISHED"
+    assert runs[0].data.metrics == {"n_identical": 1.0, "n_differs": 0.0, "n_failed": 0.0}
+    assert runs[0].data.params["selected"] == "make"
+    local = mlflow.artifacts.download_artifacts(run_id=runs[0].info.run_id, artifact_path="verify.json",
+                                                dst_path=str(workdir / "art"))
+    assert json.loads(Path(local).read_text())[0]["status"] == "identical"
