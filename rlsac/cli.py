@@ -1,7 +1,7 @@
 """The ``rlsac`` command line. Each command parses options and calls one library function.
 
-A user error (``RlsacError``) is printed as ``error: <message>`` on one line of stderr with exit
-code 2 and no traceback; click's own usage errors keep click's message and exit code 2.
+A user error (``RlsacError``, or one of click's usage errors) is printed as ``error: <message>`` on one line of
+stderr with exit code 2 and no traceback.
 """
 
 from __future__ import annotations
@@ -28,7 +28,29 @@ class _UserError(click.ClickException):
 
 class _Group(click.Group):
     """Turns RlsacError raised by any command into a one-line error with exit code 2 (an interrupted
-    training: 130 / 143)."""
+    training: 130 / 143), and click's own usage errors (unknown option or command, bad choice, a file where a
+    folder is expected) into the same one ``error:`` line instead of click's four-line usage block."""
+
+    def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
+        if not standalone_mode:
+            return super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
+        try:
+            code = super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
+        except click.exceptions.NoArgsIsHelpError as e:  # a bare `rlsac`: the help, as `rlsac --help`
+            click.echo(e.ctx.get_help())
+            sys.exit(0)
+        except click.UsageError as e:
+            where = e.ctx.command_path if e.ctx is not None else (prog_name or "rlsac")
+            click.echo(f"error: {' '.join(e.format_message().split())} (`{where} --help` lists the options)",
+                       err=True)
+            sys.exit(2)
+        except click.ClickException as e:
+            e.show()
+            sys.exit(e.exit_code)
+        except click.exceptions.Abort:
+            click.echo("error: aborted", err=True)
+            sys.exit(1)
+        sys.exit(code if isinstance(code, int) else 0)
 
     def invoke(self, ctx):
         try:

@@ -357,6 +357,14 @@ CASES = [
     ("plot-steps-type", ["plot", "--set", "line_steps=abc"], "plot.line_steps must be an integer, got 'abc'"),
     ("plot-steps-range", ["plot", "--set", "fundamental_steps=0"], "plot.fundamental_steps must be in [1, inf)"),
     ("plot-seed", ["plot", "--set", "seed=-1"], "plot.seed must be in"),
+    # click's own usage errors: the same one `error:` line (not click's four-line usage block), exit 2
+    ("click-method", ["evaluate", "--task", "line", "--method", "bogus", "--data", "x.h5"],
+     "Invalid value for '--method': 'bogus' is not one of"),
+    ("click-which", ["table", "--which", "bogus"], "Invalid value for '--which'"),
+    ("click-option", ["synth-lines", "--bogus", "1"], "No such option '--bogus'"),
+    ("click-missing", ["evaluate", "--task", "line", "--data", "x.h5"], "Missing option '--method'"),
+    ("click-command", ["nope"], "No such command 'nope'"),
+    ("click-int", ["verify", "--sample", "many"], "Invalid value for '--sample'"),
 ]
 
 
