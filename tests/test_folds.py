@@ -238,6 +238,26 @@ def test_fold_table_pools_pairs_and_pairs_methods(tmp_path):
     assert got["files"] and not got["missing"]
 
 
+def test_fold_table_refuses_one_method_shown_as_two_rows(tmp_path):
+    """Issue #26: Table E showed USAC_ACCURATE beside USAC although OpenCV's findEssentialMat ignores the flag (every
+    error identical). Identical errors in every regime and budget are refused before anything is written; equal
+    errors in one cell only are a legitimate tie."""
+    ev = tmp_path / "eval"
+    for fold, n in (("a", 2), ("b", 3)):
+        for it in (100, 1000):
+            _write_errors(ev, "hard", fold, "usac", it, [0.5 + it * 1e-3] * n, [2.0] * n)
+            _write_errors(ev, "hard", fold, "usac_accurate", it, [0.5 + it * 1e-3] * n, [2.0] * n)
+            _write_errors(ev, "hard", fold, "rlsac", it, [1.5] * n, [2.0] * n)
+    with pytest.raises(RlsacError, match="'usac' and 'usac_accurate' give identical errors"):
+        fold_table.build(ev, tmp_path / "out", tmp_path / "rec")
+    assert not (tmp_path / "out").exists()
+    import shutil
+
+    shutil.rmtree(ev / "folds" / "hard" / "b" / "usac_accurate" / "i1000")
+    _write_errors(ev, "hard", "b", "usac_accurate", 1000, [0.5, 0.7, 0.5], [2.0] * 3)  # differs in one cell
+    assert fold_table.build(ev, tmp_path / "out", tmp_path / "rec")["files"]
+
+
 def test_fold_table_without_results_writes_nothing(tmp_path):
     got = fold_table.build(tmp_path / "none", tmp_path / "out", tmp_path / "rec")
     assert got["files"] == [] and not (tmp_path / "out").exists()

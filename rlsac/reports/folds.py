@@ -90,6 +90,21 @@ def _check_cell(path: Path, name: str, iterations: int) -> None:
                          f"iterations, not the {name!r} at {iterations} its folder names")
 
 
+def check_distinct(res: dict[tuple[str, str, int], pd.DataFrame], sub: str = "folds") -> None:
+    """Two rows whose per-pair errors are identical in every regime and budget are one method shown twice (OpenCV's
+    findEssentialMat ignores USAC_ACCURATE's flag: its rows were USAC's): RlsacError, before anything is written."""
+    from rlsac.errors import RlsacError
+
+    methods = sorted({m for _, m, _ in res})
+    for i, a in enumerate(methods):
+        for b in methods[i + 1:]:
+            cells = [(r, it) for r, m, it in res if m == a and (r, b, it) in res]
+            if cells and all(res[(r, a, it)][["err_R", "err_t"]].equals(res[(r, b, it)][["err_R", "err_t"]])
+                             for r, it in cells):
+                raise RlsacError(f"reports/eval/{sub}: methods '{a}' and '{b}' give identical errors on every pair, "
+                                 f"fold and budget: one method shown as two rows (drop one from params.yaml)")
+
+
 def _key(df: pd.DataFrame) -> pd.Series:
     return df["fold"].astype(str) + "/" + df.get("scene", pd.Series([""] * len(df))).astype(str) + "/" + \
         df.get("pair", df["instance"]).astype(str)
@@ -161,6 +176,7 @@ def build(eval_root: str | Path = "reports/eval", out_dir: str | Path = "reports
           iterations_stem: str | None = "folds_iterations", head: str = TABLE2_HEAD) -> dict[str, Any]:
     """Write <stem>.{md,csv} and <iterations_stem>.csv from <eval_root>/<sub>; -> {"files", "missing"}."""
     res = collect(eval_root, sub)
+    check_distinct(res, sub)
     regimes_found = {r for r, _, _ in res}
     recs = {k: v for k, v in load_records(records).items() if k[0] in regimes_found}
     out_dir = Path(out_dir)

@@ -442,6 +442,11 @@ def build(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
         read_summary(path)
     for path in sorted(eval_root.glob("lines/*/o*/errors.csv")):
         read_errors(path)
+    if which in ("folds", "essential", "all"):  # one method shown as two rows: refused before the MLflow run
+        from rlsac.reports import folds
+
+        for sub in ("folds", "essential") if which == "all" else (which,):
+            folds.check_distinct(folds.collect(eval_root, sub), sub)
     check_writable(out_dir / "metrics.json")
     check_store(track)
     with start_run("reports", f"table {which}", params={"which": which, "eval_root": str(eval_root),
