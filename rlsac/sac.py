@@ -83,10 +83,11 @@ class ReplayBuffer:
         self.ptr = (self.ptr + k) % self.size
 
     def state_dict(self) -> dict:
-        """The filled part of the buffer (for an exact ``--resume``), on the CPU."""
+        """The filled part of the buffer (for an exact ``--resume``), on the CPU. Copies: torch.save of a slice
+        writes the slice's whole storage (the 100k-row buffer for a few hundred transitions)."""
         n = len(self)
         return {"size": self.size, "ptr": self.ptr, "full": self.full,
-                **{k: getattr(self, k)[:n].cpu() for k in ("inst", "mem", "mem2", "action", "reward", "done")}}
+                **{k: getattr(self, k)[:n].cpu().clone() for k in ("inst", "mem", "mem2", "action", "reward", "done")}}
 
     def load_state_dict(self, st: dict) -> None:
         n = st["inst"].shape[0]

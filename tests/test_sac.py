@@ -284,6 +284,9 @@ def test_replay_buffer_state_dict_round_trip():
             torch.tensor([False, True]))
     st = src.state_dict()
     assert st["inst"].tolist() == [7, 8] and st["ptr"] == 2 and st["full"] is False  # the filled part only
+    # ... also on disk: a saved slice would carry the whole 4-row storage (issue #28: 124 MB for 803 transitions)
+    for k in ("inst", "mem", "mem2", "action", "reward", "done"):
+        assert st[k].untyped_storage().nbytes() == st[k].numel() * st[k].element_size(), k
     dst = ReplayBuffer(size=4, n=3, m=2, device=torch.device("cpu"))
     dst.load_state_dict(st)
     assert len(dst) == 2 and dst.ptr == 2 and not dst.full
