@@ -56,7 +56,7 @@ def protocol(params: dict[str, Any]) -> dict[str, Any]:
     unknown = sorted(set(given) - set(DEFAULTS))
     if unknown:
         raise RlsacError(f"unknown params key(s) folds.{unknown}; known: {sorted(DEFAULTS)}")
-    p = {**copy.deepcopy(DEFAULTS), **copy.deepcopy(given)}
+    p = _typed({**copy.deepcopy(DEFAULTS), **copy.deepcopy(given)})
     if not p["test"] or not set(p["test"]) <= set(p["scenes"]) or len(p["scenes"]) < 2:
         raise RlsacError(f"folds.test {p['test']} must name buildings of folds.scenes {sorted(p['scenes'])} "
                          "(at least two buildings: one to test, one to train)")
@@ -69,9 +69,7 @@ def protocol(params: dict[str, Any]) -> dict[str, Any]:
         raise RlsacError(f"folds.models {p['models']} and the keys of folds.train {sorted(p['train'])} differ")
     if p["model_regime"] not in p["regimes"]:
         raise RlsacError(f"folds.model_regime {p['model_regime']!r} is not one of folds.regimes {p['regimes']}")
-    if not 0 < float(p["val_fraction"]) < 1:
-        raise RlsacError(f"folds.val_fraction must be in (0, 1), got {p['val_fraction']}")
-    if not p["iterations"] or any(int(i) <= 0 for i in p["iterations"]):
+    if not p["iterations"]:
         raise RlsacError(f"folds.iterations must be positive budgets, got {p['iterations']}")
     from rlsac.methods import METHODS
 
@@ -83,6 +81,30 @@ def protocol(params: dict[str, Any]) -> dict[str, Any]:
     clash = sorted(set(p["models"]) & set(METHODS))
     if clash and clash != ["rlsac"]:
         raise RlsacError(f"folds.models {clash}: a model may not share a method's name")
+    return p
+
+
+def _typed(p: dict[str, Any]) -> dict[str, Any]:
+    """Every key of the folds section coerced to its type and range-checked (issue #28: `folds.pool.hard: "x"` or
+    `folds.iterations: ["x"]` were tracebacks, some only in the stage that reads them); -> the section, typed."""
+    from rlsac.config import SEED_RANGE, check_value
+
+    for key in ("test", "regimes", "methods", "models", "lo_models", "iterations"):
+        if not isinstance(p[key], list):
+            raise RlsacError(f"folds.{key} must be a list, got {p[key]!r}")
+        if key != "iterations":
+            p[key] = [check_value(f"folds.{key}", v, str) for v in p[key]]
+    for key in ("scenes", "pool", "train"):
+        if not isinstance(p[key], dict) or not all(isinstance(v, (dict if key == "train" else (str, int)))
+                                                   for v in p[key].values()):
+            raise RlsacError(f"folds.{key} must map names to {'recipes' if key == 'train' else 'values'}, "
+                             f"got {p[key]!r}")
+    p["scenes"] = {b: check_value(f"folds.scenes.{b}", v, str) for b, v in p["scenes"].items()}
+    p["pool"] = {r: check_value(f"folds.pool.{r}", v, int, "[0, inf)") for r, v in p["pool"].items()}
+    p["iterations"] = [check_value("folds.iterations", v, int, "[1, inf)") for v in p["iterations"]]
+    p["val_fraction"] = check_value("folds.val_fraction", p["val_fraction"], float, "(0, 1)")
+    p["seed"] = check_value("folds.seed", p["seed"], int, SEED_RANGE)
+    p["model_regime"] = check_value("folds.model_regime", p["model_regime"], str)
     return p
 
 

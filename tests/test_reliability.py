@@ -129,6 +129,11 @@ def inputs(tmp_path_factory):
         "p_train_sac": "train:\n  line:\n    sac: 5\n",
         "p_eval_iter": "evaluate:\n  line:\n    iterations: abc\n",
         "p_lines_n": "lines:\n  n_train: -4\n",
+        "p_folds_pool": "folds:\n  pool: {easy: 0, hard: x}\n",
+        "p_folds_iter": "folds:\n  iterations: [x]\n",
+        "p_folds_iter_scalar": "folds:\n  iterations: 100\n",
+        "p_folds_seed": "folds:\n  seed: -1\n",
+        "p_folds_val": "folds:\n  val_fraction: 1.5\n",
     }
     for name, text in params.items():
         f[name] = d / f"{name}.yaml"
@@ -357,6 +362,18 @@ CASES = [
     ("plot-steps-type", ["plot", "--set", "line_steps=abc"], "plot.line_steps must be an integer, got 'abc'"),
     ("plot-steps-range", ["plot", "--set", "fundamental_steps=0"], "plot.fundamental_steps must be in [1, inf)"),
     ("plot-seed", ["plot", "--set", "seed=-1"], "plot.seed must be in"),
+    # params.yaml folds: every key typed and range-checked at load, whatever the stage (a stage that does not read
+    # a key still refuses it): data, train and evaluate alike
+    ("folds-pool-type", ["folds", "--stage", "evaluate", "--regime", "hard", "--fold", "castle", "--params",
+                         "{p_folds_pool}"], "folds.pool.hard must be an integer, got 'x'"),
+    ("folds-iter-type", ["folds", "--stage", "data", "--regime", "hard", "--fold", "castle", "--params",
+                         "{p_folds_iter}"], "folds.iterations must be an integer, got 'x'"),
+    ("folds-iter-list", ["folds", "--stage", "train", "--regime", "hard", "--fold", "castle", "--params",
+                         "{p_folds_iter_scalar}"], "folds.iterations must be a list, got 100"),
+    ("folds-seed", ["folds", "--stage", "evaluate", "--regime", "hard", "--fold", "castle", "--params",
+                    "{p_folds_seed}"], "folds.seed must be in [0, 4294967295]"),
+    ("folds-val", ["folds", "--stage", "data", "--regime", "easy", "--fold", "entry", "--params", "{p_folds_val}"],
+     "folds.val_fraction must be in (0, 1), got 1.5"),
     # click's own usage errors: the same one `error:` line (not click's four-line usage block), exit 2
     ("click-method", ["evaluate", "--task", "line", "--method", "bogus", "--data", "x.h5"],
      "Invalid value for '--method': 'bogus' is not one of"),
