@@ -107,14 +107,32 @@ def test_templated_values_and_params_exist(pipeline, profile):
         _lookup(params, ref)
     for name, st in pipeline["stages"].items():
         body = st.get("do", st)
-        keys = [None]
-        if "foreach" in st:
-            over = _lookup(params, REF.fullmatch(st["foreach"].strip()).group(1))
-            keys = list(over) if isinstance(over, dict) else [None]
-        for key in keys:
+        for item in _items(params, st):
             for p in body.get("params", []):
                 assert isinstance(p, str), f"{name}: params must name keys of params.yaml"
-                _lookup(params, p.replace("${key}", str(key)))
+                _lookup(params, REF.sub(lambda m: str(item[m.group(1)]), p))
+
+
+def _values(params: dict, ref) -> list:
+    if isinstance(ref, str) and REF.fullmatch(ref.strip()):
+        ref = _lookup(params, REF.fullmatch(ref.strip()).group(1))
+    return list(ref)
+
+
+def _items(params: dict, stage: dict) -> list[dict]:
+    """The substitutions of each instance of a foreach or matrix stage (``${key}``, ``${item}``, ``${item.x}``)."""
+    if "matrix" in stage:
+        axes = {k: _values(params, v) for k, v in stage["matrix"].items()}
+        combos = [{}]
+        for k, vals in axes.items():
+            combos = [{**c, f"item.{k}": v} for c in combos for v in vals]
+        return combos
+    if "foreach" in stage:
+        over = _lookup(params, REF.fullmatch(stage["foreach"].strip()).group(1))
+        if isinstance(over, dict):
+            return [{"key": k, "item": v} for k, v in over.items()]
+        return [{"item": v} for v in over]
+    return [{}]
 
 
 @pytest.mark.parametrize("profile", list(PROFILES))
@@ -124,8 +142,8 @@ def test_dvc_renders_and_cli_accepts_every_command(profile):
         stages = [s for s in repo.index.stages
                   if Path(os.path.abspath(s.path)).parent == PROFILES[profile] and s.cmd]  # no symlink resolving
     names = {s.name.split("@")[0] for s in stages}
-    assert {"lines_data", "train_lines", "eval_fundamental", "ablation_train", "ablation_eval", "tables",
-            "figures"} <= names
+    assert {"lines_data", "train_lines", "import_scenes", "fold_data", "fold_train", "fold_eval", "fold_eval_model",
+            "essential_train", "essential_eval", "tables", "figures"} <= names
     assert any(s.metrics for s in stages), "the tables stage declares reports/metrics.json"
     for s in stages:
         for part in re.split(r"\s*&&\s*", s.cmd):
@@ -176,3 +194,51 @@ def test_repro_script_lanes_cover_every_stage_once():
         for n in hits:
             lane_of[n].append(lane)
     assert {n: lanes for n, lanes in lane_of.items() if len(lanes) != 1} == {}
+
+
+def _resolved_stages(root: Path) -> list:
+    with dvc_repo.Repo(str(root)) as repo:
+        return [(s.addressing, [str(d.def_path) for d in s.deps if not hasattr(d, "params")],
+                 {p for d in s.deps if hasattr(d, "params") for p in (d.params or [])},
+                 [(str(o.def_path), o.use_cache) for o in s.outs])
+                for s in repo.index.stages if Path(os.path.abspath(s.path)).parent == root]
+
+
+def test_each_stage_depends_on_its_own_recipe_and_no_ignored_file():
+    """Issue #25: a fold model depends on its own recipe (folds.train.<model>), not on the mapping of every model,
+    so adding a model does not re-train the others; an evaluation depends on the one checkpoint it reads, and a
+    training stage never on the test file; no dependency is a git-ignored file that no stage makes (the fold
+    checkpoint folder held git-ignored *.state.pt files, so a clone could never be up to date)."""
+    import subprocess
+
+    stages = _resolved_stages(ROOT)
+    outs = {o for _, _, _, os_ in stages for o, _ in os_}
+    models = _load(ROOT / "params.yaml")["folds"]["models"]
+    trains = [s for s in stages if s[0].startswith("fold_train@")]
+    assert len(trains) == 4 * len(models)
+    for name, deps, params, _ in trains:
+        model = name.split("-", 1)[1]
+        assert f"folds.train.{model}" in params and "folds.train" not in params, name
+        assert not any(d.endswith("test.h5") for d in deps), name
+    for name, deps, _params, _ in stages:
+        for d in deps:
+            made = d in outs or any(d.startswith(o.rstrip("/") + "/") for o in outs)
+            ignored = subprocess.run(["git", "check-ignore", "-q", d], cwd=ROOT).returncode == 0
+            assert made or not ignored, f"{name}: {d} is git-ignored and no stage makes it"
+            if d.startswith("checkpoints/"):
+                assert d.endswith(".pt") or name == "figures", f"{name}: depends on the folder {d}"
+        if name.startswith(("fold_eval_model@", "fold_eval_lo@")):
+            _regime, fold, model = name.split("@")[1].split("-", 2)
+            want = [f"checkpoints/folds/hard/{fold}/{model}.pt"]
+            assert [d for d in deps if d.startswith("checkpoints/")] == want, name
+
+
+def test_timings_and_training_states_are_ignored_by_git_and_dvc():
+    """Outputs DVC hashes and git commits hold no per-run file: timing.json sidecars and training states."""
+    import subprocess
+
+    for path in ("reports/eval/folds/hard/castle/magsac/i100/timing.json",
+                 "checkpoints/folds/hard/castle/rlsac.pt.state.pt"):
+        assert subprocess.run(["git", "check-ignore", "-q", path], cwd=ROOT).returncode == 0, path
+    dvcignore = (ROOT / ".dvcignore").read_text().split()
+    assert "timing.json" in dvcignore and "*.state.pt" in dvcignore
