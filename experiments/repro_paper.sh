@@ -38,7 +38,7 @@ fold_stages() {  # every leave-one-building-out stage of the given folds (data, 
 }
 
 declare -A STAGES=(
-  [lines_low]="$(line_stages 0.1 0.2 0.3)"
+  [lines_low]="calibrate_lines $(line_stages 0.1 0.2 0.3)"
   [lines_high]="$(line_stages 0.4 0.5 0.6 0.7)"
   [folds_a]="import_scenes $(fold_stages castle fountain)"
   [folds_b]="$(fold_stages herzjesu entry)"
