@@ -257,9 +257,11 @@ def validation_metrics(task, val: dict, agent: SACAgent, conf: TrainConf, device
 
 
 class _StopOnSignal:
-    """While active (``with``): SIGINT / SIGTERM set ``signum`` (call it: ``stop()`` -> bool) instead of
-    killing the process, so that training stops at the end of the episode after saving its state. A
-    second signal acts at once (the previous handlers are back). Only in the main thread."""
+    """While active (``with``): a first SIGINT / SIGTERM sets ``signum`` (call it: ``stop()`` -> bool) instead of
+    killing the process, so that training stops at the end of the episode after saving its state. A second
+    signal stops at once, by raising ``Interrupted`` where the program is: the with-blocks unwind, so the MLflow
+    run ends KILLED and a save in progress removes its temporary file (issue #28, item 5: the default handler
+    killed the process, leaving the run RUNNING and the temporary file behind). Only in the main thread."""
 
     def __init__(self):
         self.signum = 0
@@ -269,10 +271,13 @@ class _StopOnSignal:
         return bool(self.signum)
 
     def _handle(self, signum, frame) -> None:
+        name = signal.Signals(signum).name
+        if self.signum:
+            raise Interrupted(f"interrupted by a second {name}: stopped at once, without saving; continue from "
+                              "the last saved state with --resume", signum)
         self.signum = signum
-        self._restore()
-        print(f"\nrlsac train: {signal.Signals(signum).name} received, stopping at the end of the episode "
-              "(send it again to stop at once)", file=sys.stderr, flush=True)
+        print(f"\nrlsac train: {name} received, stopping at the end of the episode (send it again to stop at once)",
+              file=sys.stderr, flush=True)
 
     def _restore(self) -> None:
         for s, h in self._previous.items():

@@ -10,10 +10,12 @@ and bad ``--set`` / params.yaml values. Each case asserts exit code 2, one stder
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import h5py
 import numpy as np
+import pandas as pd
 import pytest
 from click.testing import CliRunner
 
@@ -569,6 +571,48 @@ def test_sigterm_saves_state_ends_run_killed_and_resume_is_exact(workdir, resume
     assert "error" not in runs[0].data.tags and "SIGTERM" in runs[0].data.tags["interrupted"]
 
 
+def test_second_sigterm_stops_at_once_ends_run_killed_and_leaves_no_temporary_file(workdir, resume_data,
+                                                                                     monkeypatch):
+    """A first SIGTERM asks for a stop at the end of the episode; a second one, here while the state is being
+    written, stops at once: the MLflow run ends KILLED (not RUNNING) and the save's temporary file is removed."""
+    import signal
+
+    import torch
+
+    from rlsac import train as train_mod
+
+    real_loop, real_save = train_mod.train_loop, torch.save
+    before = signal.getsignal(signal.SIGTERM)
+    sent = []
+
+    def loop_with_sigterm(*args, log, **kw):
+        def log_and_signal(metrics, step):
+            if step >= 12 and not sent:
+                sent.append(step)
+                os.kill(os.getpid(), signal.SIGTERM)
+            return log(metrics, step)
+        return real_loop(*args, log=log_and_signal, **kw)
+
+    def save(obj, f, *a, **k):
+        real_save(obj, f, *a, **k)
+        if sent and ".m.state.pt." in str(f):  # the state's temporary file, written and not yet renamed
+            sent.append("second")
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    monkeypatch.setattr(train_mod, "train_loop", loop_with_sigterm)
+    monkeypatch.setattr(torch, "save", save)
+    r = CliRunner().invoke(cli, _train_argv(resume_data, "ck/m.pt"))
+    assert sent[-1] == "second"
+    assert r.exit_code == 128 + signal.SIGTERM, (r.output, r.exception)
+    err = r.stderr.strip().splitlines()[-1]
+    assert err.startswith("error: interrupted by a second SIGTERM: stopped at once"), err
+    assert not list((workdir / "ck").glob(".*.tmp"))  # the save's temporary file removed on the way out
+    runs = _runs()
+    assert len(runs) == 1 and runs[0].info.status == "KILLED"
+    assert "second SIGTERM" in runs[0].data.tags["error"]
+    assert signal.getsignal(signal.SIGTERM) == before  # the handlers are back
+
+
 KILL_DURING_SAVE = """
 import os, signal, sys
 import torch
@@ -636,17 +680,20 @@ def test_run_names_and_command_tags(workdir):
 
 @pytest.mark.parametrize("signame", ["SIGINT", "SIGTERM"])
 def test_stop_on_signal_defers_the_first_signal_and_restores_the_handlers(signame):
-    import os
     import signal
 
+    from rlsac.errors import Interrupted
     from rlsac.train import _StopOnSignal
 
     sig = getattr(signal, signame)
     before = signal.getsignal(sig)
     stop = _StopOnSignal()
-    with stop:
-        assert not stop()
-        os.kill(os.getpid(), sig)  # handled: no KeyboardInterrupt, no exit
-        assert stop() and stop.signum == sig
-        assert signal.getsignal(sig) == before  # a second signal would act at once
+    with pytest.raises(Interrupted, match=f"second {signame}") as e:
+        with stop:
+            assert not stop()
+            os.kill(os.getpid(), sig)  # handled: no KeyboardInterrupt, no exit
+            assert stop() and stop.signum == sig
+            os.kill(os.getpid(), sig)  # the second one stops at once, through the with-blocks (run KILLED)
+            pytest.fail("the second signal did not stop")
+    assert e.value.exit_code == 128 + sig and e.value.run_status == "KILLED"
     assert signal.getsignal(sig) == before
