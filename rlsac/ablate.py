@@ -107,18 +107,37 @@ def check_options(options: dict[str, Any]) -> dict[str, Any]:
     return o
 
 
+MODEL_KEYS = {"study": str, "suffix": str, "train": dict}  # ablation.models.<name>
+VARIANT_KEYS = {"study": str, "model": str, "sampling": str, "suffix": str, "checkpoint": str}  # .variants.<name>
+
+
 def protocol(params: dict[str, Any]) -> dict[str, Any]:
-    """``DEFAULTS`` with each top-level key replaced by params.yaml ``ablation``'s, checked."""
-    from rlsac.config import section
+    """``DEFAULTS`` with each top-level key replaced by params.yaml ``ablation``'s, every key typed and checked
+    (issue #28, item 3), each model's training recipe a valid TrainConf."""
+    from rlsac.config import SEED_RANGE, build, check_mapping, check_value, deep_update, section
+    from rlsac.train import TrainConf
 
     given = section(params, "ablation")
     unknown = sorted(set(given) - set(DEFAULTS))
     if unknown:
         raise RlsacError(f"unknown params key(s) ablation.{unknown}; known: {sorted(DEFAULTS)}")
     p = {**copy.deepcopy(DEFAULTS), **copy.deepcopy(given)}
+    p["iterations"] = check_value("ablation.iterations", p["iterations"], int, "[1, inf)")
+    p["seed"] = check_value("ablation.seed", p["seed"], int, SEED_RANGE)
+    p["n_points"] = check_value("ablation.n_points", p["n_points"], list[int], "[8, inf)")
+    p["generalisation"] = check_mapping(check_value("ablation.generalisation", p["generalisation"], dict),
+                                        {"train_rate": 0.5}, "ablation.generalisation", ranges={"train_rate": "[0, 1)"})
+    p["train"] = check_value("ablation.train", p["train"], dict)
+    for key, keys in (("models", MODEL_KEYS), ("variants", VARIANT_KEYS)):
+        p[key] = check_value(f"ablation.{key}", p[key], dict)
+        for name, spec in p[key].items():
+            check_mapping(check_value(f"ablation.{key}.{name}", spec, dict), dict.fromkeys(keys),
+                          f"ablation.{key}.{name}", keys)
+    base = {**section(params, "train", "fundamental"), "task": "fundamental"}
     for name, m in p["models"].items():
         if m.get("study") not in STUDIES:
             raise RlsacError(f"ablation.models.{name}.study must be one of {', '.join(STUDIES)}")
+        build(TrainConf, deep_update(deep_update(base, p["train"]), m.get("train") or {}), f"ablation.models.{name}")
     for name, v in p["variants"].items():
         if v.get("study") not in STUDIES + ("all",):
             raise RlsacError(f"ablation.variants.{name}.study must be one of {', '.join(STUDIES)}, all")
@@ -245,24 +264,36 @@ def ablate(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
     trained, skipped = [], []
     if o["stage"] in ("all", "train"):
         for name, t in pl["models"].items():
-            if t is None:
-                skipped.append(name)
-                continue
-            if Path(t["out"]).is_file() and not o["force"]:
-                skipped.append(name)
-                continue
-            trained.append(name)
-            train_model(t, o, track)
-    results: dict[str, dict] = {}
+            to_train = t is not None and (o["force"] or not Path(t["out"]).is_file())
+            (trained if to_train else skipped).append(name)
+    # every model and every variant checked before the first one trains or evaluates (issue #28, item 2: a
+    # missing data file of the second variant failed after the first had overwritten its committed results)
+    models = {name: model_options(pl["models"][name], o) for name in trained}
+    for t in models.values():
+        check_model(t, track)
+    variants = {}
     if o["stage"] in ("all", "evaluate"):
-        from rlsac.evaluate import evaluate
+        from rlsac.evaluate import check_all
 
+        later = {str(t["out"]) for t in models.values()}
         for name, e in pl["variants"].items():
-            if not Path(e["checkpoint"]).is_file():
+            if not Path(e["checkpoint"]).is_file() and str(e["checkpoint"]) not in later:
                 hint = ("train it with `rlsac train --task fundamental` (dvc stage train_fundamental)"
                         if e["checkpoint"].endswith("fundamental.pt") else "run the study with stage all or train")
                 raise RlsacError(f"{e['checkpoint']}: no checkpoint for variant {name}; {hint}")
-            s = evaluate({**e, "device": o["device"]}, track=track)
+            variants[name] = {**e, "device": o["device"]}
+        check_all(list(variants.values()), track, built_later=later)
+    if models:
+        from rlsac.train import train
+
+        for t in models.values():
+            train(t, track=track)
+    results: dict[str, dict] = {}
+    if variants:
+        from rlsac.evaluate import evaluate
+
+        for name, e in variants.items():
+            s = evaluate(e, track=track)
             results[name] = {k: s.get(k) for k in ("mAA", "mAA_R", "mAA_t", "median_R", "median_t", "median_deg",
                                                     "out_dir", "checkpoint") if k in s}
     table = None
@@ -272,19 +303,38 @@ def ablate(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
             "table": table}
 
 
-def train_model(t: dict[str, Any], o: dict[str, Any], track: bool) -> dict:
+def model_options(t: dict[str, Any], o: dict[str, Any]) -> dict[str, Any]:
+    """A model's `rlsac train` options with the command's device, train_steps and threads."""
     from rlsac.config import deep_update
-    from rlsac.train import train
 
-    for key in ("data", "val_data"):
-        if t.get(key) and not Path(t[key]).is_file():
-            raise RlsacError(f"{t[key]}: no such file (prepare it first, e.g. `dvc repro` or rlsac prepare-cvpr2020)")
     extra: dict[str, Any] = {"device": o["device"]}
     if o["train_steps"] is not None:
         extra["sac"] = {"total_steps": int(o["train_steps"])}
     if int(o["threads"]) > 0:
         extra["threads"] = int(o["threads"])
-    return train(deep_update(t, extra), track=track)
+    return deep_update(t, extra)
+
+
+def check_model(t: dict[str, Any], track: bool) -> None:
+    """A model's training data files (read and validated) and configuration, before any model trains."""
+    from rlsac.tasks import task_class
+    from rlsac.train import check
+
+    for key in ("data", "val_data"):
+        if t.get(key) and not Path(t[key]).is_file():
+            raise RlsacError(f"{t[key]}: no such file (prepare it first, e.g. `dvc repro` or rlsac prepare-cvpr2020)")
+        if t.get(key):
+            task_class(t["task"]).read(t[key])
+    check(t, track)
+
+
+def train_model(t: dict[str, Any], o: dict[str, Any], track: bool) -> dict:
+    """Train one model (its options through ``model_options``), its inputs checked first."""
+    from rlsac.train import train
+
+    t = model_options(t, o)
+    check_model(t, track)
+    return train(t, track=track)
 
 
 def rebuild_table(track: bool = True) -> str:

@@ -36,6 +36,27 @@ def line_conf(options: dict[str, Any], params_path: str | Path | None = "params.
     return conf
 
 
+def check_lines_data(params: dict[str, Any]) -> None:
+    """params.yaml ``lines_data``: LineDataConf fields (typed, ranged)."""
+    from rlsac.data.lines import LineDataConf
+
+    config.build(LineDataConf, section(params, "lines_data"), "lines_data")
+
+
+def check_lines(params: dict[str, Any]) -> None:
+    """params.yaml ``lines``, the line experiment's protocol: rates in [0, 1), iterations, and per split
+    ``n_<split>`` instances and ``seed_<split>`` (``lines_protocol_data``)."""
+    for key, value in section(params, "lines").items():
+        if key == "rates":
+            config.check_value("lines.rates", value, list[float], "[0, 1)")
+        elif key in ("iterations",) or key.startswith("n_"):
+            config.check_value(f"lines.{key}", value, int, "[1, inf)")
+        elif key.startswith("seed_"):
+            config.check_value(f"lines.{key}", value, int, config.SEED_RANGE)
+        else:
+            raise RlsacError(f"unknown params key lines.{key}; known: rates, iterations, n_<split>, seed_<split>")
+
+
 def default_lines_path(conf) -> Path:
     return Path("data") / "lines" / f"lines_o{conf.outlier_rate:g}_s{conf.seed}.h5"
 
@@ -52,7 +73,7 @@ def synth_lines(options: dict[str, Any], track: bool = True, params_path: str | 
     out = options.pop("out", None)
     conf = line_conf(options, params_path)
     path = check_writable(Path(out) if out else default_lines_path(conf))
-    check_store(track)
+    check_store(track, "lines")
     params = config.to_dict(conf)
     name = f"synth-lines {path.stem} o{conf.outlier_rate:g} s{conf.seed}"
     with start_run("lines", name, params={**params, "out": str(path)},
@@ -95,7 +116,7 @@ def lines_protocol_data(options: dict[str, Any], track: bool = True,
         out = check_writable(Path(options.get("out_dir") or "data/lines") / f"{split}_o{rate:g}.h5")
         line_conf({"outlier_rate": rate, "n_instances": n, "seed": seed}, params_path)
         plan.append((split, n, seed, out))
-    check_store(track)
+    check_store(track, "lines")
     files, seeds = [], {}
     for split, n, seed, out in plan:
         s = synth_lines({"outlier_rate": rate, "n_instances": n, "seed": seed, "out": str(out)}, track, params_path)
@@ -193,7 +214,7 @@ def calibrate_lines(options: dict[str, Any], track: bool = True,
     line_conf({**o, "seed": seeds[-1]}, params_path)
     for suffix in (".md", ".csv"):
         check_writable(out.with_suffix(suffix))
-    check_store(track)
+    check_store(track, "lines")
     task = task_from("line")
     shown = config.to_dict(next(iter(confs.values())))
     command = (f"rlsac calibrate-lines --n-instances {shown['n_instances']} --seed {shown['seed']} "
@@ -262,7 +283,7 @@ def _checked(cls, options: dict[str, Any], what: str, outputs, track: bool):
     conf = config.build(cls, {k: v for k, v in options.items() if v is not None}, what)
     for path in outputs(conf):
         check_writable(path)
-    check_store(track)
+    check_store(track, "fundamental")
     return conf
 
 

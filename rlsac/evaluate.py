@@ -22,7 +22,9 @@ reproducible for a given (seed, batch_size, device).
 from __future__ import annotations
 
 import hashlib
+import math
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
@@ -31,6 +33,7 @@ import pandas as pd
 import torch
 
 from rlsac.config import SEED_RANGE, check_value
+from rlsac.data import n_unusable, validity
 from rlsac.errors import RlsacError
 from rlsac.io import atomic_path, check_writable, write_json
 from rlsac.methods import METHODS
@@ -69,11 +72,39 @@ DEFAULTS: dict[str, Any] = {
     "sets_per_step": 1,
     "confidence": 0.0,
 }
+# sets_per_step's fixed cap (the data bound it further: check_sets_per_step). One step draws (R, 2k, N) random
+# numbers and remembers R k sets: 1024 keeps that near 200 MB for a batch of 256 line instances; the measured
+# levers used 8 and 12 (reports/speed.md). 10^9 used to allocate until the process died.
+MAX_SETS_PER_STEP = 1024
 # the options above that a params.yaml evaluate.<task> section passes on to every environment method's run
 SAMPLER_OPTIONS = ("sets_per_step", "confidence")
 # what evaluate measures of time: written to TIMING_FILE beside summary.json (git- and dvc-ignored) and to MLflow
 TIMING_FILE = "timing.json"
 TIMING_KEYS = ("seconds", "seconds_per_instance", "lo_seconds_per_instance", "lo_time_fraction")
+
+
+# types and ranges of the options a params.yaml evaluate.<task> section may set (``check_params``)
+TYPES = {"checkpoint": str, "iterations": int, "steps_per_episode": int, "seed": int, "device": str,
+         "batch_size": int, "out_dir": str, "sampling": str, "tags": dict, "threads": int, "guide_temperature": float,
+         "lo": dict, "policy_every": int, "sets_per_step": int, "confidence": float}
+RANGES = {"iterations": "[1, inf)", "steps_per_episode": "[1, inf)", "seed": SEED_RANGE,
+          "device": ("auto", "cpu", "cuda"), "batch_size": "[1, inf)", "sampling": ("max", "prob"),
+          "threads": "[0, inf)", "guide_temperature": "(0, inf)", "policy_every": "[1, inf)",
+          "sets_per_step": f"[1, {MAX_SETS_PER_STEP}]", "confidence": "[0, 1)"}
+
+
+def check_params(params: dict[str, Any]) -> None:
+    """params.yaml ``evaluate``: per registered task, evaluate options typed and ranged, its ``lo`` an LOConf
+    whatever method runs later (issue #28, item 3: LO options were checked only by the *-lo methods)."""
+    from rlsac.config import build, check_mapping, section
+    from rlsac.lo import LOConf
+
+    for task in section(params, "evaluate"):
+        task_class(task)
+        where = f"evaluate.{task}"
+        given = check_mapping(section(params, "evaluate", task), DEFAULTS, where, TYPES, RANGES)
+        if given.get("lo") is not None:
+            build(LOConf, {**given["lo"], "enabled": True}, f"{where}.lo")
 
 
 def sampler_options(section: dict[str, Any]) -> dict[str, Any]:
@@ -100,8 +131,9 @@ def task_from(name: str, options: dict[str, Any] | None = None) -> Task:
         raise RlsacError(f"bad options for task '{name}': {e}") from None
 
 
-def check_options(options: dict[str, Any]) -> dict[str, Any]:
-    """Fill defaults and validate; -> a new, complete options dict."""
+def check_options(options: dict[str, Any], checkpoint_later: bool = False) -> dict[str, Any]:
+    """Fill defaults and validate; -> a new, complete options dict. ``checkpoint_later``: the checkpoint may not
+    exist yet (a command that trains it first)."""
     missing = [k for k in ("task", "method", "data") if not options.get(k)]
     if missing:
         raise RlsacError(f"evaluate needs {', '.join(missing)}")
@@ -119,13 +151,16 @@ def check_options(options: dict[str, Any]) -> dict[str, Any]:
     o["guide_temperature"] = check_value("guide_temperature", o["guide_temperature"], float, "(0, inf)")
     if method.checkpoint and not o["checkpoint"]:
         raise RlsacError(f"method '{o['method']}' needs --checkpoint")
-    if method.lo:  # bad LO options fail before any work
-        from rlsac.lo import conf_for_method
+    if method.lo or o["lo"] is not None:  # bad LO options fail before any work, also where the method has no LO
+        from rlsac.config import build
+        from rlsac.lo import LOConf
 
-        conf_for_method(o["method"], o["lo"])
+        if o["lo"] is not None and not isinstance(o["lo"], dict):
+            raise RlsacError(f"evaluate.lo must be a mapping of LO options, got {o['lo']!r}")
+        build(LOConf, {**(o["lo"] or {}), "enabled": True}, "evaluate.lo")
     if o["checkpoint"] and not method.checkpoint:  # it would only mislabel the run and its outputs
         raise RlsacError(f"--checkpoint is used by --method rlsac only, not by {o['method']}")
-    if o["checkpoint"] and not Path(o["checkpoint"]).is_file():
+    if o["checkpoint"] and not Path(o["checkpoint"]).is_file() and not checkpoint_later:
         raise RlsacError(f"{o['checkpoint']}: no such checkpoint file")
     if o["iterations"] is None:
         o["iterations"] = task_cls.default_iterations
@@ -143,7 +178,7 @@ def check_options(options: dict[str, Any]) -> dict[str, Any]:
     o["seed"] = check_value("seed", o["seed"], int, SEED_RANGE)
     o["sampling"] = check_value("sampling", o["sampling"], str, ("max", "prob"))
     o["policy_every"] = check_value("policy_every", o["policy_every"], int, "[1, inf)")
-    o["sets_per_step"] = check_value("sets_per_step", o["sets_per_step"], int, "[1, inf)")
+    o["sets_per_step"] = check_value("sets_per_step", o["sets_per_step"], int, f"[1, {MAX_SETS_PER_STEP}]")
     o["confidence"] = check_value("confidence", o["confidence"], float, "[0, 1)")
     if not Path(o["data"]).is_file():
         raise RlsacError(f"{o['data']}: no such file")
@@ -208,26 +243,104 @@ def _n_instances(data: dict) -> int:
     raise RlsacError("data file holds no instances")
 
 
-def evaluate(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
-    """Evaluate ``options['method']`` on ``options['data']``; write CSV + JSON; -> the summary dict."""
+@dataclass
+class Prepared:
+    """What ``prepare`` found and built before an evaluation's MLflow run: everything ``run`` needs."""
+
+    o: dict[str, Any]  # the checked options
+    device: str
+    data: dict  # the task reader's arrays (usable instances only)
+    attrs: dict  # the data file's attributes (with the reader's report of unusable instances, if any)
+    task: Task
+    estimate: Callable[[dict, torch.Generator], dict]
+    extra: dict  # the method's extra run params (steps_per_episode, lo, ...)
+
+    @property
+    def n(self) -> int:
+        return _n_instances(self.data)
+
+    @property
+    def n_unusable(self) -> int:
+        """Instances of the file the reader left out (rlsac.data.validity), 0 when none."""
+        return n_unusable(self.attrs)
+
+
+def prepare(options: dict[str, Any], track: bool = True, read: Callable | None = None) -> Prepared:
+    """Every check of an evaluation, before its MLflow run and its first write: options, outputs, the tracking
+    store, the data file (read and validated), the options the data bound, the method's estimator (its checkpoint
+    loaded). ``read(task_cls, path) -> (arrays, attrs)``: a reader to use instead of the task's (a cache, when one
+    command checks many evaluations of one file: ``check_all``)."""
     o = check_options(options)
+    task_cls = task_class(o["task"])
     # before any work: an unwritable output fails now, not at the end
     for f in ("errors.csv", "summary.json", "config.json", TIMING_FILE):
         check_writable(Path(o["out_dir"]) / f)
-    check_store(track)
+    check_store(track, task_cls.experiment)
     device = resolve_device(o["device"])
-    task_cls = task_class(o["task"])
-    data, attrs = task_cls.read(o["data"])
-    n = _n_instances(data)
-    if n == 0:
+    data, attrs = (read or _read)(task_cls, o["data"])
+    if _n_instances(data) == 0:
         raise RlsacError(f"{o['data']}: no instances")
+    check_sets_per_step(o, data, task_cls)
     task, estimate, extra = make_estimator(o, device)
+    return Prepared(o, device, data, attrs, task, estimate, extra)
+
+
+def check_all(options: list[dict[str, Any]], track: bool = True, built_later: set[str] = frozenset()) -> None:
+    """``prepare`` every evaluation of a command that runs several (rlsac folds, rlsac ablate) before the first
+    one starts, so that a bad data file, checkpoint or option of the last fails before the first writes anything.
+    Each data file is read once. ``built_later``: checkpoints the command trains before evaluating (not loaded)."""
+    cache: dict[tuple[str, str], tuple[dict, dict]] = {}
+
+    def read(task_cls, path):
+        key = (task_cls.name, str(path))
+        if key not in cache:
+            cache[key] = _read(task_cls, path)
+        return cache[key]
+
+    for opts in options:
+        if opts.get("checkpoint") and str(opts["checkpoint"]) in built_later:  # all but the checkpoint's contents
+            o = check_options(opts, checkpoint_later=True)
+            for f in ("errors.csv", "summary.json", "config.json", TIMING_FILE):
+                check_writable(Path(o["out_dir"]) / f)
+            check_sets_per_step(o, read(task_class(o["task"]), o["data"])[0], task_class(o["task"]))
+            continue
+        prepare(opts, track, read)
+
+
+def _read(task_cls, path) -> tuple[dict, dict]:
+    return task_cls.read(path)
+
+
+def check_sets_per_step(o: dict[str, Any], data: dict, task_cls) -> None:
+    """sets_per_step k within what the data allows: at most the number of distinct minimal sets of the instance
+    with the fewest points, C(n, m) (the environment draws k distinct unused sets per step)."""
+    k = o["sets_per_step"]
+    if k == 1:
+        return
+    n_min = int(task_cls.to_batch(data, slice(0, _n_instances(data)))["mask"].sum(-1).min())
+    m = int(task_cls.sample_size)  # a dataclass default: the class attribute
+    distinct = math.comb(n_min, m)
+    if k > distinct:
+        raise RlsacError(f"sets_per_step {k} is more than the {distinct} distinct minimal sets of {m} points that "
+                         f"the smallest instance of {o['data']} has ({n_min} points)")
+
+
+def evaluate(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
+    """Evaluate ``options['method']`` on ``options['data']``; write CSV + JSON; -> the summary dict."""
+    return run(prepare(options, track), track)
+
+
+def run(p: Prepared, track: bool = True) -> dict[str, Any]:
+    """The evaluation ``prepare`` checked: its MLflow run, the method over every usable instance, the outputs."""
+    o, device, data, task, estimate, extra = p.o, p.device, p.data, p.task, p.estimate, p.extra
+    task_cls = task_class(o["task"])
+    n = p.n
     out_dir = Path(o["out_dir"])
     name = run_name(o)
     params = {**{k: v for k, v in o.items() if k != "tags"}, "device": device, "n_instances": n, **extra,
-              "task_options": _task_options(task), "data_attrs": {k: _plain(v) for k, v in attrs.items()}}
+              "task_options": _task_options(task), "data_attrs": {k: _plain(v) for k, v in p.attrs.items()}}
     tags = {"command": "evaluate", "method": o["method"], **{k: str(v) for k, v in (o["tags"] or {}).items()}}
-    with start_run(task_cls.experiment, f"evaluate {name}", params=params, tags=tags, enabled=track) as run:
+    with start_run(task_cls.experiment, f"evaluate {name}", params=params, tags=tags, enabled=track) as mlrun:
         torch_threads = torch.get_num_threads()
         if device == "cpu" and o["threads"] > 0:
             torch.set_num_threads(o["threads"])
@@ -241,12 +354,15 @@ def evaluate(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
         summary = {k: _plain(v) for k, v in task.summarize(errors).items()}
         summary.update(task=o["task"], method=o["method"], iterations=o["iterations"], data=str(o["data"]),
                        checkpoint=o["checkpoint"], seed=o["seed"], device=device, n_instances=n, **extra)
+        if p.n_unusable:  # only then: a file without unusable instances keeps its summary's bytes
+            summary["n_unusable"] = p.n_unusable
         timing = {"seconds": seconds, "seconds_per_instance": seconds / n}
         if hasattr(estimate, "summary"):  # *-lo methods: the LO budget actually spent (rlsac.lo.CountingEstimate)
             for k, v in estimate.summary(n, seconds).items():
                 (timing if k in TIMING_KEYS else summary)[k] = v
         ids = {k: data[k] for k in ("scene", "pair") if k in data and len(data[k]) == n}  # fundamental pairs
-        frame = pd.DataFrame({"instance": np.arange(n), **ids, **errors, "n_inliers": counts})
+        rows = validity.kept_rows(p.attrs.get(validity.REPORT), n)  # the instances' rows in the file
+        frame = pd.DataFrame({"instance": rows, **ids, **errors, "n_inliers": counts})
         csv_path, json_path = out_dir / "errors.csv", out_dir / "summary.json"
         with atomic_path(csv_path) as tmp:
             frame.to_csv(tmp, index=False, float_format="%.6g")
@@ -257,11 +373,11 @@ def evaluate(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
         # so that a re-run of a stage gives the same bytes
         write_json(out_dir / TIMING_FILE, timing)
         summary.update(timing, out_dir=str(out_dir))
-        run.metrics({k: v for k, v in summary.items() if isinstance(v, (int, float)) and not isinstance(v, bool)
-                     and k not in ("iterations", "seed", "steps_per_episode")})
-        run.artifact(csv_path)
-        run.artifact(json_path)
-        summary["run_id"] = run.run_id
+        mlrun.metrics({**{k: v for k, v in summary.items() if isinstance(v, (int, float)) and not isinstance(v, bool)
+                          and k not in ("iterations", "seed", "steps_per_episode")}, "n_unusable": p.n_unusable})
+        mlrun.artifact(csv_path)
+        mlrun.artifact(json_path)
+        summary["run_id"] = mlrun.run_id
     return summary
 
 

@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from rlsac.errors import RlsacError
-from rlsac.io import write_json
+from rlsac.io import check_writable, write_json
 
 STAGES = ("data", "train", "evaluate")
 DEFAULTS: dict[str, Any] = {
@@ -81,6 +81,12 @@ def protocol(params: dict[str, Any]) -> dict[str, Any]:
     clash = sorted(set(p["models"]) & set(METHODS))
     if clash and clash != ["rlsac"]:
         raise RlsacError(f"folds.models {clash}: a model may not share a method's name")
+    from rlsac.config import build, deep_update
+    from rlsac.train import TrainConf
+
+    base = {**section(params, "train", "fundamental"), "task": "fundamental"}
+    for model, recipe in p["train"].items():  # each model's recipe a TrainConf, whichever stage reads the params
+        build(TrainConf, deep_update(base, recipe or {}), f"folds.train.{model}")
     return p
 
 
@@ -106,6 +112,39 @@ def _typed(p: dict[str, Any]) -> dict[str, Any]:
     p["seed"] = check_value("folds.seed", p["seed"], int, SEED_RANGE)
     p["model_regime"] = check_value("folds.model_regime", p["model_regime"], str)
     return p
+
+
+# params.yaml ``fundamental``: the Strecha import and preparation settings (dvc.yaml's import and prepare stages,
+# ``make_data``), and the retired 87-pair split's methods and budgets
+FUNDAMENTAL = {"src": str, "raw": str, "import_scenes": str, "max_features": int, "min_matches": int, "scenes": dict,
+               "n_points": int, "max_pairs_per_scene": int, "methods": list[str], "iterations": list[int]}
+FUNDAMENTAL_RANGES = {"max_features": "[1, inf)", "min_matches": "[0, inf)", "n_points": "[8, inf)",
+                      "max_pairs_per_scene": "[0, inf)", "iterations": "[1, inf)"}
+
+
+def check_fundamental(params: dict[str, Any]) -> None:
+    """params.yaml ``fundamental`` typed and ranged; its methods those of `rlsac evaluate`, its scenes strings."""
+    from rlsac.config import check_mapping, check_range, check_value, section
+    from rlsac.methods import METHODS
+
+    given = check_mapping(section(params, "fundamental"), dict.fromkeys(FUNDAMENTAL), "fundamental", FUNDAMENTAL,
+                          FUNDAMENTAL_RANGES)
+    for split, scenes in (given.get("scenes") or {}).items():
+        check_value(f"fundamental.scenes.{split}", scenes, str)
+    if given.get("methods"):
+        check_range("fundamental.methods", given["methods"], METHODS)
+
+
+def check_essential(params: dict[str, Any]) -> None:
+    """params.yaml ``essential`` (Table E): a regime of folds.regimes, methods of `rlsac evaluate`, budgets."""
+    from rlsac.config import check_mapping, check_range, section
+    from rlsac.methods import METHODS
+
+    given = check_mapping(section(params, "essential"), {"regime": "", "methods": [], "iterations": []}, "essential",
+                          {"methods": list[str], "iterations": list[int]}, {"iterations": "[1, inf)"})
+    check_range("essential.methods", given.get("methods") or [], METHODS)
+    if "regime" in given:
+        check_range("essential.regime", given["regime"], tuple(protocol(params)["regimes"]))
 
 
 def scene_list(scenes: str) -> list[str]:
@@ -162,7 +201,8 @@ def data_record(regime: str, fold: str) -> Path:
 
 def make_data(p: dict, fundamental: dict, regime: str, fold: str, track: bool) -> dict[str, Any]:
     """The fold's three files through ``rlsac prepare-cvpr2020`` (same descriptors, seeded selection)."""
-    from rlsac.data.tutorial import PrepareConf, prepare
+    from rlsac.data.tutorial import PrepareConf, collect, prepare
+    from rlsac.tracking import check_store
 
     train_scenes, test_scenes = split_scenes(p, fold)
     d = data_dir(regime, fold)
@@ -170,17 +210,23 @@ def make_data(p: dict, fundamental: dict, regime: str, fold: str, track: bool) -
               "n_points": int(fundamental.get("n_points", 150)),
               "max_pairs_per_scene": int(fundamental.get("max_pairs_per_scene", 0)),
               "pool": int(p["pool"][regime]), "val_fraction": float(p["val_fraction"])}
-    out = {}
-    for split, scenes, holdout in (("train", train_scenes, "train"), ("val", train_scenes, "val"),
-                                   ("test", test_scenes, "all")):
-        conf = PrepareConf(**common, scenes=scenes, holdout=holdout, out=str(d / f"{split}.h5"))
-        conf.check()
-        out[split] = prepare(conf, track=track, progress=False)
+    confs = {split: PrepareConf(**common, scenes=scenes, holdout=holdout, out=str(d / f"{split}.h5"))
+             for split, scenes, holdout in (("train", train_scenes, "train"), ("val", train_scenes, "val"),
+                                            ("test", test_scenes, "all"))}
+    # the three files' inputs read (a missing scene, a corrupt h5 file or image) and their outputs checked before
+    # the first file is written (issue #28, item 2: train and val were written before a test scene was found missing)
+    collected = {split: collect(conf, progress=False) for split, conf in confs.items()}
+    imported = _import_record(common["root"])
+    for path in [c.out for c in confs.values()] + [data_record(regime, fold)]:
+        check_writable(path)
+    check_store(track, "fundamental")
+    out = {split: prepare(conf, track=track, progress=False, collected=collected[split])
+           for split, conf in confs.items()}
     record = {"regime": regime, "fold": fold, "pool": int(p["pool"][regime]), "train_scenes": train_scenes,
               "test_scenes": test_scenes, "splits": {k: {key: v[key] for key in (
                   "out", "pairs", "pairs_per_scene", "skipped", "skip_reasons", "mean_gt_inlier_ratio_sampson_2px",
                   "gt_inlier_ratio_quantiles")} for k, v in out.items()},
-              "import": _import_record(common["root"])}
+              "import": imported}
     write_json(data_record(regime, fold), record)
     return out
 
@@ -191,26 +237,44 @@ def _import_record(root: str) -> dict[str, Any]:
 
     for path in (Path(root) / "import_summary.json", Path(root) / "all" / "import_summary.json"):
         if path.is_file():
-            s = json.loads(path.read_text())
+            try:
+                s = json.loads(path.read_text())
+            except (ValueError, OSError) as e:
+                raise RlsacError(f"{path}: not a readable import summary ({e.__class__.__name__})") from None
+            if not isinstance(s, dict):
+                raise RlsacError(f"{path}: not an import summary (holds a {type(s).__name__})")
             return {k: s[k] for k in ("pairs", "kept", "dropped", "drop_rule", "per_scene") if k in s}
     return {}
 
 
-def train_model(p: dict, params: dict, regime: str, fold: str, model: str, o: dict, track: bool) -> dict:
+def train_options(p: dict, params: dict, regime: str, fold: str, model: str, o: dict) -> dict:
+    """`rlsac train`'s options of fold model ``model``: train.fundamental <- folds.train.<model> <- the fold's files."""
     from rlsac.config import deep_update, section
-    from rlsac.train import train
+
+    d = data_dir(regime, fold)
+    base = section(params, "train", "fundamental")
+    return deep_update(deep_update(base, copy.deepcopy(p["train"][model] or {})), {
+        "task": "fundamental", "data": str(d / "train.h5"), "val_data": str(d / "val.h5"),
+        "out": str(checkpoint(regime, fold, model)), "device": o["device"], "threads": int(o["threads"]),
+        "run_name": f"train folds {regime} {fold} {model}",
+        "tags": {"command": "folds", "benchmark": "folds", "regime": regime, "fold": fold, "model": model}})
+
+
+def train_models(p: dict, params: dict, regime: str, fold: str, models: list[str], o: dict, track: bool) -> dict:
+    """Train ``models`` of the fold one after the other; every model's configuration, outputs and the fold's two
+    data files are checked before the first one starts (issue #28, item 2). -> {model: train summary}"""
+    from rlsac.data.fundamental import read
+    from rlsac.train import check, train
 
     d = data_dir(regime, fold)
     for split in ("train", "val"):
         if not (d / f"{split}.h5").is_file():
             raise RlsacError(f"{d / f'{split}.h5'}: no such file (run `rlsac folds --stage data` first)")
-    base = section(params, "train", "fundamental")
-    opts = deep_update(deep_update(base, copy.deepcopy(p["train"][model] or {})), {
-        "task": "fundamental", "data": str(d / "train.h5"), "val_data": str(d / "val.h5"),
-        "out": str(checkpoint(regime, fold, model)), "device": o["device"], "threads": int(o["threads"]),
-        "run_name": f"train folds {regime} {fold} {model}",
-        "tags": {"command": "folds", "benchmark": "folds", "regime": regime, "fold": fold, "model": model}})
-    return train(opts, track=track)
+        read(d / f"{split}.h5")
+    options = {m: train_options(p, params, regime, fold, m, o) for m in models}
+    for opts in options.values():
+        check(opts, track)
+    return {m: train(opts, track=track) for m, opts in options.items()}
 
 
 def evaluate_fold(p: dict, regime: str, fold: str, o: dict, track: bool, lo: dict | None = None,
@@ -218,7 +282,7 @@ def evaluate_fold(p: dict, regime: str, fold: str, o: dict, track: bool, lo: dic
     """Every method and every model at every budget on the fold's test file (``lo``, ``guide_temperature``,
     ``sampler`` = {sets_per_step, confidence}: params.yaml evaluate.fundamental's options of the *-lo methods,
     of ``guided`` and of the RLSAC environment's methods)."""
-    from rlsac.evaluate import evaluate
+    from rlsac.evaluate import check_all, evaluate
 
     test = data_dir(regime, fold) / "test.h5"
     if not test.is_file():
@@ -233,17 +297,22 @@ def evaluate_fold(p: dict, regime: str, fold: str, o: dict, track: bool, lo: dic
     missing = [str(c) for _, _, c in runs if c is not None and not c.is_file()]
     if missing:
         raise RlsacError(f"no checkpoint {missing[0]} (run `rlsac folds --stage train` first)")
-    out = []
+    jobs = []
     for name, method, ckpt in runs:
         for it in p["iterations"]:
             tags = {"benchmark": "folds", "regime": regime, "fold": fold, "model": name}
-            s = evaluate({"task": "fundamental", "method": method, "data": str(test),
-                          "checkpoint": str(ckpt) if ckpt else None, "iterations": int(it), "seed": int(p["seed"]),
-                          "device": o["device"], "out_dir": str(eval_dir(regime, fold, name, it)), "tags": tags,
-                          "lo": lo, "guide_temperature": guide_temperature, **(sampler or {})},
-                         track=track)  # used by those needing them
-            out.append({"method": name, "iterations": int(it), "mAA_R": s["mAA_R"], "mAA_t": s["mAA_t"],
-                        "seconds": round(s["seconds"], 1)})
+            jobs.append((name, int(it), {
+                "task": "fundamental", "method": method, "data": str(test), "checkpoint": str(ckpt) if ckpt else None,
+                "iterations": int(it), "seed": int(p["seed"]), "device": o["device"],
+                "out_dir": str(eval_dir(regime, fold, name, it)), "tags": tags, "lo": lo,
+                "guide_temperature": guide_temperature, **(sampler or {})}))  # used by those needing them
+    # every evaluation checked (its checkpoint loaded, the test file read) before the first one writes anything
+    check_all([opts for _, _, opts in jobs], track)
+    out = []
+    for name, it, opts in jobs:
+        s = evaluate(opts, track=track)
+        out.append({"method": name, "iterations": it, "mAA_R": s["mAA_R"], "mAA_t": s["mAA_t"],
+                    "seconds": round(s["seconds"], 1)})
     return out
 
 
@@ -270,7 +339,7 @@ def folds(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
                            for k, v in made.items()}
     elif o["stage"] == "train":
         models = [o["model"]] if o["model"] else p["models"]
-        result["models"] = {m: train_model(p, params, regime, fold, m, o, track) for m in models}
+        result["models"] = train_models(p, params, regime, fold, models, o, track)
     else:
         ev = section(params, "evaluate", "fundamental")  # the *-lo methods' (rlsac.lo) and guided's options
         result["evaluations"] = evaluate_fold(p, regime, fold, o, track, ev.get("lo"), ev.get("guide_temperature"),

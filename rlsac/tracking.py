@@ -80,22 +80,56 @@ def store_path(uri: str | None = None) -> Path | None:
     return Path(uri[len(prefix):]) if uri.startswith(prefix) else None
 
 
-def check_store(enabled: bool = True) -> None:
-    """Fail early, with a one-line RlsacError, when the tracking store cannot be written (a
-    read-only working directory, a path under a regular file): commands call it before their work."""
+def check_store(enabled: bool = True, experiment: str | None = None) -> None:
+    """Fail early, with a one-line RlsacError, when the tracking store cannot be written (a read-only working
+    directory, a path under a regular file): commands call it before their work. With ``experiment``, its
+    artifact location too (issue #28, item 5: an unwritable artifact root failed after the work, at the first
+    artifact, with a traceback and a FAILED run)."""
     if not enabled:
         return
     from rlsac.errors import RlsacError
     from rlsac.io import check_writable
 
     db = store_path()
-    if db is None:
-        return
     try:
-        check_writable(db, "the MLflow store")
-        check_writable(Path(str(db) + ".lock"), "the MLflow store lock")
+        if db is not None:
+            check_writable(db, "the MLflow store")
+            check_writable(Path(str(db) + ".lock"), "the MLflow store lock")
+        if experiment is not None:
+            where = artifact_path(experiment)
+            if where is not None:
+                check_writable(where, "MLflow artifacts of experiment " + repr(experiment), folder=True)
     except RlsacError as e:
         raise RlsacError(f"{e}; use --no-tracking or set MLFLOW_TRACKING_URI") from None
+
+
+def artifact_path(experiment: str) -> Path | None:
+    """The local folder where the runs of ``experiment`` put their artifacts: the experiment's artifact location
+    when the store has the experiment, else where MLflow puts a new experiment's (./mlruns/<id> of a sqlite store,
+    so the root ./mlruns is what must be writable); None for a remote location (s3://, mlflow-artifacts:, ...)
+    or a store other than sqlite, which this check does not reach. Reads the store only when its file exists."""
+    db = store_path()
+    if db is None:
+        return None
+    location = None
+    if db.is_file():
+        _quiet()
+        import mlflow
+
+        try:
+            exp = mlflow.MlflowClient(os.environ.get("MLFLOW_TRACKING_URI", DEFAULT_URI)).get_experiment_by_name(
+                experiment)
+        except Exception:  # an unreadable store fails later with its own one-line error (start_run)
+            exp = None
+        location = exp.artifact_location if exp is not None else None
+    if location is None:  # MLflow's default for a new experiment (mlflow.tracking._tracking_service.utils)
+        location = os.environ.get("_MLFLOW_SERVER_ARTIFACT_ROOT", "./mlruns")
+    from urllib.parse import unquote, urlparse
+
+    url = urlparse(location)
+    if url.scheme == "file":
+        return Path(unquote(url.path))
+    return Path(location) if url.scheme == "" else None
 
 
 def command_name() -> str | None:
@@ -141,7 +175,7 @@ def start_run(experiment: str, run_name: str, params: dict[str, Any] | None = No
     if not enabled:
         yield Run(None)
         return
-    check_store()
+    check_store(True, experiment)
     _quiet()
     import mlflow
 

@@ -24,7 +24,7 @@ import torch
 
 from rlsac import checkpoint
 from rlsac.config import build, to_dict
-from rlsac.data import load, slice_batch
+from rlsac.data import n_unusable, read_batch, slice_batch
 from rlsac.devices import resolve_device
 from rlsac.env import EnvConf
 from rlsac.errors import Interrupted, RlsacError
@@ -69,18 +69,36 @@ class TrainConf:
               "val_every": "[1, inf)", "ckpt_every": "[1, inf)", "selection": SELECTIONS}
 
 
-def train(options: dict, track: bool = True) -> dict:
-    """``rlsac train``: options -> TrainConf; train, keep the selected actor in ``out``; -> a summary."""
+def check_params(params: dict) -> None:
+    """params.yaml ``train``: per registered task, TrainConf options (every nested section typed, ranged)."""
+    from rlsac.config import section
+
+    for task in section(params, "train"):
+        task_class(task)
+        build(TrainConf, {**section(params, "train", task), "task": task}, "train")
+
+
+def check(options: dict, track: bool = True) -> TrainConf:
+    """A training's configuration, task options, outputs and tracking store checked (not its data files: the
+    caller reads them, once when several trainings share them) -> the TrainConf."""
     conf = build(TrainConf, options, "train")  # types and ranges of every section (task, selection, sac, env, ...)
     if not conf.data:
         raise RlsacError("train needs --data")
+    _task(conf)
     out = check_writable(conf.out, "checkpoint")
-    state_path = check_writable(out.with_suffix(".state.pt"), "training state")
-    check_store(track)
+    check_writable(out.with_suffix(".state.pt"), "training state")
+    check_store(track, task_experiment(conf.task))
+    return conf
+
+
+def train(options: dict, track: bool = True) -> dict:
+    """``rlsac train``: options -> TrainConf; train, keep the selected actor in ``out``; -> a summary."""
+    conf = check(options, track)
+    out, state_path = Path(conf.out), Path(conf.out).with_suffix(".state.pt")
     if conf.threads > 0:
         torch.set_num_threads(conf.threads)
     device = resolve_device(conf.device)
-    task, data, val = _load_data(conf, device)
+    task, data, val, unusable = _load_data(conf, device)
     gen = seed_everything(conf.seed)
     if device.type != "cpu":
         gen = torch.Generator(device=device).manual_seed(conf.seed)
@@ -95,6 +113,7 @@ def train(options: dict, track: bool = True) -> dict:
     with start_run(task_experiment(conf.task), run.name(), run.logged_conf(), tags=run.tags(), enabled=track,
                    run_id=run.old_run_id) as mlflow_run, stop:
         run.mlflow_id = mlflow_run.run_id
+        mlflow_run.metrics(unusable)  # instances the readers left out (rlsac.data.validity), 0 when none
         t0 = time.time()
         run.buffer = train_loop(agent, task, data, conf.env, run.start, gen, log=mlflow_run.metrics,
                                 validate=run.validate if val is not None else None, val_every=conf.val_every,
@@ -109,25 +128,33 @@ def train(options: dict, track: bool = True) -> dict:
         mlflow_run.artifact(out, "checkpoint")
     return {"checkpoint": str(out), "state": str(state_path), "steps": conf.sac.total_steps,
             "seconds": round(seconds, 1), "selection": conf.selection, "best_score": run.best["score"],
-            "best_step": run.best.get("step"), "final_val": final}
+            "best_step": run.best.get("step"), "final_val": final,
+            **{k.replace("/", "_"): v for k, v in unusable.items() if v}}
 
 
-def _load_data(conf: TrainConf, device) -> tuple[Task, dict, dict | None]:
-    """-> (task, training batch with the network's features, validation batch or None)."""
-    try:
-        task = get_task(conf.task, **conf.task_options)
-    except TypeError as e:  # an unknown task option
-        raise RlsacError(f"bad task_options for task '{conf.task}': {e}") from None
-    data = load(conf.task, conf.data, device)
+def _load_data(conf: TrainConf, device) -> tuple[Task, dict, dict | None, dict[str, int]]:
+    """-> (task, training batch with the network's features, validation batch or None, the instances of each
+    file its reader left out as unusable: {"data/n_unusable", "val_data/n_unusable"})."""
+    task = _task(conf)
+    data, attrs = read_batch(conf.task, conf.data, device)
+    unusable = {"data/n_unusable": n_unusable(attrs), "val_data/n_unusable": 0}
     data["features"] = task.features(data)
     if conf.sac.warm_start_updates > 0:
         data["labels"] = task.true_inliers(data)
     if int(data["mask"].sum(-1).min()) < task.sample_size:
         raise RlsacError(f"{conf.data}: an instance has fewer than {task.sample_size} points")
-    val = load(conf.task, conf.val_data, device) if conf.val_data else None
-    if val is not None:
-        val = slice_batch(val, slice(0, conf.val_instances))
-    return task, data, val
+    val = None
+    if conf.val_data:
+        val, attrs = read_batch(conf.task, conf.val_data, device)
+        val, unusable["val_data/n_unusable"] = slice_batch(val, slice(0, conf.val_instances)), n_unusable(attrs)
+    return task, data, val, unusable
+
+
+def _task(conf: TrainConf) -> Task:
+    try:
+        return get_task(conf.task, **conf.task_options)
+    except TypeError as e:  # an unknown task option
+        raise RlsacError(f"bad task_options for task '{conf.task}': {e}") from None
 
 
 class _TrainingRun:
@@ -257,9 +284,11 @@ def validation_metrics(task, val: dict, agent: SACAgent, conf: TrainConf, device
 
 
 class _StopOnSignal:
-    """While active (``with``): SIGINT / SIGTERM set ``signum`` (call it: ``stop()`` -> bool) instead of
-    killing the process, so that training stops at the end of the episode after saving its state. A
-    second signal acts at once (the previous handlers are back). Only in the main thread."""
+    """While active (``with``): a first SIGINT / SIGTERM sets ``signum`` (call it: ``stop()`` -> bool) instead of
+    killing the process, so that training stops at the end of the episode after saving its state. A second
+    signal stops at once, by raising ``Interrupted`` where the program is: the with-blocks unwind, so the MLflow
+    run ends KILLED and a save in progress removes its temporary file (issue #28, item 5: the default handler
+    killed the process, leaving the run RUNNING and the temporary file behind). Only in the main thread."""
 
     def __init__(self):
         self.signum = 0
@@ -269,10 +298,13 @@ class _StopOnSignal:
         return bool(self.signum)
 
     def _handle(self, signum, frame) -> None:
+        name = signal.Signals(signum).name
+        if self.signum:
+            raise Interrupted(f"interrupted by a second {name}: stopped at once, without saving; continue from "
+                              "the last saved state with --resume", signum)
         self.signum = signum
-        self._restore()
-        print(f"\nrlsac train: {signal.Signals(signum).name} received, stopping at the end of the episode "
-              "(send it again to stop at once)", file=sys.stderr, flush=True)
+        print(f"\nrlsac train: {name} received, stopping at the end of the episode (send it again to stop at once)",
+              file=sys.stderr, flush=True)
 
     def _restore(self) -> None:
         for s, h in self._previous.items():

@@ -46,7 +46,7 @@ def verify(options: dict[str, Any], track: bool = True, report: Callable[[str], 
     # every check before any work and before the MLflow run: a user error leaves no run and no scratch behind
     check_inputs(root, selected, stages)
     scratch = _check_scratch(o["scratch"])
-    check_store(track)
+    check_store(track, "verify")
 
     made = scratch is None or not scratch.exists()
     if scratch is None:

@@ -230,18 +230,21 @@ def test_task_from():
 
 
 def test_train_builds_options_from_params_flags_and_sets(workdir, monkeypatch):
+    import rlsac.train as real
+
     got = {}
     fake = types.ModuleType("rlsac.train")
     fake.train = lambda options, track=True: got.update(options=options, track=track) or {"out": "ck.pt"}
+    fake.check_params = real.check_params  # params.yaml's train section is checked when the file is read
     monkeypatch.setitem(sys.modules, "rlsac.train", fake)
-    (workdir / "params.yaml").write_text("train:\n  line:\n    seed: 3\n    sac: {lr: 0.1, batch: 8}\n")
-    r = invoke("train", "--task", "line", "--data", "t.h5", "--out", "ck.pt", "--set", "sac.lr=1e-4",
+    (workdir / "params.yaml").write_text("train:\n  line:\n    seed: 3\n    sac: {actor_lr: 0.1, batch_size: 8}\n")
+    r = invoke("train", "--task", "line", "--data", "t.h5", "--out", "ck.pt", "--set", "sac.actor_lr=1e-4",
                "--set", "env.steps_per_episode=7", "--no-tracking")
     assert r.exit_code == 0, r.output
     assert got["track"] is False
     o = got["options"]
     assert o["task"] == "line" and o["data"] == "t.h5" and o["out"] == "ck.pt" and o["seed"] == 3
-    assert o["sac"] == {"lr": 1e-4, "batch": 8} and o["env"] == {"steps_per_episode": 7}
+    assert o["sac"] == {"actor_lr": 1e-4, "batch_size": 8} and o["env"] == {"steps_per_episode": 7}
     assert "resume" not in o and "device" not in o  # flags not given keep the params/conf defaults
     assert_user_error(invoke("train", "--task", "line", "--set", "novalue"), "key=value")
 

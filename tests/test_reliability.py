@@ -10,10 +10,12 @@ and bad ``--set`` / params.yaml values. Each case asserts exit code 2, one stder
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import h5py
 import numpy as np
+import pandas as pd
 import pytest
 from click.testing import CliRunner
 
@@ -55,6 +57,73 @@ def _identical(a):
     return a
 
 
+def _all_identical(a):
+    return np.repeat(a[:, :1], a.shape[1], axis=1)
+
+
+def _rows(edit, rows=slice(None)):
+    """An edit of the rows ``rows`` of an array (every row by default, only row 0 for an unusable-pair file)."""
+    def apply(a):
+        a = np.array(a, copy=True)
+        a[rows] = edit(a[rows])
+        return a
+    return apply
+
+
+def _focal(value):
+    def edit(K):
+        K[..., 0, 0] = K[..., 1, 1] = value
+        return K
+    return edit
+
+
+def _negative_focal(K):
+    K[..., 0, 0] *= -1
+    return K
+
+
+def _last_row(K):
+    K[..., 2, 2] = 2.0
+    return K
+
+
+def _reflect(R):
+    R[..., :, 0] *= -1  # orthonormal, det -1
+    return R
+
+
+def _far_x1(c):
+    c[..., 0] += 1e4  # 100 image widths to the right of image 1
+    return c
+
+
+def _few(mask):
+    mask[..., 7:] = False
+    return mask
+
+
+# meaningless geometry of a prepared two-view file: (key, edit of its rows, reason the reader gives)
+GEOMETRY = {
+    "k-near-singular": ("K1", _focal(1e-3), "K1 is near-singular for its image"),  # det 1e-6: passed 1e-12
+    "k-negative-focal": ("K2", _negative_focal, "K2 has a focal length <= 0"),
+    "k-last-row": ("K1", _last_row, "K1 is not an intrinsic matrix (last row must be 0 0 1)"),
+    "r-scaled": ("dR", lambda R: 2 * R, "dR is not a rotation"),  # scored mAA_R = 1.000 before
+    "r-reflection": ("dR", _reflect, "dR is a reflection, not a rotation"),
+    "t-zero": ("dT", lambda t: 0 * t, "dT is zero (no baseline"),
+    "points-outside": ("coords", _far_x1, "a correspondence lies outside image 1"),
+    "no-size": ("size2", lambda s: 0 * s, "image 2 has no size"),
+    "few-correspondences": ("mask", _few, "fewer than 8 valid correspondences"),
+    "identical-correspondences": ("coords", _all_identical, "degenerate data: all valid correspondences are identical"),
+}
+# meaningless line instances: (key, edit, reason)
+LINE_GEOMETRY = {
+    "points-outside": ("points", lambda a: 100 * a, "a point lies outside the 10 x 10 picture"),
+    "line-misses": ("line", lambda a: a + np.array([0.0, 0.0, 1000.0]), "line misses the picture"),
+    "zero-normal": ("line", lambda a: a * np.array([0.0, 0.0, 1.0]), "line is not a line (its normal (a, b) is zero)"),
+    "identical-points": ("points", _all_identical, "degenerate data: all points are identical"),
+}
+
+
 def _fundamental(root: Path) -> Path:
     """A small prepared fundamental file (test_tutorial's synthetic scene)."""
     from test_tutorial import N_POINTS, make_scene  # tests/ is on sys.path (pytest prepend mode)
@@ -77,16 +146,17 @@ def _copy_h5(src: Path, dst: Path, **edit) -> Path:
     return dst
 
 
-def _zero_first(a):
-    a = a.copy()
-    a[0] = 0
-    return a
+def _zero(a):
+    return np.zeros_like(a)
 
 
 def _same_coords(a):
-    a = a.copy()
-    a[1] = a[1, 0]
-    return a
+    return np.repeat(a[:, :1], a.shape[1], axis=1)
+
+
+def _edit_lines(src: Path, dst: Path, **edit) -> Path:
+    """A copy of a lines file with some arrays edited (attributes kept)."""
+    return _copy_h5(src, dst, **edit)
 
 
 @pytest.fixture(scope="module")
@@ -97,7 +167,7 @@ def inputs(tmp_path_factory):
     f["lines_nan"] = _lines(d / "lines_nan.h5", points=_nan)
     f["lines_inf"] = _lines(d / "lines_inf.h5", points=_inf)
     f["lines_empty"] = _lines(d / "lines_empty.h5", n=0)
-    f["lines_degenerate"] = _lines(d / "lines_degenerate.h5", points=_identical)
+    f["lines_degenerate"] = _lines(d / "lines_degenerate.h5", points=_all_identical)
     f["lines_one_point"] = d / "lines_one_point.h5"
     with h5py.File(f["lines_one_point"], "w") as h:
         h["points"], h["line"], h["inlier_mask"] = np.ones((3, 1, 2)), np.ones((3, 3)), np.ones((3, 1), bool)
@@ -114,9 +184,13 @@ def inputs(tmp_path_factory):
     f["blocker"] = d / "blocker"  # a regular file: nothing can be written under it
     f["blocker"].write_text("x")
     f["fund"] = _fundamental(d)
-    f["fund_singular"] = _copy_h5(f["fund"], d / "fund_singular.h5", K1=_zero_first)
+    f["fund_singular"] = _copy_h5(f["fund"], d / "fund_singular.h5", K1=_zero)
     f["fund_degenerate"] = _copy_h5(f["fund"], d / "fund_degenerate.h5", coords=_same_coords)
     f["fund_nan"] = _copy_h5(f["fund"], d / "fund_nan.h5", coords=_nan)
+    for name, (key, edit, _) in GEOMETRY.items():  # every pair meaningless: the file is refused
+        f[f"fund_{name}"] = _copy_h5(f["fund"], d / f"fund_{name}.h5", **{key: _rows(edit)})
+    for name, (key, edit, _) in LINE_GEOMETRY.items():  # every instance meaningless
+        f[f"lines_{name}"] = _edit_lines(f["lines"], d / f"lines_{name}.h5", **{key: _rows(edit)})
     params = {
         "p_missing": None,
         "p_list": "- a\n- b\n",
@@ -134,6 +208,19 @@ def inputs(tmp_path_factory):
         "p_folds_iter_scalar": "folds:\n  iterations: 100\n",
         "p_folds_seed": "folds:\n  seed: -1\n",
         "p_folds_val": "folds:\n  val_fraction: 1.5\n",
+        "p_folds_recipe": "folds:\n  train: {rlsac: {sac: {gamma: 5}}}\n",
+        "p_eval_lo": "evaluate:\n  line:\n    lo: {score: bogus}\n",  # ransac has no LO: still refused
+        "p_eval_lo_f": "evaluate:\n  fundamental:\n    lo: {iterations: x}\n",
+        "p_eval_sets": "evaluate:\n  line:\n    sets_per_step: 5000\n",
+        "p_section": "bogus: 1\n",
+        "p_train_gamma": "train:\n  line:\n    sac: {gamma: 2}\n",
+        "p_lines_n_test": "lines:\n  n_test: 0\n",
+        "p_lines_rates": "lines:\n  rates: [0.3, 1.5]\n",
+        "p_fundamental": "fundamental:\n  n_points: 4\n",
+        "p_essential": "essential:\n  methods: [bogus]\n",
+        "p_essential_regime": "essential:\n  regime: medium\n",
+        "p_ablation": "ablation:\n  iterations: abc\n",
+        "p_ablation_model": "ablation:\n  models: {n100: {study: points, bogus: 1}}\n",
     }
     for name, text in params.items():
         f[name] = d / f"{name}.yaml"
@@ -163,8 +250,13 @@ def inputs(tmp_path_factory):
     return f
 
 
-def _tree(root: Path) -> set[str]:
-    return {str(p.relative_to(root)) for p in root.rglob("*")}
+def _tree(root: Path, skip: tuple[str, ...] = ()) -> dict[str, str]:
+    """Every path under ``root`` -> a hash of its bytes ("dir" for a folder): equal trees hold the same files with
+    the same contents. ``skip``: names left out (the MLflow store, which a read may touch)."""
+    import hashlib
+
+    return {str(p.relative_to(root)): "dir" if p.is_dir() else hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in root.rglob("*") if p.name not in skip}
 
 
 def _arg(value, f):
@@ -174,11 +266,11 @@ def _arg(value, f):
     return str(value)
 
 
-def train(*extra, data="{lines}", out="ck/m.pt", params=""):
+def train(*extra, data="{lines}", out="ck/m.pt", params="", task="line"):
     # a 1-step budget first (a case that wrongly passed validation would not train for minutes), except
     # where a params file is under test: --set would override it
     safety = [] if params else ["--set", "sac.total_steps=1"]
-    return ["train", *safety, "--task", "line", "--data", data, "--out", out, "--params", params, *extra]
+    return ["train", *safety, "--task", task, "--data", data, "--out", out, "--params", params, *extra]
 
 
 def evaluate(*extra, task="line", data="{lines}", out="ev", params=""):
@@ -288,7 +380,7 @@ CASES = [
     ("train-data-missing", train(data="nope.h5"), "no such file"),
     ("train-data-empty", train(data="{lines_empty}"), "holds no instances"),
     ("train-data-degenerate", train(data="{lines_degenerate}"),
-     "degenerate data: all 20 points of instance 2 are identical"),
+     "no usable instance (6 of 6 unusable; instance 0: degenerate data: all points are identical"),
     ("train-data-nan", train(data="{lines_nan}"), "contains NaN or inf"),
     ("train-data-shape", train(data="{lines_shape}"), "has shape (3, 20, 3)"),
     ("train-val-data-text", train("--val-data", "{text_h5}"), "not a readable HDF5 file"),
@@ -315,7 +407,7 @@ CASES = [
     ("eval-steps-0", evaluate("--steps-per-episode", "0"), "steps_per_episode must be positive"),
     ("eval-seed", evaluate("--seed", "-1"), "seed must be in"),
     ("eval-policy-every-0", evaluate("--policy-every", "0"), "policy_every must be in [1, inf), got 0"),
-    ("eval-sets-per-step-0", evaluate("--sets-per-step", "0"), "sets_per_step must be in [1, inf), got 0"),
+    ("eval-sets-per-step-0", evaluate("--sets-per-step", "0"), "sets_per_step must be in [1, 1024], got 0"),
     ("eval-confidence-1", evaluate("--confidence", "1"), "confidence must be in [0, 1), got 1.0"),
     ("eval-e-lines-file", evaluate(data="{lines}", task="essential"), "not a prepared file"),
     ("eval-e-oracle", evaluate("--method", "oracle", data="{fund}", task="essential"),
@@ -325,7 +417,8 @@ CASES = [
     ("eval-params-missing", evaluate(params="{p_missing}"), "no such params file"),
     ("eval-params-list", evaluate(params="{p_list}"), "must be a mapping"),
     ("eval-params-type", evaluate(params="{p_eval_iter}"), "iterations must be an integer, got 'abc'"),
-    ("eval-f-singular", evaluate(data="{fund_singular}", **EVAL_F), "key 'K1' row 0 (im-0-im1) is a singular matrix"),
+    ("eval-f-singular", evaluate(data="{fund_singular}", **EVAL_F),
+     "no usable pair (2 of 2 unusable; pair 0 (im-0-im1): K1 is not an intrinsic matrix"),
     ("eval-f-degenerate", evaluate(data="{fund_degenerate}", **EVAL_F), "degenerate data: all valid correspondences"),
     ("eval-f-nan", evaluate(data="{fund_nan}", **EVAL_F), "key 'coords' contains NaN or inf"),
     ("eval-f-lines-file", evaluate(data="{lines}", **EVAL_F), "not a prepared file"),
@@ -374,6 +467,42 @@ CASES = [
                     "{p_folds_seed}"], "folds.seed must be in [0, 4294967295]"),
     ("folds-val", ["folds", "--stage", "data", "--regime", "easy", "--fold", "entry", "--params", "{p_folds_val}"],
      "folds.val_fraction must be in (0, 1), got 1.5"),
+    ("folds-train-recipe", ["folds", "--stage", "evaluate", "--regime", "hard", "--fold", "castle", "--params",
+                            "{p_folds_recipe}"], "folds.train.rlsac.sac.gamma must be in [0, 1], got 5.0"),
+    # issue #28, item 1: shape-valid files whose geometry means nothing, every pair / instance of them (a file with
+    # some usable ones is evaluated on those: test_unusable_pairs_are_skipped_and_counted), through every reader:
+    # the essential and fundamental tasks' (evaluate, train), the line task's, and the figures'
+    *[(f"eval-e-{name}", evaluate(data=f"{{fund_{name}}}", task="essential"), reason)
+      for name, (_, _, reason) in GEOMETRY.items()],
+    *[(f"eval-f-{name}", evaluate(data=f"{{fund_{name}}}", **EVAL_F), reason)
+      for name in ("k-near-singular", "r-scaled", "t-zero", "points-outside") for reason in [GEOMETRY[name][2]]],
+    *[(f"train-e-{name}", train(data=f"{{fund_{name}}}", task="essential"), GEOMETRY[name][2])
+      for name in ("k-negative-focal", "r-reflection")],
+    *[(f"eval-line-{name}", evaluate(data=f"{{lines_{name}}}"), reason)
+      for name, (_, _, reason) in LINE_GEOMETRY.items()],
+    ("train-line-misses", train(data="{lines_line-misses}"), "line misses the picture"),
+    ("plot-pair-geometry", ["plot", "--set", "which=pair", "--set", "fundamental_data={fund_r-scaled}", "--set",
+                            "fundamental_checkpoint="], "no usable pair (2 of 2 unusable"),
+    # issue #28, item 3: options bounded by a fixed cap and by what the data allow; every params.yaml section
+    # typed and checked at load, whichever command reads it (evaluate refuses a bad train or lines section too)
+    ("eval-sets-per-step-huge", evaluate("--sets-per-step", "1000000000"), "sets_per_step must be in [1, 1024]"),
+    ("eval-sets-per-step-data", evaluate("--sets-per-step", "500"),
+     "sets_per_step 500 is more than the 190 distinct minimal sets of 2 points"),
+    ("eval-lo-unused", evaluate(params="{p_eval_lo}"), "unknown LO score 'bogus'"),
+    ("eval-lo-unused-f", evaluate(data="{fund}", params="{p_eval_lo_f}", **EVAL_F),
+     "evaluate.fundamental.lo.iterations must be an integer"),
+    ("eval-params-sets", evaluate(params="{p_eval_sets}"), "evaluate.line.sets_per_step must be in [1, 1024]"),
+    ("eval-params-section", evaluate(params="{p_section}"), "unknown params section(s) ['bogus']"),
+    ("eval-params-train", evaluate(params="{p_train_gamma}"), "train.sac.gamma must be in [0, 1]"),
+    ("eval-params-lines", evaluate(params="{p_lines_n_test}"), "lines.n_test must be in [1, inf)"),
+    ("synth-params-fundamental", synth(params="{p_fundamental}"), "fundamental.n_points must be in [8, inf)"),
+    ("synth-params-essential", synth(params="{p_essential}"), "essential.methods[0] must be one of"),
+    ("synth-params-essential-regime", synth(params="{p_essential_regime}"), "essential.regime must be one of easy"),
+    ("synth-params-ablation", synth(params="{p_ablation}"), "ablation.iterations must be an integer, got 'abc'"),
+    ("synth-params-ablation-model", synth(params="{p_ablation_model}"),
+     "unknown ablation.models.n100 option(s) ['bogus']"),
+    ("train-params-evaluate", train(params="{p_eval_sets}"), "evaluate.line.sets_per_step must be in"),
+    ("lines-data-params-rates", lines_data(params="{p_lines_rates}"), "lines.rates[1] must be in [0, 1)"),
     # click's own usage errors: the same one `error:` line (not click's four-line usage block), exit 2
     ("click-method", ["evaluate", "--task", "line", "--method", "bogus", "--data", "x.h5"],
      "Invalid value for '--method': 'bogus' is not one of"),
@@ -411,7 +540,286 @@ def test_unwritable_tracking_store_is_one_line_error(workdir, inputs, monkeypatc
     err = r.stderr.strip()
     assert err.startswith("error: cannot write the MLflow store") and "\n" not in err, err
     assert "--no-tracking" in err
-    assert _tree(workdir) == set()
+    assert _tree(workdir) == {}
+
+
+# ------------------------------------------------------------------ unusable pairs (issue #28, item 1)
+
+
+def _evaluate_tracked(data, task="essential", *extra):
+    r = CliRunner().invoke(cli, ["evaluate", "--task", task, "--method", "ransac", "--data", str(data), "--iterations",
+                                 "5", "--out-dir", "ev", "--params", "", *extra])
+    assert r.exit_code == 0, (r.output, r.exception)
+    summary = json.loads(Path("ev/summary.json").read_text())
+    errors = pd.read_csv("ev/errors.csv")
+    config = json.loads(Path("ev/config.json").read_text())
+    run = _all_runs()[-1]
+    return r, summary, errors, config, run
+
+
+@pytest.mark.parametrize("name", sorted(GEOMETRY))
+def test_unusable_pair_is_skipped_and_counted(workdir, inputs, name):
+    """One meaningless pair of two: the other is evaluated, the one left out is counted in the summary, the
+    printed line and MLflow, and named in config.json; the instance column keeps the file's row numbers."""
+    key, edit, reason = GEOMETRY[name]
+    data = _copy_h5(inputs["fund"], workdir / "one_bad.h5", **{key: _rows(edit, slice(0, 1))})
+    r, summary, errors, config, run = _evaluate_tracked(data)
+    assert summary["n_unusable"] == 1 and summary["n_instances"] == summary["n"] == 1
+    assert errors["instance"].tolist() == [1] and errors["pair"].tolist() == ["im-0-im2"]
+    assert config["data_attrs"]["unusable"]["rows"] == [0] and reason in config["data_attrs"]["unusable"]["why"][0]
+    assert run.data.metrics["n_unusable"] == 1.0 and run.data.metrics["n_instances"] == 1.0
+    assert "n_unusable=1" in r.output
+
+
+@pytest.mark.parametrize("name", sorted(LINE_GEOMETRY))
+def test_unusable_line_instance_is_skipped_and_counted(workdir, inputs, name):
+    key, edit, reason = LINE_GEOMETRY[name]
+    data = _edit_lines(inputs["lines"], workdir / "one_bad.h5", **{key: _rows(edit, slice(2, 3))})
+    _, summary, errors, config, run = _evaluate_tracked(data, "line")
+    assert summary["n_unusable"] == 1 and summary["n_instances"] == 5
+    assert errors["instance"].tolist() == [0, 1, 3, 4, 5]
+    assert config["data_attrs"]["unusable"]["why"] == [reason] or reason in config["data_attrs"]["unusable"]["why"][0]
+    assert run.data.metrics["n_unusable"] == 1.0
+
+
+def test_usable_file_has_no_unusable_key(workdir, inputs):
+    """Every pair usable: summary.json and config.json as before the check (committed results stay byte-identical),
+    MLflow still says 0, and the good pairs' data reach the method unchanged."""
+    from rlsac.data import fundamental
+
+    _, summary, errors, config, run = _evaluate_tracked(inputs["fund"], "fundamental")
+    assert "n_unusable" not in summary and "unusable" not in config["data_attrs"]
+    assert errors["instance"].tolist() == [0, 1] and run.data.metrics["n_unusable"] == 0.0
+    arrays, attrs = fundamental.read(inputs["fund"])
+    with h5py.File(inputs["fund"]) as f:
+        for k in ("coords", "features", "mask", "K1", "K2", "dR", "dT", "size1", "size2"):
+            np.testing.assert_array_equal(arrays[k], f[k][()])
+
+
+def test_strecha_numbers_pass_the_geometry_checks():
+    """The numbers of our Strecha data (f = 920 px on 1024 x 683, a real relative pose) are far inside every
+    bound; a focal length of 1 px or 1e-3 px, or a rotation off by 1e-2, is not."""
+    import cv2
+
+    from rlsac.data import validity
+
+    K = np.array([[[920.0, 0, 512], [0, 920, 341.5], [0, 0, 1]]])
+    size = np.array([[1024, 683]])
+    R = cv2.Rodrigues(np.array([0.05, -0.3, 0.02]))[0][None]
+    checks = validity.intrinsics(K, size, "K") + validity.rotations(R) + validity.translations(np.array([[0.7, 0, 0]]))
+    assert validity.first_problem(checks, 1).tolist() == [""]
+    for f in (1e-3, 0.5):
+        assert "near-singular" in validity.first_problem(validity.intrinsics(_focal(f)(K.copy()), size, "K"), 1)[0]
+    assert validity.first_problem(validity.rotations(R * 1.01), 1)[0] == "dR is not a rotation (R R^T != I)"
+
+
+# ---------------------------------------- nothing written, no MLflow run, with tracking on (issue #28, items 2 and 5)
+
+
+def _tiny_checkpoint(path: Path, task_name: str = "fundamental") -> Path:
+    import torch
+
+    from rlsac.policy import Actor, PolicyConf
+    from rlsac.rollout import in_channels
+    from rlsac.tasks import get_task
+
+    task = get_task(task_name)
+    conf = config.to_dict(TrainConf(task=task_name))
+    conf["policy"] = {**conf["policy"], "widths": [4, 4], "global_width": 4, "head_width": 4}
+    actor = Actor(in_channels(task), config.build(PolicyConf, conf["policy"]))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save({"actor": actor.state_dict(), "conf": conf, "in_channels": in_channels(task), "step": 0, "val": {}},
+               path)
+    return path
+
+
+def _committed(path: Path, text: str = "committed result\n") -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+
+
+def _ablate_setup(bad: str):
+    def setup(root: Path, f: dict) -> None:
+        import shutil
+
+        (root / "data/fundamental").mkdir(parents=True)
+        shutil.copy(f["fund"], root / "data/fundamental/test.h5")
+        _tiny_checkpoint(root / "checkpoints/fundamental.pt")
+        ckpt = root / "checkpoints/ablation/n100.pt"
+        if bad == "data":
+            (root / "data/fundamental/test_n100.h5").write_text("not hdf5")
+            _tiny_checkpoint(ckpt)
+        else:
+            shutil.copy(f["fund"], root / "data/fundamental/test_n100.h5")
+            _committed(ckpt, "not a checkpoint")
+        for name in ("summary.json", "errors.csv", "config.json"):  # the first variant's committed results
+            _committed(root / "reports/eval/ablation/full" / name)
+        (root / "params.yaml").write_text("ablation: {iterations: 5}\n")
+    return setup
+
+
+FOLDS_EVAL_PARAMS = ("folds: {methods: [ransac], models: [rlsac], train: {rlsac: {}}, iterations: [5], lo_models: [], "
+                     "model_regime: hard}\n")
+
+
+def _folds_eval_setup(root: Path, f: dict) -> None:
+    import shutil
+
+    (root / "data/folds/hard/castle").mkdir(parents=True)
+    shutil.copy(f["fund"], root / "data/folds/hard/castle/test.h5")
+    _committed(root / "checkpoints/folds/hard/castle/rlsac.pt", "not a checkpoint")  # exists: passed the old check
+    _committed(root / "reports/eval/folds/hard/castle/ransac/i5/summary.json")
+    (root / "params.yaml").write_text(FOLDS_EVAL_PARAMS)
+
+
+def _folds_train_setup(root: Path, f: dict) -> None:
+    """Two fold models; the second one's task options are wrong (a recipe TrainConf cannot check)."""
+    import shutil
+
+    (root / "data/folds/hard/castle").mkdir(parents=True)
+    for split in ("train", "val"):
+        shutil.copy(f["fund"], root / f"data/folds/hard/castle/{split}.h5")
+    (root / "params.yaml").write_text(
+        "folds: {models: [rlsac, rlsac-x], lo_models: [], train: {rlsac: {sac: {total_steps: 2, num_envs: 2, "
+        "batch_size: 2, learning_starts: 2}, val_every: 2, val_instances: 1, val_iterations: 5}, "
+        "rlsac-x: {task_options: {bogus: 1}}}}\n")
+
+
+def _raw_scenes(root: Path, broken: str) -> None:
+    """Two tutorial-layout scenes s1, s2 under raw/all; s2 broken (a missing scene folder, an unreadable image)."""
+    from test_tutorial import make_scene
+
+    make_scene(root / "raw", "s1", "all")
+    make_scene(root / "raw", "s2", "all")
+    if broken == "image":
+        (root / "raw/all/s2/images/im1.jpg").write_bytes(b"junk")
+    elif broken == "h5":
+        (root / "raw/all/s2/matches.h5").write_text("not hdf5")
+
+
+def _folds_data_setup(broken: str):
+    def setup(root: Path, f: dict) -> None:
+        _raw_scenes(root, broken)
+        test = "s2" if broken != "scene" else "s2,nope"
+        # fold b tests s2 and trains on s1, whose two pairs fall one into train and one into val at 0.3
+        folds = f"folds: {{test: [a, b], scenes: {{a: s1, b: '{test}'}}, val_fraction: 0.3}}\n"
+        (root / "params.yaml").write_text("fundamental: {raw: raw, n_points: 30}\n" + folds)
+    return setup
+
+
+def _prepare_setup(root: Path, f: dict) -> None:
+    _raw_scenes(root, "h5")
+
+
+def _import_setup(root: Path, f: dict) -> None:
+    """Two source scenes: a good one first, then one whose second camera file is corrupt."""
+    import cv2
+
+    camera = "100 0 50\n0 100 40\n0 0 1\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n0 0 0\n100 80\n"
+    rng = np.random.default_rng(0)
+    for scene in ("a", "b"):
+        (root / "src" / scene / "images").mkdir(parents=True)
+        (root / "src" / scene / "cameras").mkdir()
+        for i in ("0001", "0002"):
+            cv2.imwrite(str(root / "src" / scene / "images" / f"{i}.jpg"), rng.integers(0, 255, (80, 100), np.uint8))
+            (root / "src" / scene / "cameras" / f"{i}.jpg.camera").write_text(camera)
+    (root / "src/b/cameras/0002.jpg.camera").write_text(camera.replace("100 80", "100 abc"))
+
+
+def _plot_setup(root: Path, f: dict) -> None:
+    import shutil
+
+    shutil.copy(f["fund"], root / "pair.h5")
+    (root / "bad.h5").write_text("not hdf5")
+    (root / "figs").write_text("a file, not a folder")
+    _committed(root / "reports/folds_iterations.csv", "regime,method,iterations,mAA_R,mAA_t,n_pairs\n"
+                                                      "hard,ransac,100,0.5,0.4,10\n")
+    _committed(root / "ck/hard/castle/rlsac.pt", "not a checkpoint")
+    _committed(root / "wrong.csv", "method,mAA\nransac,0.5\n")
+
+
+def _store_setup(kind: str):
+    def setup(root: Path, f: dict) -> None:
+        import mlflow
+
+        if kind == "root-is-file":  # MLflow's default artifact root of a new experiment, ./mlruns, is a file
+            (root / "mlruns").write_text("x")
+        else:  # the experiment exists, its artifact location under a regular file
+            (root / "blocker").write_text("x")
+            mlflow.MlflowClient(os.environ["MLFLOW_TRACKING_URI"]).create_experiment(
+                "lines", artifact_location=str(root / "blocker" / "artifacts"))
+    return setup
+
+
+def _plot(*sets):
+    return ["plot", *[a for s in sets for a in ("--set", s)]]
+
+
+# (id, setup(root, inputs), argv, fragment): run with tracking on, in a store that already exists
+TRACKED = [
+    # item 2: a command of several items checks all of them before the first writes or starts a run
+    ("ablate-second-variant-data", _ablate_setup("data"),
+     ["ablate", "--what", "points", "--stage", "evaluate", "--variants", "full,n100", "--params", "params.yaml"],
+     "test_n100.h5: not a readable HDF5 file"),
+    ("ablate-second-variant-checkpoint", _ablate_setup("checkpoint"),
+     ["ablate", "--what", "points", "--stage", "evaluate", "--variants", "full,n100", "--params", "params.yaml"],
+     "n100.pt: not an rlsac checkpoint"),
+    ("folds-evaluate-not-a-checkpoint", _folds_eval_setup,
+     ["folds", "--stage", "evaluate", "--regime", "hard", "--fold", "castle"], "rlsac.pt: not an rlsac checkpoint"),
+    ("folds-train-second-model", _folds_train_setup,
+     ["folds", "--stage", "train", "--regime", "hard", "--fold", "castle"], "bad task_options for task 'fundamental'"),
+    ("folds-data-missing-test-scene", _folds_data_setup("scene"),
+     ["folds", "--stage", "data", "--regime", "easy", "--fold", "b"], "nope: no such scene folder"),
+    ("folds-data-unreadable-test-image", _folds_data_setup("image"),
+     ["folds", "--stage", "data", "--regime", "easy", "--fold", "b"], "im1.jpg: unreadable image"),
+    ("prepare-corrupt-h5", _prepare_setup,
+     ["prepare-cvpr2020", "--root", "raw", "--split", "all", "--n-points", "30", "--out", "f/all.h5"],
+     "matches.h5: not a readable HDF5 file"),
+    ("import-second-scene-camera", _import_setup, ["import-scenes", "--src", "src", "--out", "raw"],
+     "0002.jpg.camera: camera file holds a non-number"),
+    ("plot-out-dir-is-a-file", _plot_setup, _plot("which=folds", "out_dir=figs"), "figs is not a folder"),
+    ("plot-corrupt-checkpoint", _plot_setup, _plot("which=curves", "folds_checkpoints=ck", "out_dir=out"),
+     "rlsac.pt: not an rlsac checkpoint"),
+    ("plot-pair-out-of-range", _plot_setup,
+     _plot("which=pair", "fundamental_data=pair.h5", "fundamental_checkpoint=", "pair=99", "out_dir=out"),
+     "pair 99 out of range (0..1)"),
+    ("plot-corrupt-h5", _plot_setup,
+     _plot("which=pair", "fundamental_data=bad.h5", "fundamental_checkpoint=", "out_dir=out"),
+     "bad.h5: not a readable HDF5 file"),
+    ("plot-csv-columns", _plot_setup, _plot("which=folds", "folds_iterations_csv=wrong.csv", "out_dir=out"),
+     "wrong.csv: no column(s) ['regime', 'iterations'"),
+    # item 5: the experiment's artifact location checked before the work, as the store itself
+    ("store-artifact-root-is-a-file", _store_setup("root-is-file"), evaluate(),
+     "MLflow artifacts of experiment 'lines'"),
+    ("store-artifact-location-under-a-file", _store_setup("under-file"), evaluate(), "blocker is not a folder"),
+    ("store-artifacts-train", _store_setup("root-is-file"), train(), "mlruns is not a folder"),
+    ("store-artifacts-synth", _store_setup("under-file"), synth(), "blocker is not a folder"),
+]
+
+
+def _all_runs() -> list:
+    import mlflow
+
+    client = mlflow.MlflowClient(os.environ["MLFLOW_TRACKING_URI"])
+    ids = [e.experiment_id for e in client.search_experiments()]
+    return client.search_runs(ids, order_by=["attributes.start_time ASC"]) if ids else []
+
+
+@pytest.mark.parametrize("setup, argv, fragment", [c[1:] for c in TRACKED], ids=[c[0] for c in TRACKED])
+def test_failure_with_tracking_writes_nothing_and_starts_no_run(workdir, inputs, setup, argv, fragment):
+    import mlflow
+
+    mlflow.MlflowClient(os.environ["MLFLOW_TRACKING_URI"]).search_experiments()  # the store exists: a run could start
+    setup(workdir, inputs)
+    store = ("mlflow.db", "mlflow.db.lock")
+    before = _tree(workdir, skip=store)
+    r = CliRunner().invoke(cli, [_arg(a, {**inputs, "dir": workdir}) for a in argv])
+    assert r.exit_code == 2, (r.exit_code, r.output, r.exception)
+    err = r.stderr.strip()
+    assert err.startswith("error: ") and "\n" not in err and "Traceback" not in r.output, err
+    assert fragment in err, err
+    assert _tree(workdir, skip=store) == before  # no new, modified or removed file; no folder either
+    assert _all_runs() == []
 
 
 # ------------------------------------------------------------------------------------------- config
@@ -432,6 +840,22 @@ def test_build_coerces_and_checks_every_field():
         assert message in str(e.value)
     with pytest.raises(RlsacError, match=r"SACConf must be a mapping"):
         config.build(SACConf, [1, 2])
+
+
+def test_lo_options_are_checked_whatever_the_method():
+    """evaluate.<task>.lo is checked when params.yaml is read and by evaluate's own options (a library caller,
+    rlsac folds), also for a method without LO that ignores it (issue #28, item 3)."""
+    from rlsac import evaluate as ev
+
+    with pytest.raises(RlsacError, match="LO inner_samples and iterations must be >= 0"):
+        ev.check_params({"evaluate": {"line": {"lo": {"iterations": -1}}}})
+    with pytest.raises(RlsacError, match=r"unknown config key\(s\) \['bogus'\] in evaluate.line.lo"):
+        ev.check_params({"evaluate": {"line": {"lo": {"bogus": 1}}}})
+    with pytest.raises(RlsacError, match="unknown LO score 'bogus'"):
+        ev.check_options({"task": "line", "method": "ransac", "data": __file__, "lo": {"score": "bogus"}})
+    with pytest.raises(RlsacError, match="evaluate.lo must be a mapping"):
+        ev.check_options({"task": "line", "method": "ransac", "data": __file__, "lo": 3})
+    ev.check_options({"task": "line", "method": "ransac", "data": __file__, "lo": {"score": "msac"}})
 
 
 def test_every_range_names_a_field():
@@ -569,6 +993,48 @@ def test_sigterm_saves_state_ends_run_killed_and_resume_is_exact(workdir, resume
     assert "error" not in runs[0].data.tags and "SIGTERM" in runs[0].data.tags["interrupted"]
 
 
+def test_second_sigterm_stops_at_once_ends_run_killed_and_leaves_no_temporary_file(workdir, resume_data,
+                                                                                     monkeypatch):
+    """A first SIGTERM asks for a stop at the end of the episode; a second one, here while the state is being
+    written, stops at once: the MLflow run ends KILLED (not RUNNING) and the save's temporary file is removed."""
+    import signal
+
+    import torch
+
+    from rlsac import train as train_mod
+
+    real_loop, real_save = train_mod.train_loop, torch.save
+    before = signal.getsignal(signal.SIGTERM)
+    sent = []
+
+    def loop_with_sigterm(*args, log, **kw):
+        def log_and_signal(metrics, step):
+            if step >= 12 and not sent:
+                sent.append(step)
+                os.kill(os.getpid(), signal.SIGTERM)
+            return log(metrics, step)
+        return real_loop(*args, log=log_and_signal, **kw)
+
+    def save(obj, f, *a, **k):
+        real_save(obj, f, *a, **k)
+        if sent and ".m.state.pt." in str(f):  # the state's temporary file, written and not yet renamed
+            sent.append("second")
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    monkeypatch.setattr(train_mod, "train_loop", loop_with_sigterm)
+    monkeypatch.setattr(torch, "save", save)
+    r = CliRunner().invoke(cli, _train_argv(resume_data, "ck/m.pt"))
+    assert sent[-1] == "second"
+    assert r.exit_code == 128 + signal.SIGTERM, (r.output, r.exception)
+    err = r.stderr.strip().splitlines()[-1]
+    assert err.startswith("error: interrupted by a second SIGTERM: stopped at once"), err
+    assert not list((workdir / "ck").glob(".*.tmp"))  # the save's temporary file removed on the way out
+    runs = _runs()
+    assert len(runs) == 1 and runs[0].info.status == "KILLED"
+    assert "second SIGTERM" in runs[0].data.tags["error"]
+    assert signal.getsignal(signal.SIGTERM) == before  # the handlers are back
+
+
 KILL_DURING_SAVE = """
 import os, signal, sys
 import torch
@@ -636,17 +1102,20 @@ def test_run_names_and_command_tags(workdir):
 
 @pytest.mark.parametrize("signame", ["SIGINT", "SIGTERM"])
 def test_stop_on_signal_defers_the_first_signal_and_restores_the_handlers(signame):
-    import os
     import signal
 
+    from rlsac.errors import Interrupted
     from rlsac.train import _StopOnSignal
 
     sig = getattr(signal, signame)
     before = signal.getsignal(sig)
     stop = _StopOnSignal()
-    with stop:
-        assert not stop()
-        os.kill(os.getpid(), sig)  # handled: no KeyboardInterrupt, no exit
-        assert stop() and stop.signum == sig
-        assert signal.getsignal(sig) == before  # a second signal would act at once
+    with pytest.raises(Interrupted, match=f"second {signame}") as e:
+        with stop:
+            assert not stop()
+            os.kill(os.getpid(), sig)  # handled: no KeyboardInterrupt, no exit
+            assert stop() and stop.signum == sig
+            os.kill(os.getpid(), sig)  # the second one stops at once, through the with-blocks (run KILLED)
+            pytest.fail("the second signal did not stop")
+    assert e.value.exit_code == 128 + sig and e.value.run_status == "KILLED"
     assert signal.getsignal(sig) == before

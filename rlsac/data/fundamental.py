@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from rlsac.data import validity
 from rlsac.errors import RlsacError
 from rlsac.io import open_h5, read_array
 
@@ -24,7 +25,11 @@ N_FEATURES = 261  # 4 coordinates + SNN ratio + two 128-D descriptors
 
 
 def read(path: str | Path) -> tuple[dict[str, np.ndarray], dict]:
-    """Read and validate a prepared fundamental file -> (arrays, attrs)."""
+    """Read and validate a prepared fundamental file -> (arrays, attrs).
+
+    Pairs whose geometry is meaningless (``pair_problems``) are left out of the arrays and reported in
+    ``attrs["unusable"]`` (rlsac.data.validity.keep_usable: count, file rows, reasons); a file without a usable
+    pair is an RlsacError. The arrays of the usable pairs are the file's, unchanged."""
     with open_h5(path) as f:
         kind = f.attrs.get("kind")
         if kind != KIND:
@@ -47,22 +52,22 @@ def read(path: str | Path) -> tuple[dict[str, np.ndarray], dict]:
         attrs = {k: (v.item() if isinstance(v, np.generic) else v) for k, v in f.attrs.items()}
     if P == 0:
         raise RlsacError(f"{path}: key 'coords' holds no pairs")
-    if (out["mask"].sum(1) < 8).any():
-        bad = int(np.flatnonzero(out["mask"].sum(1) < 8)[0])
-        raise RlsacError(f"{path}: key 'mask' row {bad} ({out['pair'][bad]}) has fewer than 8 valid correspondences")
-    for key in ("K1", "K2", "dR"):  # the ground truth inverts K1, K2 (gt_fundamental)
-        det = np.abs(np.linalg.det(out[key]))
-        if (det < 1e-12).any():
-            bad = int(np.flatnonzero(det < 1e-12)[0])
-            raise RlsacError(f"{path}: key '{key}' row {bad} ({out['pair'][bad]}) is a singular matrix")
-    c = out["coords"]
-    first = c[np.arange(P), out["mask"].argmax(1)][:, None]  # first valid correspondence of each pair
-    same = np.all((c == first) | ~out["mask"][..., None], axis=(1, 2))
-    if same.any():
-        bad = int(np.flatnonzero(same)[0])
-        raise RlsacError(f"{path}: degenerate data: all valid correspondences of pair {bad} ({out['pair'][bad]}) are "
-                         f"identical ({int(same.sum())} such pair(s)); no fundamental matrix can be fitted")
+    out, report = validity.keep_usable(out, pair_problems(out), out["pair"], path, "pair")
+    if report:
+        attrs[validity.REPORT] = report
     return out, attrs
+
+
+def pair_problems(data: dict[str, np.ndarray]) -> np.ndarray:
+    """What makes each pair unusable (rlsac.data.validity): too few or identical correspondences, K1 / K2 that
+    are no camera for their image, a ground-truth dR that is no rotation or a zero dT, correspondences outside
+    their images. data: ``read``'s arrays, P pairs -> (P,) reasons, "" for a usable pair."""
+    checks = validity.correspondences(data["coords"], data["mask"]) + validity.image_sizes(data["size1"], data["size2"])
+    for j in (1, 2):
+        checks += validity.intrinsics(data[f"K{j}"], data[f"size{j}"], f"K{j}")
+    checks += validity.rotations(data["dR"]) + validity.translations(data["dT"])
+    checks += validity.in_images(data["coords"], data["mask"], data["size1"], data["size2"])
+    return validity.first_problem(checks, len(data["coords"]))
 
 
 def _strings(arr: np.ndarray) -> np.ndarray:

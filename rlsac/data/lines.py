@@ -17,6 +17,7 @@ import h5py
 import numpy as np
 import torch
 
+from rlsac.data import validity
 from rlsac.errors import RlsacError
 from rlsac.io import atomic_path, open_h5, read_array
 
@@ -123,7 +124,11 @@ def write(path: str | Path, data: dict[str, np.ndarray], conf: LineDataConf) -> 
 
 
 def read(path: str | Path) -> tuple[dict[str, np.ndarray], dict]:
-    """Read and validate a lines h5 file -> (arrays, attrs)."""
+    """Read and validate a lines h5 file -> (arrays, attrs).
+
+    Instances whose geometry is meaningless (``instance_problems``) are left out of the arrays and reported in
+    ``attrs["unusable"]`` (rlsac.data.validity.keep_usable); a file without a usable instance is an RlsacError.
+    The arrays of the usable instances are the file's, unchanged."""
     with open_h5(path) as f:
         pts = read_array(f, "points", (None, None, 2))
         line = read_array(f, "line", (pts.shape[0], 3))
@@ -133,16 +138,23 @@ def read(path: str | Path) -> tuple[dict[str, np.ndarray], dict]:
         raise RlsacError(f"{path}: key 'points' holds no instances")
     if pts.shape[1] < 2:
         raise RlsacError(f"{path}: instances need at least 2 points, got {pts.shape[1]}")
-    same = np.all(pts == pts[:, :1], axis=(1, 2))
-    if same.any():
-        bad = np.flatnonzero(same)
-        raise RlsacError(f"{path}: degenerate data: all {pts.shape[1]} points of instance {int(bad[0])} are identical "
-                         f"({bad.size} such instance(s)); no line can be fitted to them")
-    normal = np.linalg.norm(line[:, :2], axis=1)
-    if (normal < 1e-12).any():
-        raise RlsacError(f"{path}: key 'line' row {int(np.flatnonzero(normal < 1e-12)[0])} is not a line "
-                         "(its normal (a, b) is zero)")
-    return {"points": pts, "line": line, "inlier_mask": mask.astype(bool)}, attrs
+    size = attrs.get("picture_size", LineDataConf.picture_size)
+    if not (isinstance(size, (int, float, np.number)) and np.isfinite(size) and size > 0):
+        raise RlsacError(f"{path}: attribute 'picture_size' must be a positive number, got {size!r}")
+    out = {"points": pts, "line": line, "inlier_mask": mask.astype(bool)}
+    out, report = validity.keep_usable(out, instance_problems(out, float(size)), None, path, "instance")
+    if report:
+        attrs[validity.REPORT] = report
+    return out, attrs
+
+
+def instance_problems(data: dict[str, np.ndarray], picture_size: float) -> np.ndarray:
+    """What makes each instance unusable (rlsac.data.validity): identical points, points outside the picture,
+    a ground-truth line with a zero normal or one that misses the picture. data: ``read``'s arrays, P
+    instances -> (P,) reasons, "" for a usable instance."""
+    checks = validity.line_points(data["points"], picture_size) + validity.ground_truth_lines(data["line"],
+                                                                                                picture_size)
+    return validity.first_problem(checks, len(data["points"]))
 
 
 def to_batch(data: dict[str, np.ndarray], idx=slice(None), device: str | torch.device = "cpu") -> dict:

@@ -28,11 +28,12 @@ import h5py
 import numpy as np
 import torch
 
+from rlsac.data import validity
 from rlsac.data.fundamental import gt_fundamental, sampson
 from rlsac.errors import RlsacError
 from rlsac.io import atomic_path, check_writable, write_json
 from rlsac.progress import tqdm  # no bars unless a person watches (not under CI, not redirected)
-from rlsac.tracking import start_run
+from rlsac.tracking import check_store, start_run
 
 
 @dataclass
@@ -77,9 +78,34 @@ def read_camera(path: Path) -> dict[str, np.ndarray]:
     if not np.isfinite(vals).all():
         raise RlsacError(f"{path}: camera file contains NaN or inf")
     K, R, C = vals[:9].reshape(3, 3), vals[12:21].reshape(3, 3), vals[21:24]
-    if abs(np.linalg.det(R) - 1) > 1e-3:
-        raise RlsacError(f"{path}: R is not a rotation (det {np.linalg.det(R):.4f})")
-    return {"K": K, "R": R, "C": C, "size": vals[24:26].astype(int)}
+    size = vals[24:26].astype(int)
+    # what the numbers mean, as the prepared file's reader checks them (rlsac.data.validity)
+    checks = validity.image_sizes(size[None], size[None])[:1] + validity.intrinsics(K[None], size[None], "K")
+    problem = validity.first_problem(checks + validity.rotations(R[None], "R"), 1)[0]
+    if problem:
+        raise RlsacError(f"{path}: {problem}")
+    return {"K": K, "R": R, "C": C, "size": size}
+
+
+def read_image(src: Path, image: str, camera: dict) -> np.ndarray:
+    """The grey image ``image`` of source scene ``src``, checked against its camera's size -> (H, W) uint8."""
+    path = src / "images" / f"{image}.jpg"
+    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if img is None:
+        raise RlsacError(f"{path}: unreadable image")
+    w, h = camera["size"]
+    if (img.shape[1], img.shape[0]) != (w, h):
+        raise RlsacError(f"{src / 'cameras' / f'{image}.jpg.camera'}: size {w}x{h} but the image is "
+                         f"{img.shape[1]}x{img.shape[0]}")
+    return img
+
+
+def check_scene(src: Path) -> None:
+    """Every camera file and every image of source scene ``src`` read and checked: ``import_scenes`` calls it for
+    every scene before it creates a folder or starts its MLflow run (issue #28, item 2: a corrupt image or camera
+    file of a later scene failed inside the run, leaving it FAILED)."""
+    for i in source_images(src):
+        read_image(src, i, read_camera(src / "cameras" / f"{i}.jpg.camera"))
 
 
 def source_images(scene: Path) -> list[str]:
@@ -156,17 +182,10 @@ def _import_scene(src: Path, dst_parent: Path, conf: ImportConf, progress: bool)
         (stage / "images").mkdir()
         feats = {}
         for i in tqdm(ids, desc=f"{src.name}: SIFT", unit="img", disable=not progress, leave=False):
-            path = src / "images" / f"{i}.jpg"
-            img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-            if img is None:
-                raise RlsacError(f"{path}: unreadable image")
-            w, h = cams[i]["size"]
-            if (img.shape[1], img.shape[0]) != (w, h):
-                raise RlsacError(f"{src / 'cameras' / f'{i}.jpg.camera'}: size {w}x{h} but the image is "
-                                 f"{img.shape[1]}x{img.shape[0]}")
+            img = read_image(src, i, cams[i])
             xy, d = detect(img, conf.max_features, conf.rootsift)
             feats[i] = (xy, torch.from_numpy(d))
-            shutil.copyfile(path, stage / "images" / f"{i}.jpg")
+            shutil.copyfile(src / "images" / f"{i}.jpg", stage / "images" / f"{i}.jpg")
         matches, confs, kk = {}, {}, {}
         dropped = []
         n_kept = []
@@ -217,9 +236,11 @@ def import_scenes(conf: ImportConf, track: bool = True, progress: bool = True) -
     for s in scenes:
         if not (src / s).is_dir():
             raise RlsacError(f"{src / s}: no such scene folder")
-        source_images(src / s)
+    for s in scenes:
+        check_scene(src / s)
     dst = Path(conf.out) / conf.split
     check_writable(dst / "import_summary.json")
+    check_store(track, "fundamental")
     created = [p for p in (dst, *dst.parents) if not p.exists()]  # removed again if the import fails
     dst.mkdir(parents=True, exist_ok=True)
     try:

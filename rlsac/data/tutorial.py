@@ -307,8 +307,26 @@ def write(path: str | Path, data: dict[str, np.ndarray], attrs: dict) -> Path:
     return Path(path)
 
 
-def prepare(conf: PrepareConf, track: bool = True, progress: bool = True) -> dict:
-    """Read ``conf.scenes`` of ``conf.split`` and write one fixed-size h5 to ``conf.out``; return a summary."""
+@dataclass
+class Collected:
+    """What ``collect`` read and computed for one output file, before anything is written or tracked."""
+
+    scenes: list[str]
+    data: dict[str, np.ndarray]  # ``_assemble``'s arrays
+    per_scene: dict[str, int]
+    skipped: dict[str, list[str]]
+    seconds: float  # the reading and SIFT time, counted into the run's "seconds" metric
+
+
+def descriptor_text(conf: PrepareConf) -> str:
+    return (f"OpenCV SIFT compute at the given location, size {conf.kp_size} px, angle 0 (upright), "
+            f"octave 0; {'RootSIFT (L1-normalise, sqrt)' if conf.rootsift else 'L2-normalised SIFT'}")
+
+
+def collect(conf: PrepareConf, progress: bool = True) -> Collected:
+    """Every input of ``conf`` read and every pair built in memory: each h5 file opened, each pair and image
+    read. A corrupt file fails here, before ``prepare`` writes anything or starts its MLflow run (issue #28,
+    item 2: it used to fail inside the run, leaving a FAILED run)."""
     conf.check()
     t0 = time.time()
     scenes = conf.scene_list() or list_scenes(conf.root, conf.split)
@@ -316,37 +334,43 @@ def prepare(conf: PrepareConf, track: bool = True, progress: bool = True) -> dic
         raise RlsacError(f"{Path(conf.root) / conf.split}: no scene folders")
     for s in scenes:  # fail on a missing scene before any work
         scene_dir(conf.root, conf.split, s)
-    descriptor = (
-        f"OpenCV SIFT compute at the given location, size {conf.kp_size} px, angle 0 (upright), "
-        f"octave 0; {'RootSIFT (L1-normalise, sqrt)' if conf.rootsift else 'L2-normalised SIFT'}"
-    )
+    skipped: dict[str, list[str]] = defaultdict(list)
+    pairs: list[dict] = []
+    per_scene = {}
+    for s in scenes:
+        with Scene(conf.root, conf.split, s) as scene:
+            got = _prepare_scene(scene, conf, skipped, progress)
+        per_scene[s] = len(got)
+        pairs.extend(got)
+    if not pairs:
+        raise RlsacError(f"{Path(conf.root) / conf.split}: no pair of scenes {scenes} has "
+                         f"{conf.min_correspondences} correspondences; nothing to write")
+    return Collected(scenes, _assemble(pairs, int(conf.n_points)), per_scene, skipped, time.time() - t0)
+
+
+def prepare(conf: PrepareConf, track: bool = True, progress: bool = True, collected: Collected | None = None) -> dict:
+    """Read ``conf.scenes`` of ``conf.split`` and write one fixed-size h5 to ``conf.out``; return a summary.
+    ``collected``: what ``collect(conf)`` returned, when the caller checked its inputs first (rlsac folds)."""
+    c = collected if collected is not None else collect(conf, progress)
+    t0 = time.time() - c.seconds
+    scenes, data, per_scene, skipped = c.scenes, c.data, c.per_scene, c.skipped
+    descriptor = descriptor_text(conf)
     # the OpenCV version goes to MLflow only: in the h5 it would change the file's hash with every OpenCV build
     params = {**asdict(conf), "scenes": ",".join(scenes), "descriptor": descriptor, "opencv_version": cv2.__version__}
     with start_run("fundamental", f"prepare-{Path(conf.out).stem}", params, enabled=track) as run:
-        skipped: dict[str, list[str]] = defaultdict(list)
-        pairs: list[dict] = []
-        per_scene = {}
-        for s in scenes:
-            with Scene(conf.root, conf.split, s) as scene:
-                got = _prepare_scene(scene, conf, skipped, progress)
-            per_scene[s] = len(got)
-            pairs.extend(got)
-        if not pairs:
-            raise RlsacError(f"{Path(conf.root) / conf.split}: no pair of scenes {scenes} has "
-                             f"{conf.min_correspondences} correspondences; nothing to write")
-        data = _assemble(pairs, int(conf.n_points))
+        n_pairs = len(data["pair"])
         n_skipped = sum(len(v) for v in skipped.values())
         skip_json = json.dumps({k: {"count": len(v), "pairs": v[:200]} for k, v in skipped.items()})
         attrs = {
             "kind": KIND, "n_points": int(conf.n_points), "split": conf.split, "scenes": ",".join(scenes),
-            "root": str(conf.root), "descriptor": descriptor, "n_pairs": len(pairs), "n_skipped": n_skipped,
+            "root": str(conf.root), "descriptor": descriptor, "n_pairs": n_pairs, "n_skipped": n_skipped,
             "skipped": skip_json,
         }
         write(conf.out, data, attrs)
         counts = data["mask"].sum(1)
         inl = gt_inliers(data, float(conf.gt_threshold)).sum(1) / counts
         summary = {
-            "out": str(conf.out), "split": conf.split, "scenes": ",".join(scenes), "pairs": len(pairs),
+            "out": str(conf.out), "split": conf.split, "scenes": ",".join(scenes), "pairs": n_pairs,
             "pairs_per_scene": per_scene, "skipped": n_skipped,
             "skip_reasons": {k: len(v) for k, v in skipped.items()},
             "mean_correspondences": float(counts.mean()), "full_pairs": int((counts == conf.n_points).sum()),
@@ -355,7 +379,7 @@ def prepare(conf: PrepareConf, track: bool = True, progress: bool = True) -> dic
                                           for q in (0.1, 0.25, 0.5, 0.75, 0.9)},
         }
         seconds = round(time.time() - t0, 2)  # MLflow and the returned summary only, not the written files
-        run.metrics({"pairs": len(pairs), "skipped": n_skipped, "mean_correspondences": summary["mean_correspondences"],
+        run.metrics({"pairs": n_pairs, "skipped": n_skipped, "mean_correspondences": summary["mean_correspondences"],
                      "mean_gt_inlier_ratio": float(inl.mean()), "seconds": seconds})
         if track:
             with tempfile.TemporaryDirectory() as d:

@@ -233,9 +233,10 @@ def _draw_line(ax, line, size: float, **kw) -> None:
     ax.plot(pts[:, 0], pts[:, 1], **kw)
 
 
-def plot_line_steps(o: dict[str, Any], out_dir: Path) -> tuple[list[str], str]:
-    from rlsac import metrics
-    from rlsac.data import lines
+def line_setup(o: dict[str, Any]) -> dict[str, Any]:
+    """The line figure's inputs, read and checked before ``plot`` starts its MLflow run: the data file (a missing
+    one regenerated as dvc.lock records it), the policy, and an explicit ``line_index`` in range and usable."""
+    from rlsac.data import lines, validity
     from rlsac.reports.provenance import recorded_lines
 
     notes = []
@@ -244,30 +245,42 @@ def plot_line_steps(o: dict[str, Any], out_dir: Path) -> tuple[list[str], str]:
         data, attrs = lines.read(readable)
     if readable != path:
         notes.append(f"{path} regenerated as recorded in dvc.lock")
-    rate = float(attrs.get("outlier_rate", float("nan")))
-    source = f"{path.name} (seed {attrs['seed']})" if "seed" in attrs else path.name
-    size = float(attrs.get("picture_size", 10.0))
     actor, task, psi, why = _load_policy(o["line_checkpoint"], "line", o["device"])
     if why:
         notes.append(why)
+    report, n = attrs.get(validity.REPORT), len(data["points"])
+    index = None if o["line_index"] == "auto" else \
+        validity.row_position(report, int(o["line_index"]), n, path, "line_index")
+    return {"path": path, "data": data, "attrs": attrs, "rows": validity.kept_rows(report, n), "actor": actor,
+            "task": task, "psi": psi, "notes": notes, "index": index}
+
+
+def plot_line_steps(o: dict[str, Any], out_dir: Path, setup: dict[str, Any] | None = None) -> tuple[list[str], str]:
+    from rlsac import metrics
+    from rlsac.data import lines
+
+    su = setup or line_setup(o)
+    path, data, attrs, actor, task, psi = su["path"], su["data"], su["attrs"], su["actor"], su["task"], su["psi"]
+    notes = list(su["notes"])
+    rate = float(attrs.get("outlier_rate", float("nan")))
+    source = f"{path.name} (seed {attrs['seed']})" if "seed" in attrs else path.name
+    size = float(attrs.get("picture_size", 10.0))
     gen = torch.Generator().manual_seed(int(o["seed"]))
     n = len(data["points"])
-    if o["line_index"] == "auto":
+    if su["index"] is None:
         cand = min(n, 64)
         batch = lines.to_batch(data, slice(0, cand))
         steps = _episode(task, batch, actor, psi, gen)
         err = np.stack([metrics.line_angle_deg(s["hyp"].numpy()[:, :2], batch["line"][:, :2]) for s in steps], 1)
         score = np.where(err[:, -1] < 0.5, err[:, 0] - err[:, -1], -np.inf)
         idx = int(np.argmax(score)) if np.isfinite(score).any() else 0
-        pick = f"#{idx} (auto: largest error drop of the first {cand} instances)"
+        pick = f"#{su['rows'][idx]} (auto: largest error drop of the first {cand} instances)"
         steps = [{k: v[idx: idx + 1] for k, v in s.items()} for s in steps]
     else:
-        idx = int(o["line_index"])
-        if not 0 <= idx < n:
-            raise RlsacError(f"line_index {idx} out of range (0..{n - 1})")
+        idx = su["index"]
         batch = lines.to_batch(data, slice(idx, idx + 1))
         steps = _episode(task, batch, actor, psi, gen)
-        pick = f"#{idx}"
+        pick = f"#{su['rows'][idx]}"
     pts, gt = data["points"][idx], data["line"][idx]
     shown = _pick_steps(len(steps), o["line_steps"])
     rows, cols = _grid(len(shown))
@@ -392,21 +405,23 @@ def _err_text(eR: float, et: float) -> str:
 
 
 def _fundamental_setup(o: dict[str, Any]):
-    from rlsac.data import fundamental
+    """The two pair figures' inputs, read and checked before ``plot`` starts its MLflow run: the prepared file, the
+    pair (``pair``: a row of the file, in range and usable), the policy and both images."""
+    from rlsac.data import fundamental, validity
 
     path = Path(o["fundamental_data"])
     if not path.is_file():
         raise RlsacError(_missing_fundamental(path))
     data, attrs = fundamental.read(path)
+    report, n = attrs.get(validity.REPORT), len(data["pair"])
     if o["pair"] == "auto":
         rate = fundamental.gt_inliers(data, 2.0).sum(1) / data["mask"].sum(1)
         i = int(np.argmin(np.abs(rate - 0.5)))
         how = f", auto-picked: ground-truth inlier rate {rate[i]:.2f}"
     else:
-        i, how = int(o["pair"]), ""
-    if not 0 <= i < len(data["pair"]):
-        raise RlsacError(f"pair {i} out of range (0..{len(data['pair']) - 1}) in {path}")
-    data["label"] = f"{data['scene'][i]} {data['pair'][i]} (#{i} of {path.name}{how})"
+        i, how = validity.row_position(report, int(o["pair"]), n, path, "pair"), ""
+    row = int(validity.kept_rows(report, n)[i])
+    data["label"] = f"{data['scene'][i]} {data['pair'][i]} (#{row} of {path.name}{how})"
     batch = fundamental.to_batch(data, [i])
     actor, task, psi, why = _load_policy(o["fundamental_checkpoint"], "fundamental", o["device"])
     images, paths = _pair_images(data, _image_root(attrs, path, o["image_root"]), i)
@@ -451,8 +466,8 @@ def check_inputs(o: dict[str, Any]) -> list[str]:
     return problems
 
 
-def plot_fundamental_pair(o: dict[str, Any], out_dir: Path) -> tuple[list[str], str]:
-    data, attrs, i, batch, actor, task, psi, images, notes = _fundamental_setup(o)
+def plot_fundamental_pair(o: dict[str, Any], out_dir: Path, setup: tuple | None = None) -> tuple[list[str], str]:
+    data, attrs, i, batch, actor, task, psi, images, notes = setup or _fundamental_setup(o)
     gen = torch.Generator().manual_seed(int(o["seed"]))
     iters = int(o["fundamental_iterations"])
     if actor is not None:
@@ -495,8 +510,8 @@ def plot_fundamental_pair(o: dict[str, Any], out_dir: Path) -> tuple[list[str], 
         return _save(fig, out_dir, "fundamental_pair"), "; ".join(notes)
 
 
-def plot_fundamental_steps(o: dict[str, Any], out_dir: Path) -> tuple[list[str], str]:
-    data, attrs, i, batch, actor, task, psi, images, notes = _fundamental_setup(o)
+def plot_fundamental_steps(o: dict[str, Any], out_dir: Path, setup: tuple | None = None) -> tuple[list[str], str]:
+    data, attrs, i, batch, actor, task, psi, images, notes = setup or _fundamental_setup(o)
     gen = torch.Generator().manual_seed(int(o["seed"]))
     steps = _episode(task, batch, actor, psi, gen)
     shown = _pick_steps(len(steps), o["fundamental_steps"])
@@ -530,6 +545,38 @@ def plot_fundamental_steps(o: dict[str, Any], out_dir: Path) -> tuple[list[str],
 # ------------------------------------------------------------------------------------------ entry
 
 
+def read_inputs(o: dict[str, Any]) -> dict[str, Any]:
+    """Every input of the requested figures read and checked, before ``plot`` starts its MLflow run (issue #28,
+    item 2: a corrupt h5 file or checkpoint, or an index out of range, failed inside the run): the CSVs parsed,
+    the checkpoints loaded, the data files read and validated, the indices checked, the images found.
+    -> {figure name (or "fundamental" for the two pair figures): what its drawing function takes}"""
+    from rlsac.reports import fold_figures
+
+    out: dict[str, Any] = {}
+    which = set(o["which"])
+    if "fundamental_iterations" in which:
+        if o["iterations_csv"]:
+            try:
+                out["fundamental_iterations"] = pd.read_csv(o["iterations_csv"])
+            except (ValueError, OSError, UnicodeDecodeError) as e:
+                raise RlsacError(f"{o['iterations_csv']}: not a readable CSV ({e.__class__.__name__})") from None
+        else:
+            from rlsac.reports.tables import iterations_csv
+
+            with tempfile.TemporaryDirectory() as tmp:  # rebuilt from the summaries, not written over reports/
+                out["fundamental_iterations"] = iterations_csv(o["eval_root"], tmp)
+    for name in ("folds_iterations", "essential_iterations"):
+        if name in which:
+            out[name] = fold_figures.read_iterations(o[f"{name}_csv"], name)
+    if "learning_curves" in which:
+        out["learning_curves"] = fold_figures.read_checkpoints(o["folds_checkpoints"])
+    if "line_steps" in which:
+        out["line_steps"] = line_setup(o)
+    if which & {"fundamental_pair", "fundamental_steps"}:
+        out["fundamental"] = _fundamental_setup(o)
+    return out
+
+
 def plot(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
     """Draw the requested figures -> {"figures": comma list of files, "notes": what was regenerated, "run_id"}."""
     from rlsac.tracking import start_run
@@ -543,8 +590,9 @@ def plot(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
     from rlsac.io import check_writable
     from rlsac.tracking import check_store
 
-    check_writable(out_dir, "figure folder")
-    check_store(track)
+    check_writable(out_dir, "figure folder", folder=True)  # an existing file there: refused now, not after drawing
+    check_store(track, "figures")
+    inputs = read_inputs(o)
     files: list[str] = []
     notes: list[str] = []
     with start_run("figures", "plot " + ",".join(o["which"]), params=o, tags={"command": "plot"},
@@ -554,27 +602,21 @@ def plot(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
             drawn: list[str] = []  # every figure first, into tmp; out_dir is touched only when all succeeded
             for name in o["which"]:
                 if name == "fundamental_iterations":
-                    if o["iterations_csv"]:
-                        df = pd.read_csv(o["iterations_csv"])
-                    else:
-                        from rlsac.reports.tables import iterations_csv
-
-                        df = iterations_csv(o["eval_root"], tmp)  # rebuilt, not written over reports/
-                    paths, note = plot_iterations(df, Path(tmp))
+                    paths, note = plot_iterations(inputs[name], Path(tmp))
                 elif name in ("folds_iterations", "essential_iterations"):
                     from rlsac.reports import fold_figures
 
-                    paths, note = fold_figures.plot_folds_iterations(o[f"{name}_csv"], Path(tmp), name)
+                    paths, note = fold_figures.plot_folds_iterations(inputs[name], Path(tmp), name)
                 elif name == "learning_curves":
                     from rlsac.reports import fold_figures
 
-                    paths, note = fold_figures.plot_learning_curves(o["folds_checkpoints"], Path(tmp))
+                    paths, note = fold_figures.plot_learning_curves(inputs[name], Path(tmp))
                 elif name == "line_steps":
-                    paths, note = plot_line_steps(o, Path(tmp))
+                    paths, note = plot_line_steps(o, Path(tmp), inputs[name])
                 elif name == "fundamental_pair":
-                    paths, note = plot_fundamental_pair(o, Path(tmp))
+                    paths, note = plot_fundamental_pair(o, Path(tmp), inputs["fundamental"])
                 else:
-                    paths, note = plot_fundamental_steps(o, Path(tmp))
+                    paths, note = plot_fundamental_steps(o, Path(tmp), inputs["fundamental"])
                 drawn += paths
                 if note:
                     notes.append(f"{name}: {note}")

@@ -34,15 +34,31 @@ def _save(fig, out_dir: Path, name: str) -> list[str]:
     return figfile.save(fig, out_dir, name, dpi=130)
 
 
-def plot_folds_iterations(csv: str | Path, out_dir: Path, name: str = "folds_iterations") -> tuple[list[str], str]:
-    """Pooled mAA against the budget from a fold table's iterations CSV (Table 2 folds: folds_iterations,
-    Table E: essential_iterations), saved as ``name``."""
+COLUMNS = ("regime", "method", "iterations", "mAA_R", "mAA_t", "n_pairs")  # what the iterations figure reads
+
+
+def read_iterations(csv: str | Path, name: str = "folds_iterations") -> pd.DataFrame:
+    """A fold table's iterations CSV, read and checked (readable, not empty, the ``COLUMNS``) -> the frame."""
     csv = Path(csv)
     if not csv.is_file():
         raise RlsacError(f"{csv}: no such file (run `rlsac table --which {name.split('_')[0]}` first)")
-    df = pd.read_csv(csv)
+    try:
+        df = pd.read_csv(csv)
+    except (ValueError, OSError, UnicodeDecodeError) as e:  # pandas' ParserError and EmptyDataError are ValueErrors
+        raise RlsacError(f"{csv}: not a readable CSV ({e.__class__.__name__})") from None
     if df.empty:
         raise RlsacError(f"{csv}: no results to plot")
+    missing = [c for c in COLUMNS if c not in df]
+    if missing:
+        raise RlsacError(f"{csv}: no column(s) {missing} (run `rlsac table --which {name.split('_')[0]}` again)")
+    return df
+
+
+def plot_folds_iterations(csv: str | Path | pd.DataFrame, out_dir: Path, name: str = "folds_iterations"
+                          ) -> tuple[list[str], str]:
+    """Pooled mAA against the budget from a fold table's iterations CSV (Table 2 folds: folds_iterations,
+    Table E: essential_iterations; or the frame ``read_iterations`` read), saved as ``name``."""
+    df = csv if isinstance(csv, pd.DataFrame) else read_iterations(csv, name)
     regimes = sorted(df["regime"].unique())
     fig, axes = plt.subplots(len(regimes), 2, figsize=(11, 4 * len(regimes)), squeeze=False, layout="constrained")
     for r, regime in enumerate(regimes):
@@ -62,17 +78,32 @@ def plot_folds_iterations(csv: str | Path, out_dir: Path, name: str = "folds_ite
     return _save(fig, out_dir, name), ""
 
 
-def plot_learning_curves(ckpt_root: str | Path, out_dir: Path) -> tuple[list[str], str]:
+def read_checkpoints(ckpt_root: str | Path) -> dict[Path, dict]:
+    """Every fold checkpoint <root>/<regime>/<fold>/<model>.pt, read (a file that is not a checkpoint fails
+    here, before ``rlsac plot`` draws anything) -> {path: checkpoint dict}."""
     root = Path(ckpt_root)
     ckpts = sorted(root.glob("*/*/*.pt")) if root.is_dir() else []
     ckpts = [p for p in ckpts if not p.name.endswith(".state.pt")]
     if not ckpts:
         raise RlsacError(f"{root}: no fold checkpoints (run `rlsac folds --stage train` first)")
+    out = {}
+    for p in ckpts:
+        ck = checkpoint.read(p)
+        if not isinstance(ck.get("history", []), list):
+            raise RlsacError(f"{p}: not an rlsac checkpoint (its history is a {type(ck['history']).__name__})")
+        out[p] = ck
+    return out
+
+
+def plot_learning_curves(ckpt_root: str | Path | dict, out_dir: Path) -> tuple[list[str], str]:
+    """The validation curves of every fold checkpoint under ``ckpt_root`` (or of ``read_checkpoints``' dict)."""
+    read = ckpt_root if isinstance(ckpt_root, dict) else read_checkpoints(ckpt_root)
+    ckpts = list(read)
     models = sorted({p.stem for p in ckpts})
     fig, axes = plt.subplots(2, len(models), figsize=(5.5 * len(models), 7), squeeze=False)
     for c, model in enumerate(models):
         for p in (q for q in ckpts if q.stem == model):
-            ck = checkpoint.read(p)
+            ck = read[p]
             hist = pd.DataFrame(ck.get("history") or [])
             if hist.empty:
                 continue

@@ -448,7 +448,7 @@ def build(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
         for sub in ("folds", "essential") if which == "all" else (which,):
             folds.check_distinct(folds.collect(eval_root, sub), sub)
     check_writable(out_dir / "metrics.json")
-    check_store(track)
+    check_store(track, "reports")
     with start_run("reports", f"table {which}", params={"which": which, "eval_root": str(eval_root),
                                                         "out_dir": str(out_dir)},
                    tags={"command": "table"}, enabled=track) as run:
