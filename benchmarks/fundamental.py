@@ -1,6 +1,6 @@
 """Per-pair time of RLSAC vs OpenCV MAGSAC++ (and our RANSAC) for fundamental matrices at the 1k budget.
 
-    python benchmarks/fundamental.py [--data data/fundamental/test.h5] [--pairs 12] [--iterations 1000]
+    python benchmarks/fundamental.py [--data data/folds/hard/fountain/test.h5] [--pairs 12] [--iterations 1000]
                                      [--checkpoint checkpoints/folds/hard/fountain/rlsac.pt] [--batch-pairs 1,4]
                                      [--threads 1] [--device cpu] [--no-reference]
 
@@ -71,7 +71,7 @@ def _data(path: str, pairs: int):
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--data", default="data/fundamental/test.h5")
+    ap.add_argument("--data", default="data/folds/hard/fountain/test.h5")
     ap.add_argument("--pairs", type=int, default=12)
     ap.add_argument("--iterations", type=int, default=1000)
     ap.add_argument("--checkpoint", default="checkpoints/folds/hard/fountain/rlsac.pt",

@@ -20,9 +20,10 @@ from pathlib import Path
 import torch
 
 from rlsac.config import read_params, section
-from rlsac.evaluate import DEFAULTS, data_module, make_estimator
+from rlsac.evaluate import DEFAULTS, make_estimator
+from rlsac.tasks import task_class
 
-DEFAULT_DATA = {"fundamental": "data/fundamental/test.h5", "line": "data/lines/test_o0.5.h5"}
+DEFAULT_DATA = {"fundamental": "data/folds/hard/fountain/test.h5", "line": "data/lines/test_o0.5.h5"}
 DEFAULT_CKPT = {"fundamental": "checkpoints/folds/hard/fountain/rlsac.pt", "line": "checkpoints/line_o0.5.pt"}
 DEFAULT_ITERATIONS = {"fundamental": 1000, "line": 150}
 
@@ -44,7 +45,7 @@ def main() -> None:
     ckpt = args.checkpoint or DEFAULT_CKPT[task_name]
     iterations = args.iterations or DEFAULT_ITERATIONS[task_name]
     lo_options = section(read_params(args.params), "evaluate", task_name).get("lo") or {}
-    mod = data_module(task_name)
+    mod = task_class(task_name)  # its reader and to_batch
     data, _ = mod.read(data_path)
     n = min(args.pairs, len(next(v for v in data.values() if hasattr(v, "shape"))))
     per_pair = task_name == "fundamental"

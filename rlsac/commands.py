@@ -57,6 +57,15 @@ def check_lines(params: dict[str, Any]) -> None:
             raise RlsacError(f"unknown params key lines.{key}; known: rates, iterations, n_<split>, seed_<split>")
 
 
+def check_calibration(params: dict[str, Any]) -> None:
+    """params.yaml ``calibration``, the calibrate_lines stage's sizes: n_instances, n_seeds and the first seed."""
+    ranges = {"n_instances": "[1, inf)", "n_seeds": "[1, inf)", "seed": config.SEED_RANGE}
+    for key, value in section(params, "calibration").items():
+        if key not in ranges:
+            raise RlsacError(f"unknown params key calibration.{key}; known: {', '.join(ranges)}")
+        config.check_value(f"calibration.{key}", value, int, ranges[key])
+
+
 def default_lines_path(conf) -> Path:
     return Path("data") / "lines" / f"lines_o{conf.outlier_rate:g}_s{conf.seed}.h5"
 

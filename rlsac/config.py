@@ -261,6 +261,7 @@ def read_params(path: str | Path | None = DEFAULT_PARAMS) -> dict[str, Any]:
 PARAM_SECTIONS = {
     "lines_data": "rlsac.commands:check_lines_data",
     "lines": "rlsac.commands:check_lines",
+    "calibration": "rlsac.commands:check_calibration",
     "train": "rlsac.train:check_params",
     "evaluate": "rlsac.evaluate:check_params",
     "fundamental": "rlsac.folds:check_fundamental",

@@ -110,7 +110,7 @@ def test_templated_values_and_params_exist(pipeline, profile):
         for item in _items(params, st):
             for p in body.get("params", []):
                 assert isinstance(p, str), f"{name}: params must name keys of params.yaml"
-                _lookup(params, REF.sub(lambda m: str(item[m.group(1)]), p))
+                _lookup(params, REF.sub(lambda m, item=item: str(item[m.group(1)]), p))
 
 
 def _values(params: dict, ref) -> list:

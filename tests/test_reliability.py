@@ -216,6 +216,8 @@ def inputs(tmp_path_factory):
         "p_train_gamma": "train:\n  line:\n    sac: {gamma: 2}\n",
         "p_lines_n_test": "lines:\n  n_test: 0\n",
         "p_lines_rates": "lines:\n  rates: [0.3, 1.5]\n",
+        "p_calibration": "calibration:\n  n_seeds: 0\n",
+        "p_calibration_key": "calibration:\n  n_instance: 10\n",
         "p_fundamental": "fundamental:\n  n_points: 4\n",
         "p_essential": "essential:\n  methods: [bogus]\n",
         "p_essential_regime": "essential:\n  regime: medium\n",
@@ -503,6 +505,9 @@ CASES = [
      "unknown ablation.models.n100 option(s) ['bogus']"),
     ("train-params-evaluate", train(params="{p_eval_sets}"), "evaluate.line.sets_per_step must be in"),
     ("lines-data-params-rates", lines_data(params="{p_lines_rates}"), "lines.rates[1] must be in [0, 1)"),
+    ("synth-params-calibration", synth(params="{p_calibration}"), "calibration.n_seeds must be in [1, inf)"),
+    ("lines-data-params-calibration-key", lines_data(params="{p_calibration_key}"),
+     "unknown params key calibration.n_instance"),
     # click's own usage errors: the same one `error:` line (not click's four-line usage block), exit 2
     ("click-method", ["evaluate", "--task", "line", "--method", "bogus", "--data", "x.h5"],
      "Invalid value for '--method': 'bogus' is not one of"),
