@@ -328,15 +328,6 @@ def check_model(t: dict[str, Any], track: bool) -> None:
     check(t, track)
 
 
-def train_model(t: dict[str, Any], o: dict[str, Any], track: bool) -> dict:
-    """Train one model (its options through ``model_options``), its inputs checked first."""
-    from rlsac.train import train
-
-    t = model_options(t, o)
-    check_model(t, track)
-    return train(t, track=track)
-
-
 def rebuild_table(track: bool = True) -> str:
     """Table 3 (rlsac.reports.tables) -> the files written, comma-separated."""
     from rlsac.reports.tables import build

@@ -96,15 +96,15 @@ RANGES = {"iterations": "[1, inf)", "steps_per_episode": "[1, inf)", "seed": SEE
 def check_params(params: dict[str, Any]) -> None:
     """params.yaml ``evaluate``: per registered task, evaluate options typed and ranged, its ``lo`` an LOConf
     whatever method runs later (issue #28, item 3: LO options were checked only by the *-lo methods)."""
-    from rlsac.config import build, check_mapping, section
-    from rlsac.lo import LOConf
+    from rlsac.config import check_mapping, section
+    from rlsac.lo import lo_conf
 
     for task in section(params, "evaluate"):
         task_class(task)
         where = f"evaluate.{task}"
         given = check_mapping(section(params, "evaluate", task), DEFAULTS, where, TYPES, RANGES)
         if given.get("lo") is not None:
-            build(LOConf, {**given["lo"], "enabled": True}, f"{where}.lo")
+            lo_conf(given["lo"], f"{where}.lo")
 
 
 def sampler_options(section: dict[str, Any]) -> dict[str, Any]:
@@ -148,16 +148,15 @@ def check_options(options: dict[str, Any], checkpoint_later: bool = False) -> di
     why = method.unsupported(task_cls, TASKS)
     if why:
         raise RlsacError(why)
-    o["guide_temperature"] = check_value("guide_temperature", o["guide_temperature"], float, "(0, inf)")
+    o["guide_temperature"] = _checked(o, "guide_temperature")
     if method.checkpoint and not o["checkpoint"]:
         raise RlsacError(f"method '{o['method']}' needs --checkpoint")
     if method.lo or o["lo"] is not None:  # bad LO options fail before any work, also where the method has no LO
-        from rlsac.config import build
-        from rlsac.lo import LOConf
+        from rlsac.lo import lo_conf
 
         if o["lo"] is not None and not isinstance(o["lo"], dict):
             raise RlsacError(f"evaluate.lo must be a mapping of LO options, got {o['lo']!r}")
-        build(LOConf, {**(o["lo"] or {}), "enabled": True}, "evaluate.lo")
+        lo_conf(o["lo"])
     if o["checkpoint"] and not method.checkpoint:  # it would only mislabel the run and its outputs
         raise RlsacError(f"--checkpoint is used by --method rlsac only, not by {o['method']}")
     if o["checkpoint"] and not Path(o["checkpoint"]).is_file() and not checkpoint_later:
@@ -175,16 +174,19 @@ def check_options(options: dict[str, Any], checkpoint_later: bool = False) -> di
         o["steps_per_episode"] = check_value("steps_per_episode", o["steps_per_episode"], int)
         if o["steps_per_episode"] <= 0:
             raise RlsacError(f"steps_per_episode must be positive, got {o['steps_per_episode']}")
-    o["seed"] = check_value("seed", o["seed"], int, SEED_RANGE)
-    o["sampling"] = check_value("sampling", o["sampling"], str, ("max", "prob"))
-    o["policy_every"] = check_value("policy_every", o["policy_every"], int, "[1, inf)")
-    o["sets_per_step"] = check_value("sets_per_step", o["sets_per_step"], int, f"[1, {MAX_SETS_PER_STEP}]")
-    o["confidence"] = check_value("confidence", o["confidence"], float, "[0, 1)")
+    for key in ("seed", "sampling", "policy_every", "sets_per_step", "confidence"):
+        o[key] = _checked(o, key)
     if not Path(o["data"]).is_file():
         raise RlsacError(f"{o['data']}: no such file")
     if o["out_dir"] is None:
         o["out_dir"] = str(Path("reports") / "eval" / run_name(o))
     return o
+
+
+def _checked(o: dict[str, Any], key: str) -> Any:
+    """Option ``key`` of ``o`` coerced to its type and range-checked (``TYPES``, ``RANGES``: the params.yaml
+    section's checks too)."""
+    return check_value(key, o[key], TYPES[key], RANGES[key])
 
 
 def run_name(o: dict[str, Any]) -> str:
@@ -272,9 +274,7 @@ def prepare(options: dict[str, Any], track: bool = True, read: Callable | None =
     command checks many evaluations of one file: ``check_all``)."""
     o = check_options(options)
     task_cls = task_class(o["task"])
-    # before any work: an unwritable output fails now, not at the end
-    for f in ("errors.csv", "summary.json", "config.json", TIMING_FILE):
-        check_writable(Path(o["out_dir"]) / f)
+    check_outputs(o)  # before any work: an unwritable output fails now, not at the end
     check_store(track, task_cls.experiment)
     device = resolve_device(o["device"])
     data, attrs = (read or _read)(task_cls, o["data"])
@@ -300,11 +300,16 @@ def check_all(options: list[dict[str, Any]], track: bool = True, built_later: se
     for opts in options:
         if opts.get("checkpoint") and str(opts["checkpoint"]) in built_later:  # all but the checkpoint's contents
             o = check_options(opts, checkpoint_later=True)
-            for f in ("errors.csv", "summary.json", "config.json", TIMING_FILE):
-                check_writable(Path(o["out_dir"]) / f)
+            check_outputs(o)
             check_sets_per_step(o, read(task_class(o["task"]), o["data"])[0], task_class(o["task"]))
             continue
         prepare(opts, track, read)
+
+
+def check_outputs(o: dict[str, Any]) -> None:
+    """Every file an evaluation writes into ``o['out_dir']`` can be written (RlsacError otherwise)."""
+    for f in ("errors.csv", "summary.json", "config.json", TIMING_FILE):
+        check_writable(Path(o["out_dir"]) / f)
 
 
 def _read(task_cls, path) -> tuple[dict, dict]:

@@ -372,14 +372,18 @@ def finish(task: Task, conf: LOConf, coords: torch.Tensor, mask: torch.Tensor, b
 # ------------------------------------------------------------------------------------- evaluation
 
 
-def conf_for_method(method: str, options: dict | None) -> LOConf | None:
-    """The LO of an evaluate method: ``<base>-lo`` -> LOConf(options, enabled) (params.yaml
-    ``evaluate.<task>.lo``), any other method -> None (no LO, whatever ``options`` say)."""
-    if not method.endswith("-lo"):
-        return None
+def lo_conf(options: dict | None, where: str = "evaluate.lo") -> LOConf:
+    """LOConf(options, enabled), typed and range-checked (params.yaml ``evaluate.<task>.lo``; ``where`` names it
+    in errors)."""
     from rlsac.config import build
 
-    return build(LOConf, {**(options or {}), "enabled": True}, "evaluate.lo")
+    return build(LOConf, {**(options or {}), "enabled": True}, where)
+
+
+def conf_for_method(method: str, options: dict | None) -> LOConf | None:
+    """The LO of an evaluate method: ``<base>-lo`` -> ``lo_conf(options)``, any other method -> None (no LO,
+    whatever ``options`` say)."""
+    return lo_conf(options) if method.endswith("-lo") else None
 
 
 class CountingEstimate:

@@ -30,7 +30,7 @@ def assert_user_error(result, *fragments):
     assert err.startswith("error: ") and "\n" not in err, err
     assert "Traceback" not in result.output
     for f in fragments:
-        assert f in err
+        assert f in err, err
 
 
 def synth(path="d.h5", n=12, rate=0.3, *extra):

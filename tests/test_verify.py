@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
+from test_cli import assert_user_error  # tests/ is on sys.path (pytest prepend mode)
 
 from rlsac.cli import cli
 
@@ -122,15 +123,6 @@ def verify(repo, *args, env=None):
 
 def lines(result) -> list[str]:
     return result.stdout.strip().splitlines()
-
-
-def assert_user_error(result, *fragments):
-    assert result.exit_code == 2, result.output
-    err = result.stderr.strip()
-    assert err.startswith("error: ") and "\n" not in err, err
-    assert "Traceback" not in result.output
-    for f in fragments:
-        assert f in err, err
 
 
 def test_all_committed_stages_identical(repo, tmp_path):
