@@ -264,13 +264,15 @@ def ablate(tracking: bool, sets: tuple[str, ...], **options) -> None:
 
 
 @cli.command()
-@click.option("--stage", type=click.Choice(["data", "train", "evaluate"]), required=True,
-              help="data: prepare the fold's train/val/test files; train: its RLSAC models; evaluate: every method "
-                   "and model at every budget.")
+@click.option("--stage", type=click.Choice(["data", "train", "tune", "evaluate"]), required=True,
+              help="data: prepare the fold's train/val/test files; train: its RLSAC models; tune: choose every row's "
+                   "settings on the fold's val.h5 (reports/tuning/); evaluate: every row at every budget on test.h5 "
+                   "with its tuned settings.")
 @click.option("--regime", required=True, help="Data regime, a key of params.yaml folds.pool (e.g. easy, hard).")
 @click.option("--fold", required=True, help="Test building, one of params.yaml folds.test (e.g. castle).")
 @click.option("--model", help="With --stage train: one model of folds.models [default: all of them].")
-@click.option("--only", help="With --stage evaluate: comma-separated methods/models to run [default: all].")
+@click.option("--only", help="With --stage tune or evaluate: comma-separated rows (methods, models, <model>-lo, "
+                             "<row>-fast) [default: all].")
 @click.option("--params", "params", default="params.yaml", show_default=True,
               help="params.yaml: its folds, fundamental and train.fundamental sections.")
 @click.option("--threads", type=int, default=1, show_default=True, help="torch CPU threads (1 is fastest here).")

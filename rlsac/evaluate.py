@@ -38,7 +38,7 @@ from rlsac.errors import RlsacError
 from rlsac.io import atomic_path, check_writable, write_json
 from rlsac.methods import METHODS
 from rlsac.progress import tqdm  # no bars unless a person watches (not under CI, not redirected)
-from rlsac.tasks import TASKS, Task, get_task, task_class
+from rlsac.tasks import TASKS, Task, opencv_threshold, prefiltered, task_class, task_for, task_from  # noqa: F401
 from rlsac.tracking import check_store, start_run
 
 # torch CPU threads for the evaluation loop. One thread: per-step tensors are small (one instance, or
@@ -71,6 +71,11 @@ DEFAULTS: dict[str, Any] = {
     # RANSAC's termination bound at which an instance stops before its budget (0 = never, the paper)
     "sets_per_step": 1,
     "confidence": 0.0,
+    # the two settings the CVPR 2020 tutorial tunes per method on validation (rlsac.tune; None = off): the inlier
+    # threshold in pixels for every method (ours: the task's residual unit, OpenCV: its threshold), and the SNN
+    # pre-filter, matches whose SNN ratio is above it are dropped before the method sees the pair
+    "threshold_px": None,
+    "prefilter": None,
 }
 # sets_per_step's fixed cap (the data bound it further: check_sets_per_step). One step draws (R, 2k, N) random
 # numbers and remembers R k sets: 1024 keeps that near 200 MB for a batch of 256 line instances; the measured
@@ -86,11 +91,13 @@ TIMING_KEYS = ("seconds", "seconds_per_instance", "lo_seconds_per_instance", "lo
 # types and ranges of the options a params.yaml evaluate.<task> section may set (``check_params``)
 TYPES = {"checkpoint": str, "iterations": int, "steps_per_episode": int, "seed": int, "device": str,
          "batch_size": int, "out_dir": str, "sampling": str, "tags": dict, "threads": int, "guide_temperature": float,
-         "lo": dict, "policy_every": int, "sets_per_step": int, "confidence": float}
+         "lo": dict, "policy_every": int, "sets_per_step": int, "confidence": float, "threshold_px": float,
+         "prefilter": float}
 RANGES = {"iterations": "[1, inf)", "steps_per_episode": "[1, inf)", "seed": SEED_RANGE,
           "device": ("auto", "cpu", "cuda"), "batch_size": "[1, inf)", "sampling": ("max", "prob"),
           "threads": "[0, inf)", "guide_temperature": "(0, inf)", "policy_every": "[1, inf)",
-          "sets_per_step": f"[1, {MAX_SETS_PER_STEP}]", "confidence": "[0, 1)"}
+          "sets_per_step": f"[1, {MAX_SETS_PER_STEP}]", "confidence": "[0, 1)", "threshold_px": "(0, inf)",
+          "prefilter": "(0, 1]"}
 
 
 def check_params(params: dict[str, Any]) -> None:
@@ -117,18 +124,6 @@ def resolve_device(device: str | None) -> str:
     from rlsac.devices import resolve_device as _resolve
 
     return str(_resolve((device or "auto").lower()))
-
-
-def task_from(name: str, options: dict[str, Any] | None = None) -> Task:
-    """Build task ``name`` with ``options`` (e.g. the ``task`` section stored in a checkpoint)."""
-    options = dict(options or {})
-    stored = options.pop("name", None)
-    if stored is not None and stored != name:
-        raise RlsacError(f"checkpoint was trained for task '{stored}', not '{name}'")
-    try:
-        return get_task(name, **options)
-    except TypeError as e:
-        raise RlsacError(f"bad options for task '{name}': {e}") from None
 
 
 def check_options(options: dict[str, Any], checkpoint_later: bool = False) -> dict[str, Any]:
@@ -176,6 +171,14 @@ def check_options(options: dict[str, Any], checkpoint_later: bool = False) -> di
             raise RlsacError(f"steps_per_episode must be positive, got {o['steps_per_episode']}")
     for key in ("seed", "sampling", "policy_every", "sets_per_step", "confidence"):
         o[key] = _checked(o, key)
+    if o["threshold_px"] is not None:
+        o["threshold_px"] = _checked(o, "threshold_px")
+        if not hasattr(task_cls, "px_thresholds"):
+            raise RlsacError(f"task '{o['task']}' has no pixel threshold (threshold_px is for the two-view tasks)")
+    if o["prefilter"] is not None:
+        o["prefilter"] = _checked(o, "prefilter")
+        if not hasattr(task_cls, "match_quality"):
+            raise RlsacError(f"task '{o['task']}' has no match quality to pre-filter by")
     if not Path(o["data"]).is_file():
         raise RlsacError(f"{o['data']}: no such file")
     if o["out_dir"] is None:
@@ -208,8 +211,10 @@ def pair_seed(seed: int, scene: str, pair: str) -> int:
 
 
 def run_method(task: Task, estimate: Callable, data: dict, to_batch: Callable, n: int, seed: int,
-               device: str, batch_size: int, desc: str = "evaluate") -> tuple[dict[str, np.ndarray], np.ndarray]:
-    """Run ``estimate`` over ``n`` instances -> (per-instance errors, inlier counts).
+               device: str, batch_size: int, desc: str = "evaluate", prefilter: float | None = None
+               ) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """Run ``estimate`` over ``n`` instances -> (per-instance errors, inlier counts); ``prefilter``: the SNN
+    pre-filter (``prefiltered``) applied to every batch first.
 
     Named pairs (two-view data: ``scene`` and ``pair`` keys) run one at a time, each with the
     generator seeded by ``pair_seed``; synthetic instances run in batches of ``batch_size`` from one
@@ -227,7 +232,7 @@ def run_method(task: Task, estimate: Callable, data: dict, to_batch: Callable, n
             idx = slice(start, min(start + batch_size, n))
             if per_pair:
                 g.manual_seed(pair_seed(seed, data["scene"][start], data["pair"][start]))
-            batch = to_batch(data, idx, device=device)
+            batch = prefiltered(task, to_batch(data, idx, device=device), prefilter)
             out = estimate(batch, g)
             hyp, valid, inliers = _np(out["hyp"]), _np(out["valid"]).astype(bool), _np(out["inliers"]).astype(bool)
             np_batch = {k: _np(v) for k, v in batch.items()}
@@ -236,6 +241,16 @@ def run_method(task: Task, estimate: Callable, data: dict, to_batch: Callable, n
             counts.append(inliers.sum(-1))
             bar.update(idx.stop - idx.start)
     return {k: np.concatenate(v) for k, v in errs.items()}, np.concatenate(counts)
+
+
+def score(o: dict[str, Any], data: dict, device: str) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """Run the resolved options ``o`` (``check_options``) on ``data`` already read, nothing written or tracked
+    -> (the task's summary of the errors, the per-instance errors): what tuning compares grid points by."""
+    task, estimate, _ = make_estimator(o, device)
+    n = _n_instances(data)
+    errors, _ = run_method(task, estimate, data, task_class(o["task"]).to_batch, n, o["seed"], device, o["batch_size"],
+                           desc=f"{o['method']} {Path(o['data']).name}", prefilter=o["prefilter"])
+    return {k: _plain(v) for k, v in task.summarize(errors).items()}, errors
 
 
 def _n_instances(data: dict) -> int:
@@ -352,7 +367,7 @@ def run(p: Prepared, track: bool = True) -> dict[str, Any]:
         try:
             t0 = time.perf_counter()
             errors, counts = run_method(task, estimate, data, task_cls.to_batch, n, o["seed"], device, o["batch_size"],
-                                        desc=f"{o['method']} {Path(o['data']).name}")
+                                        desc=f"{o['method']} {Path(o['data']).name}", prefilter=o["prefilter"])
             seconds = time.perf_counter() - t0
         finally:
             torch.set_num_threads(torch_threads)

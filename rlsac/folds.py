@@ -27,7 +27,7 @@ from typing import Any
 from rlsac.errors import RlsacError
 from rlsac.io import check_writable, write_json
 
-STAGES = ("data", "train", "evaluate")
+STAGES = ("data", "train", "tune", "evaluate")
 DEFAULTS: dict[str, Any] = {
     "test": ["castle", "herzjesu", "fountain", "entry"],
     "scenes": {"castle": "castle-P19,castle-P30", "herzjesu": "Herz-Jesus-P8,Herz-Jesus-P25",
@@ -42,7 +42,12 @@ DEFAULTS: dict[str, Any] = {
     "seed": 0,
     "model_regime": "hard",
     "lo_models": [],
+    # rows also run with the speed levers of issue #17 (several sets per step, the confidence stop), k and the
+    # confidence tuned on validation: rows <row>-fast (not in the paper; the plain rows are the paper's algorithm)
+    "fast": [],
 }
+# the evaluate methods of the RLSAC environment, the ones the -fast variants apply to
+ENV_METHODS = ("uniform", "guided", "rlsac")
 OPTIONS: dict[str, Any] = {"stage": None, "regime": None, "fold": None, "model": None, "only": None,
                            "params": "params.yaml",
                            "device": "auto", "threads": 1}
@@ -81,6 +86,10 @@ def protocol(params: dict[str, Any]) -> dict[str, Any]:
     clash = sorted(set(p["models"]) & set(METHODS))
     if clash and clash != ["rlsac"]:
         raise RlsacError(f"folds.models {clash}: a model may not share a method's name")
+    bad = [r for r in p["fast"] if r not in p["models"] and r not in ENV_METHODS]
+    if bad:
+        raise RlsacError(f"folds.fast {bad}: only RLSAC models and the environment's methods {list(ENV_METHODS)} "
+                         "have the fast variant")
     from rlsac.config import build, deep_update
     from rlsac.train import TrainConf
 
@@ -90,12 +99,37 @@ def protocol(params: dict[str, Any]) -> dict[str, Any]:
     return p
 
 
+def rows(p: dict[str, Any], fold: str) -> dict[str, dict[str, Any]]:
+    """Every row of the fold benchmark -> {method (evaluate's), checkpoint (RLSAC rows), fast (the -fast
+    variant), knobs (the settings tuned after threshold x pre-filter, rlsac.tune)}."""
+    trained = p["model_regime"]  # every regime is evaluated with the models trained on this one's data
+    out = {m: {"method": m, "checkpoint": None} for m in p["methods"]}
+    out.update({m: {"method": "rlsac", "checkpoint": checkpoint(trained, fold, m)} for m in p["models"]})
+    out.update({f"{m}-lo": {"method": "rlsac-lo", "checkpoint": checkpoint(trained, fold, m)} for m in p["lo_models"]})
+    out.update({f"{m}-fast": {**out[m], "fast": True} for m in p["fast"]})
+    for r in out.values():
+        r.setdefault("fast", False)
+        r["knobs"] = (["guide_temperature"] if r["method"] == "guided" else []) + (
+            ["lo_sigma_scale"] if r["method"].endswith("-lo") else []) + (
+            ["sets_per_step", "confidence"] if r["fast"] else [])
+    return out
+
+
+def row_options(row: dict[str, Any], p: dict[str, Any], ev: dict[str, Any], o: dict[str, Any]) -> dict[str, Any]:
+    """The evaluate options of a row before tuning: the paper's one set per step and whole budget (the -fast rows
+    tune both), evaluate.fundamental's LO conf and guided temperature as the starting point."""
+    return {"task": "fundamental", "method": row["method"],
+            "checkpoint": str(row["checkpoint"]) if row["checkpoint"] else None, "seed": int(p["seed"]),
+            "device": o["device"], "lo": ev.get("lo"), "guide_temperature": ev.get("guide_temperature"),
+            "sets_per_step": 1, "confidence": 0.0}
+
+
 def _typed(p: dict[str, Any]) -> dict[str, Any]:
     """Every key of the folds section coerced to its type and range-checked (issue #28: `folds.pool.hard: "x"` or
     `folds.iterations: ["x"]` were tracebacks, some only in the stage that reads them); -> the section, typed."""
     from rlsac.config import SEED_RANGE, check_value
 
-    for key in ("test", "regimes", "methods", "models", "lo_models", "iterations"):
+    for key in ("test", "regimes", "methods", "models", "lo_models", "fast", "iterations"):
         if not isinstance(p[key], list):
             raise RlsacError(f"folds.{key} must be a list, got {p[key]!r}")
         if key != "iterations":
@@ -188,7 +222,7 @@ def check_options(options: dict[str, Any], p: dict[str, Any] | None = None) -> d
             raise RlsacError(f"unknown model {o['model']!r} (known: {', '.join(p['models'])})")
         if o["only"] is not None:
             o["only"] = [s.strip() for s in str(o["only"]).split(",") if s.strip()]
-            known = set(p["methods"]) | set(p["models"]) | {f"{m}-lo" for m in p["lo_models"]}
+            known = set(rows(p, o["fold"]))
             bad = sorted(set(o["only"]) - known)
             if bad or not o["only"]:
                 raise RlsacError(f"--only {bad or o['only']}: not in folds.methods or folds.models")
@@ -277,35 +311,98 @@ def train_models(p: dict, params: dict, regime: str, fold: str, models: list[str
     return {m: train(opts, track=track) for m, opts in options.items()}
 
 
-def evaluate_fold(p: dict, regime: str, fold: str, o: dict, track: bool, lo: dict | None = None,
-                  guide_temperature: float | None = None, sampler: dict | None = None) -> list[dict]:
-    """Every method and every model at every budget on the fold's test file (``lo``, ``guide_temperature``,
-    ``sampler`` = {sets_per_step, confidence}: params.yaml evaluate.fundamental's options of the *-lo methods,
-    of ``guided`` and of the RLSAC environment's methods)."""
+def _selected(p: dict, fold: str, o: dict) -> dict[str, dict[str, Any]]:
+    """The rows of ``--only`` (every row without it), their checkpoints checked before any work."""
+    from rlsac.checkpoint import read as read_checkpoint
+
+    table = rows(p, fold)
+    only = o.get("only") or list(table)
+    chosen = {r: table[r] for r in table if r in only}
+    for r in chosen.values():
+        if r["checkpoint"] is not None:
+            if not Path(r["checkpoint"]).is_file():
+                raise RlsacError(f"no checkpoint {r['checkpoint']} (run `rlsac folds --stage train` first)")
+            read_checkpoint(r["checkpoint"])  # a file that is not a checkpoint fails here, before the first write
+    return chosen
+
+
+def tune_fold(p: dict, params: dict, regime: str, fold: str, o: dict, track: bool) -> list[dict]:
+    """Tune every selected row on the fold's val.h5 (rlsac.tune) -> what was chosen; writes the records."""
+    from rlsac import tune
+    from rlsac.config import section
+    from rlsac.evaluate import check_options, resolve_device, score
+    from rlsac.io import write_json
+    from rlsac.tasks import task_class
+    from rlsac.tracking import start_run
+
+    c = tune.conf(params)
+    val = data_dir(regime, fold) / "val.h5"
+    if not val.is_file():
+        raise RlsacError(f"{val}: no such file (run `rlsac folds --stage data` first)")
+    chosen_rows = _selected(p, fold, o)
+    data, _ = task_class("fundamental").read(val)
+    train_scenes, test_scenes = (scene_list(s) for s in split_scenes(p, fold))
+    val_scenes = tune.scenes_of(data)
+    tune.check_scenes(val_scenes, train_scenes, test_scenes, str(val))
+    ev = section(params, "evaluate", "fundamental")
+    device = resolve_device(o["device"])
+    out = []
+    for name, row in chosen_rows.items():
+        base = {**row_options(row, p, ev, o), "data": str(val), "iterations": c["iterations"]}
+
+        def run(options):
+            return score(check_options(options), data, device)[0]
+
+        tags = {"benchmark": "folds", "regime": regime, "fold": fold, "row": name}
+        with start_run("fundamental", f"tune folds {regime} {fold} {name}", params={**base, "grid": c},
+                       tags=tags, enabled=track) as mlrun:
+            best, points = tune.search(run, base, c, row["knobs"])
+            top = next(pt for pt in points if pt["settings"] == best)
+            record = {"regime": regime, "fold": fold, "row": name, "method": row["method"],
+                      "checkpoint": base["checkpoint"], "data": str(val), "val_scenes": val_scenes,
+                      "val_pairs": int(len(data["pair"])), "iterations": c["iterations"], "seed": int(p["seed"]),
+                      "criterion": f"validation {tune.CRITERION}@10deg of max(err_R, err_t)", "chosen": best,
+                      "val": {k: top[k] for k in ("mAA", "mAA_R", "mAA_t")}, "grid": points}
+            write_json(tune.record_path(regime, fold, name), record)
+            mlrun.metrics({f"val_{k}": v for k, v in record["val"].items()})
+            mlrun.params({f"chosen.{k}": v for k, v in best.items()})
+        out.append({"row": name, "chosen": best, **record["val"]})
+    return out
+
+
+def evaluate_fold(p: dict, params: dict, regime: str, fold: str, o: dict, track: bool) -> list[dict]:
+    """Every selected row at every budget on the fold's test file, with the settings of its tuning record
+    (rlsac.tune: chosen on the fold's validation pairs only, checked against the test scenes here)."""
+    import json
+
+    from rlsac import tune
+    from rlsac.config import section
     from rlsac.evaluate import check_all, evaluate
 
     test = data_dir(regime, fold) / "test.h5"
     if not test.is_file():
         raise RlsacError(f"{test}: no such file (run `rlsac folds --stage data` first)")
-    trained = p["model_regime"]  # every regime is evaluated with the models trained on this one's data
-    lo_runs = [f"{m}-lo" for m in p["lo_models"]]
-    only = o.get("only") or p["methods"] + p["models"] + lo_runs
-    # (name in the tables, evaluate method, checkpoint): models with local optimisation are rows "<model>-lo"
-    runs = [(m, m, None) for m in p["methods"] if m in only]
-    runs += [(m, "rlsac", checkpoint(trained, fold, m)) for m in p["models"] if m in only]
-    runs += [(f"{m}-lo", "rlsac-lo", checkpoint(trained, fold, m)) for m in p["lo_models"] if f"{m}-lo" in only]
-    missing = [str(c) for _, _, c in runs if c is not None and not c.is_file()]
-    if missing:
-        raise RlsacError(f"no checkpoint {missing[0]} (run `rlsac folds --stage train` first)")
+    chosen_rows = _selected(p, fold, o)
+    train_scenes, test_scenes = (scene_list(s) for s in split_scenes(p, fold))
+    ev = section(params, "evaluate", "fundamental")
+    settings = {}
+    for name in chosen_rows:  # every record read and checked before the first evaluation
+        path = tune.record_path(regime, fold, name)
+        if not path.is_file():
+            raise RlsacError(f"{path}: no tuning record (run `rlsac folds --stage tune` first)")
+        try:
+            rec = json.loads(path.read_text())
+        except (OSError, ValueError) as e:
+            raise RlsacError(f"{path}: not a tuning record ({e})") from None
+        settings[name] = tune.as_options(tune.check_record(rec, path, regime, fold, name, train_scenes, test_scenes),
+                                         ev.get("lo"))
     jobs = []
-    for name, method, ckpt in runs:
+    for name, row in chosen_rows.items():
         for it in p["iterations"]:
             tags = {"benchmark": "folds", "regime": regime, "fold": fold, "model": name}
-            jobs.append((name, int(it), {
-                "task": "fundamental", "method": method, "data": str(test), "checkpoint": str(ckpt) if ckpt else None,
-                "iterations": int(it), "seed": int(p["seed"]), "device": o["device"],
-                "out_dir": str(eval_dir(regime, fold, name, it)), "tags": tags, "lo": lo,
-                "guide_temperature": guide_temperature, **(sampler or {})}))  # used by those needing them
+            jobs.append((name, int(it), {**row_options(row, p, ev, o), **settings[name], "data": str(test),
+                                         "iterations": int(it), "out_dir": str(eval_dir(regime, fold, name, it)),
+                                         "tags": tags}))
     # every evaluation checked (its checkpoint loaded, the test file read) before the first one writes anything
     check_all([opts for _, _, opts in jobs], track)
     out = []
@@ -319,7 +416,6 @@ def evaluate_fold(p: dict, regime: str, fold: str, o: dict, track: bool, lo: dic
 def folds(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
     """Run one stage of one (regime, fold); -> a summary of what was written where."""
     from rlsac.config import read_params, section
-    from rlsac.evaluate import sampler_options
 
     o = check_options(options)
     params = read_params(o["params"])
@@ -340,10 +436,10 @@ def folds(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
     elif o["stage"] == "train":
         models = [o["model"]] if o["model"] else p["models"]
         result["models"] = train_models(p, params, regime, fold, models, o, track)
+    elif o["stage"] == "tune":
+        result["tuned"] = tune_fold(p, params, regime, fold, o, track)
     else:
-        ev = section(params, "evaluate", "fundamental")  # the *-lo methods' (rlsac.lo) and guided's options
-        result["evaluations"] = evaluate_fold(p, regime, fold, o, track, ev.get("lo"), ev.get("guide_temperature"),
-                                              sampler_options(ev))
+        result["evaluations"] = evaluate_fold(p, params, regime, fold, o, track)
     result["seconds"] = round(time.time() - t0, 1)
     return result
 
@@ -356,5 +452,8 @@ def format_summary(s: dict[str, Any]) -> str:
     if s["stage"] == "train":
         return head + "; ".join(f"{m} -> {v['checkpoint']} (best {v['selection']} {v['best_score']:.3f} at step "
                                 f"{v['best_step']})" for m, v in s["models"].items())
+    if s["stage"] == "tune":
+        return head + "; ".join(f"{t['row']}: {t['chosen']} (val mAA {t['mAA']:.3f})" for t in s["tuned"]) + (
+            f" -> {Path('reports/tuning') / s['regime'] / s['fold']}")
     return head + "; ".join(f"{e['method']}@{e['iterations']} R {e['mAA_R']:.3f} t {e['mAA_t']:.3f}"
                             for e in s["evaluations"]) + f" -> {Path('reports/eval/folds') / s['regime'] / s['fold']}"

@@ -51,9 +51,9 @@ def register_method(name: str, label: str, needs: str | None = None, checkpoint:
 def _ransac(o, device, lo=None):
     """Our batched RANSAC (uniform sets, inlier count, refinement), any task."""
     from rlsac.baselines import ransac
-    from rlsac.evaluate import task_from
+    from rlsac.tasks import task_for
 
-    task = task_from(o["task"])
+    task = task_for(o)
     return task, lambda batch, g: ransac(task, batch, o["iterations"], g, lo=lo), {}
 
 
@@ -61,19 +61,19 @@ def _ransac(o, device, lo=None):
 def _oracle(o, device, lo=None):
     """The refinement on the true inliers: the headroom of any sampler (synthetic data only)."""
     from rlsac.baselines import oracle
-    from rlsac.evaluate import task_from
+    from rlsac.tasks import task_for
 
-    task = task_from(o["task"])
+    task = task_for(o)
     return task, lambda batch, g: oracle(task, batch), {}
 
 
 def _environment(o, lo, guide=None):
     """The RLSAC environment without a policy: uniform sets, or sets drawn ~ exp(guide(task, batch))."""
     from rlsac.checkpoint import env_conf
-    from rlsac.evaluate import task_from
     from rlsac.rollout import rlsac_estimate, with_lo
+    from rlsac.tasks import task_for
 
-    task = task_from(o["task"])
+    task = task_for(o)
     env = with_lo(env_conf({}, o["steps_per_episode"]), lo)
 
     def estimate(batch, g):
@@ -102,12 +102,12 @@ def _guided(o, device, lo=None):
 def _rlsac(o, device, lo=None):
     """The learned sampler of ``o['checkpoint']`` in its own environment."""
     from rlsac.checkpoint import env_conf, load_actor, task_options
-    from rlsac.evaluate import task_from
     from rlsac.rollout import rlsac_estimate, with_lo
+    from rlsac.tasks import task_for
 
     actor, ckpt_conf = load_actor(o["checkpoint"], device)
     ckpt_conf = dict(ckpt_conf or {})
-    task = task_from(o["task"], task_options(ckpt_conf))
+    task = task_for(o, task_options(ckpt_conf))
     env = with_lo(env_conf(ckpt_conf, o["steps_per_episode"]), lo)
 
     def estimate(batch, g):
@@ -125,14 +125,15 @@ def _opencv(flag: str):
         import torch
 
         from rlsac.baselines import opencv_estimate
-        from rlsac.evaluate import task_from
+        from rlsac.tasks import opencv_threshold, task_for
 
-        task = task_from(o["task"])
+        task = task_for(o)
+        thr = opencv_threshold(o, task)
 
         def estimate(batch, g):
             seed = int(torch.randint(0, 2**31 - 1, (1,), generator=g, device=g.device).item())
             quality = task.match_quality(batch) if flag == "prosac" else None
-            return opencv_estimate(task, batch, flag, o["iterations"], seed=seed, quality=quality)
+            return opencv_estimate(task, batch, flag, o["iterations"], threshold=thr, seed=seed, quality=quality)
 
         return task, estimate, {}
     return build

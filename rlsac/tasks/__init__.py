@@ -9,7 +9,7 @@ shape (3 for a line, (3, 3) for a fundamental or essential matrix).
 
 from __future__ import annotations
 
-from typing import ClassVar, Protocol
+from typing import Any, ClassVar, Protocol
 
 import numpy as np
 import torch
@@ -99,6 +99,43 @@ def task_class(name: str) -> type:
 def get_task(name: str, **options) -> Task:
     """Task ``name`` built with ``options`` (its dataclass fields: threshold, residual, ...)."""
     return task_class(name)(**options)
+
+
+def task_from(name: str, options: dict[str, Any] | None = None) -> Task:
+    """Build task ``name`` with ``options`` (e.g. the ``task`` section stored in a checkpoint)."""
+    options = dict(options or {})
+    stored = options.pop("name", None)
+    if stored is not None and stored != name:
+        raise RlsacError(f"checkpoint was trained for task '{stored}', not '{name}'")
+    try:
+        return get_task(name, **options)
+    except TypeError as e:
+        raise RlsacError(f"bad options for task '{name}': {e}") from None
+
+
+def task_for(o: dict[str, Any], options: dict[str, Any] | None = None) -> Task:
+    """The task of the resolved evaluate options ``o`` (with ``options``, e.g. a checkpoint's), its inlier
+    threshold set from ``o['threshold_px']`` when given."""
+    task = task_from(o["task"], options)
+    if o.get("threshold_px") is not None:
+        import dataclasses
+
+        task = dataclasses.replace(task, threshold=task.px_thresholds(o["threshold_px"])[0])
+    return task
+
+
+def opencv_threshold(o: dict[str, Any], task: Task) -> float:
+    """OpenCV's threshold for ``o``: the task's default, or ``o['threshold_px']`` in OpenCV's unit."""
+    return task.opencv_threshold if o.get("threshold_px") is None else task.px_thresholds(o["threshold_px"])[1]
+
+
+def prefiltered(task: Task, batch: dict, prefilter: float | None) -> dict:
+    """``batch`` with mask (B, N) cleared where the match quality (the SNN ratio) is above ``prefilter``: the
+    tutorial's pre-filter, applied before any method sees the pair (None: the batch unchanged)."""
+    if prefilter is None:
+        return batch
+    keep = task.match_quality(batch) <= float(prefilter)
+    return {**batch, "mask": batch["mask"] & keep}
 
 
 def task_names() -> tuple[str, ...]:

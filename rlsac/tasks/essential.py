@@ -54,6 +54,12 @@ class EssentialTask(FundamentalTask):
         if self.residual not in ("sampson", "sampson_sq"):  # the batched (R, S, 3, 3) residuals are Sampson's
             raise RlsacError(f"essential residual must be sampson or sampson_sq, got {self.residual!r}")
 
+    def px_thresholds(self, px: float) -> tuple[float, float]:
+        """``px`` pixels -> (``threshold`` in normalised units, squared for sampson_sq; OpenCV's, normalised) at the
+        Strecha focal length (every pair of our copy has f = 920 px)."""
+        t = float(px) / STRECHA_FOCAL
+        return (t * t if self.residual == "sampson_sq" else t), t
+
     @staticmethod
     def to_batch(data: dict[str, np.ndarray], idx=slice(None), device: str | torch.device = "cpu") -> dict:
         """The fundamental batch with coords (B, N, 4) calibrated: [K1^-1 x1, K2^-1 x2] (padding stays 0)."""

@@ -126,10 +126,17 @@ class FundamentalTask:
         return F, valid
 
     # ----------------------------------------------------------------------------- OpenCV baselines
-    # The CVPR 2020 tutorial's starter-pack threshold for ~1000 px images (create_F_submission.py); it tunes
-    # only the threshold (grid 0.1..1.0 px) and gives no per-method value, so every method shares it.
+    # The CVPR 2020 tutorial's starter-pack threshold for ~1000 px images (create_F_submission.py), used when no
+    # tuned value is given; the tutorial tunes the threshold and an SNN pre-filter per method on validation
+    # (rlsac.tune, params.yaml tuning), as the fold benchmark does.
     opencv_threshold: ClassVar[float] = 0.75
     hypothesis_shape: ClassVar[tuple[int, ...]] = (3, 3)
+
+    def px_thresholds(self, px: float) -> tuple[float, float]:
+        """An inlier threshold of ``px`` pixels -> (``threshold`` in this task's residual unit, OpenCV's threshold):
+        px^2 for the squared Sampson error, px for the others; OpenCV's findFundamentalMat takes pixels."""
+        px = float(px)
+        return (px * px if self.residual == "sampson_sq" else px), px
 
     @staticmethod
     def opencv_fit(pts: np.ndarray, flag: int, threshold: float, confidence: float, iterations: int):

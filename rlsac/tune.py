@@ -1,0 +1,153 @@
+"""Settings chosen per fold on that fold's validation pairs only (issue #26; ``rlsac folds --stage tune``).
+
+The CVPR 2020 RANSAC tutorial, whose "recommended settings" the paper cites, tunes every method on validation
+pairs: an inlier-threshold grid {0.1, 0.2, 0.25, 0.5, 0.75, 1.0} px and an SNN pre-filter {0.75, 0.8, 0.85} (matches
+above it dropped before fitting), at confidence 0.999. Here every row of the fold benchmark (a method, an RLSAC
+model, their -lo and -fast variants) is tuned on its fold's ``val.h5`` (pairs of the training buildings, never of
+the test building), at ``tuning.iterations``, by coordinate search:
+
+1. the full grid ``threshold_px`` x ``prefilter`` (1.0 = no pre-filter: not in the tutorial's grid, added because
+   our data are already the matches below 0.8); a best threshold on an edge of the grid extends the grid outward
+   (x1.5 above, /1.5 below) up to ``extend`` times, so the optimum is never an artefact of the grid;
+2. then, at the chosen pair, the row's own knobs one grid at a time: ``guide_temperature`` (guided), ``lo_sigma_scale``
+   (the -lo rows: MAGSAC++'s sigma_max as a multiple of the threshold), ``sets_per_step`` then ``confidence`` (the
+   -fast rows; the paper rows keep one set per step and the whole budget).
+
+Criterion: validation mAA@10 deg of max(err_R, err_t), the tutorial's; a tie keeps the earlier grid point. The record
+``reports/tuning/<regime>/<fold>/<row>.json`` holds the chosen settings, every grid point's validation mAA and the
+validation scenes; the fold's evaluation reads it and refuses one whose scenes meet its test scenes
+(``check_record``).
+"""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+from typing import Any
+
+from rlsac.errors import RlsacError
+
+DEFAULTS: dict[str, Any] = {
+    "iterations": 1000,
+    "threshold_px": [0.1, 0.2, 0.25, 0.5, 0.75, 1.0],
+    "prefilter": [0.75, 0.8, 0.85, 1.0],
+    "extend": 3,
+    "guide_temperature": [0.02, 0.05, 0.1, 0.2],
+    "lo_sigma_scale": [0.25, 0.5, 1.0],
+    "sets_per_step": [2, 4, 8, 12, 16],
+    "confidence": [0.99, 0.999, 0.9999],
+}
+CRITERION = "mAA"  # the task summary's mAA of max(err_R, err_t) at 10 deg
+EXTEND_FACTOR = 1.5
+
+
+def conf(params: dict[str, Any]) -> dict[str, Any]:
+    """params.yaml ``tuning`` over ``DEFAULTS``, every key typed and range-checked; unknown keys are errors."""
+    from rlsac.config import check_value, section
+
+    given = section(params, "tuning")
+    unknown = sorted(set(given) - set(DEFAULTS))
+    if unknown:
+        raise RlsacError(f"unknown params key(s) tuning.{unknown}; known: {sorted(DEFAULTS)}")
+    c = {**copy.deepcopy(DEFAULTS), **copy.deepcopy(given)}
+    c["iterations"] = check_value("tuning.iterations", c["iterations"], int, "[1, inf)")
+    c["extend"] = check_value("tuning.extend", c["extend"], int, "[0, 10]")
+    ranges = {"threshold_px": (float, "(0, inf)"), "prefilter": (float, "(0, 1]"),
+              "guide_temperature": (float, "(0, inf)"), "lo_sigma_scale": (float, "(0, inf)"),
+              "sets_per_step": (int, "[1, 4096]"), "confidence": (float, "[0, 1)")}
+    for key, (tp, spec) in ranges.items():
+        if not isinstance(c[key], list) or not c[key]:
+            raise RlsacError(f"tuning.{key} must be a non-empty list, got {c[key]!r}")
+        c[key] = [check_value(f"tuning.{key}", v, tp, spec) for v in c[key]]
+    return c
+
+
+def record_path(regime: str, fold: str, row: str) -> Path:
+    return Path("reports") / "tuning" / regime / fold / f"{row}.json"
+
+
+def scenes_of(data: dict) -> list[str]:
+    return sorted({str(s) for s in data["scene"]})
+
+
+def check_scenes(val_scenes: list[str], train_scenes: list[str], test_scenes: list[str], where: str) -> None:
+    """Settings may come from pairs of the fold's training buildings only: refuse validation scenes that are
+    test scenes of the fold (pooled validation sets hold other folds' test pairs, and this fold's)."""
+    seen = sorted(set(val_scenes) & set(test_scenes))
+    if seen:
+        raise RlsacError(f"{where}: tuned on pairs of test scene(s) {seen}; settings must come from the fold's own "
+                         "validation pairs")
+    outside = sorted(set(val_scenes) - set(train_scenes))
+    if outside:
+        raise RlsacError(f"{where}: tuned on scene(s) {outside} outside the fold's training buildings {train_scenes}")
+
+
+def check_record(rec: dict[str, Any], path: Path, regime: str, fold: str, row: str, train_scenes: list[str],
+                 test_scenes: list[str]) -> dict[str, Any]:
+    """A tuning record as the fold's evaluation needs it: this (regime, fold, row), validation scenes of the
+    training buildings only -> its chosen settings."""
+    for key, want in (("regime", regime), ("fold", fold), ("row", row)):
+        if rec.get(key) != want:
+            raise RlsacError(f"{path}: tuning record for {key} {rec.get(key)!r}, not {want!r}")
+    if not isinstance(rec.get("chosen"), dict) or not isinstance(rec.get("val_scenes"), list):
+        raise RlsacError(f"{path}: not a tuning record (no 'chosen' settings or 'val_scenes')")
+    check_scenes(rec["val_scenes"], train_scenes, test_scenes, str(path))
+    return rec["chosen"]
+
+
+def _edges(grid: list[float], best: float, extend_left: int) -> list[float]:
+    """Grid points to add when ``best`` sits on an edge of ``grid`` (none when it is inside or no extension is
+    left): one step of ``EXTEND_FACTOR`` beyond that edge."""
+    if extend_left <= 0 or len(grid) < 2:
+        return []
+    if best == max(grid):
+        return [round(best * EXTEND_FACTOR, 6)]
+    if best == min(grid):
+        return [round(best / EXTEND_FACTOR, 6)]
+    return []
+
+
+def search(run, base: dict[str, Any], c: dict[str, Any], knobs: list[str]) -> tuple[dict[str, Any], list[dict]]:
+    """Coordinate search of ``base`` options on the validation pairs.
+
+    run(options) -> summary dict with ``CRITERION``; ``knobs``: the row's own settings after the threshold x
+    pre-filter grid (keys of ``c``). -> (chosen settings, every grid point as {settings, mAA, mAA_R, mAA_t})."""
+    points: list[dict] = []
+    cache: dict[tuple, dict] = {}
+
+    def score(settings: dict[str, Any]) -> float:
+        key = tuple(sorted(settings.items()))
+        if key not in cache:
+            s = run({**base, **_as_options(settings, base)})
+            cache[key] = {"settings": dict(settings), **{k: s[k] for k in ("mAA", "mAA_R", "mAA_t")}}
+            points.append(cache[key])
+        return cache[key][CRITERION]
+
+    thresholds, filters = list(c["threshold_px"]), list(c["prefilter"])
+    best: dict[str, Any] = {}
+    for extend_left in range(c["extend"], -1, -1):
+        grid = [{"threshold_px": t, "prefilter": f} for t in thresholds for f in filters]
+        best = max(grid, key=lambda s: (score(s), -grid.index(s)))
+        more = _edges(thresholds, best["threshold_px"], extend_left)
+        if not more:
+            break
+        thresholds = sorted(thresholds + more)
+    for knob in knobs:
+        grid = [{**best, knob: v} for v in c[knob]]
+        best = max(grid, key=lambda s: (score(s), -grid.index(s)))
+    return best, points
+
+
+def _as_options(settings: dict[str, Any], base: dict[str, Any]) -> dict[str, Any]:
+    """Tuned settings -> evaluate options (pre-filter 1.0 = none; the LO sigma goes into the lo conf)."""
+    o = {k: v for k, v in settings.items() if k != "lo_sigma_scale"}
+    if o.get("prefilter") == 1.0:
+        o["prefilter"] = None
+    if "lo_sigma_scale" in settings:
+        o["lo"] = {**(base.get("lo") or {}), "sigma_scale": settings["lo_sigma_scale"]}
+    return o
+
+
+def as_options(chosen: dict[str, Any], lo: dict[str, Any] | None) -> dict[str, Any]:
+    """A record's chosen settings -> the evaluate options of the row (``lo``: the row's base LO conf)."""
+    return _as_options(chosen, {"lo": lo})
