@@ -1,0 +1,112 @@
+"""Issue #26: settings chosen per fold on validation pairs only (rlsac.tune), the pixel thresholds and the SNN
+pre-filter that evaluate applies, and the guards that keep test pairs out of tuning."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from rlsac import tune
+from rlsac.errors import RlsacError
+from rlsac.evaluate import check_options
+from rlsac.tasks import get_task, opencv_threshold, prefiltered, task_for
+
+
+def _conf(**kw):
+    return {**tune.DEFAULTS, **kw}
+
+
+def test_px_thresholds_in_each_task_unit():
+    assert get_task("fundamental").px_thresholds(2.0) == (4.0, 2.0)  # squared Sampson error (px^2), OpenCV px
+    assert get_task("fundamental", residual="sampson").px_thresholds(1.5) == (1.5, 1.5)
+    t, cv = get_task("essential").px_thresholds(0.92)  # f = 920 px: normalised units
+    assert t == pytest.approx(0.001) and cv == pytest.approx(0.001)
+    o = {"task": "fundamental", "threshold_px": 0.5}
+    assert task_for(o).threshold == 0.25
+    assert opencv_threshold(o, task_for(o)) == 0.5
+    assert opencv_threshold({"task": "fundamental"}, task_for({"task": "fundamental"})) == 0.75  # tutorial default
+
+
+def test_prefilter_clears_the_mask_above_the_ratio():
+    task = get_task("fundamental")
+    feats = torch.zeros(1, 4, 261)
+    feats[0, :, 4] = torch.tensor([0.5, 0.8, 0.81, 0.95])
+    batch = {"features": feats, "coords": torch.zeros(1, 4, 4), "mask": torch.tensor([[True, True, True, False]])}
+    assert prefiltered(task, batch, 0.8)["mask"].tolist() == [[True, True, False, False]]
+    assert prefiltered(task, batch, None) is batch
+
+
+def test_evaluate_options_check_the_new_settings():
+    base = {"task": "fundamental", "method": "ransac", "data": __file__}
+    assert check_options({**base, "threshold_px": "0.5", "prefilter": 0.8})["threshold_px"] == 0.5
+    for bad in ({"threshold_px": 0}, {"prefilter": 1.5}, {"prefilter": 0}):
+        with pytest.raises(RlsacError):
+            check_options({**base, **bad})
+    with pytest.raises(RlsacError, match="pixel threshold"):
+        check_options({"task": "line", "method": "ransac", "data": __file__, "threshold_px": 1.0})
+
+
+def test_search_full_grid_then_knobs_and_edge_extension():
+    """A score peaked at threshold 2.0 px, pre-filter 0.8, temperature 0.05: the grid [0.5, 1.0] must be extended
+    upward (1.5, 2.25 -> back below) and the knob chosen after the pair."""
+    seen = []
+
+    def run(o):
+        seen.append(o)
+        t, f = o["threshold_px"], o["prefilter"] or 1.0
+        v = 1 - abs(t - 2.0) - abs(f - 0.8) - abs(o.get("guide_temperature", 0.1) - 0.05)
+        return {"mAA": v, "mAA_R": v, "mAA_t": v}
+
+    c = _conf(threshold_px=[0.5, 1.0], prefilter=[0.8, 1.0], extend=3, guide_temperature=[0.02, 0.05, 0.1])
+    best, points = tune.search(run, {"guide_temperature": 0.1}, c, ["guide_temperature"])
+    assert best == {"threshold_px": 2.25, "prefilter": 0.8, "guide_temperature": 0.05}
+    assert sorted({p["settings"]["threshold_px"] for p in points}) == [0.5, 1.0, 1.5, 2.25, 3.375]
+    assert all(o["prefilter"] is None for o in seen if o.get("prefilter") is None)  # 1.0 = no pre-filter
+    assert any(o["prefilter"] is None for o in seen)
+    assert len(points) == len({json.dumps(p["settings"], sort_keys=True) for p in points})  # each point once
+
+
+def test_search_breaks_ties_by_grid_order_and_stops_without_extension():
+    c = _conf(threshold_px=[0.5, 1.0, 2.0], prefilter=[1.0], extend=0)
+    best, points = tune.search(lambda o: {"mAA": 0.5, "mAA_R": 0.5, "mAA_t": 0.5}, {}, c, [])
+    assert best == {"threshold_px": 0.5, "prefilter": 1.0} and len(points) == 3
+
+
+def test_lo_sigma_goes_into_the_lo_conf():
+    o = tune.as_options({"threshold_px": 1.0, "prefilter": 1.0, "lo_sigma_scale": 0.25}, {"score": "magsac"})
+    assert o == {"threshold_px": 1.0, "prefilter": None, "lo": {"score": "magsac", "sigma_scale": 0.25}}
+
+
+def test_conf_rejects_unknown_and_bad_values():
+    assert tune.conf({})["iterations"] == 1000
+    for bad in ({"nope": 1}, {"threshold_px": []}, {"prefilter": [1.2]}, {"iterations": 0}, {"sets_per_step": ["x"]}):
+        with pytest.raises(RlsacError):
+            tune.conf({"tuning": bad})
+
+
+TRAIN, TEST = ["castle-P19", "fountain-P11"], ["entry-P10"]
+
+
+def test_settings_that_saw_a_test_pair_are_refused():
+    tune.check_scenes(["castle-P19"], TRAIN, TEST, "val.h5")
+    with pytest.raises(RlsacError, match="test scene"):  # the fold's test file given as validation
+        tune.check_scenes(["entry-P10"], TRAIN, TEST, "test.h5")
+    with pytest.raises(RlsacError, match="test scene"):  # pooled validation pairs of every fold
+        tune.check_scenes(["castle-P19", "entry-P10", "fountain-P11"], TRAIN, TEST, "pooled.h5")
+    rec = {"regime": "hard", "fold": "entry", "row": "magsac", "chosen": {"threshold_px": 1.0},
+           "val_scenes": ["castle-P19"]}
+    assert tune.check_record(rec, "r.json", "hard", "entry", "magsac", TRAIN, TEST) == {"threshold_px": 1.0}
+    with pytest.raises(RlsacError, match="test scene"):
+        tune.check_record({**rec, "val_scenes": ["castle-P19", "entry-P10"]}, "r.json", "hard", "entry", "magsac",
+                          TRAIN, TEST)
+    with pytest.raises(RlsacError, match="fold"):  # another fold's record
+        tune.check_record({**rec, "fold": "castle"}, "r.json", "hard", "entry", "magsac", TRAIN, TEST)
+    with pytest.raises(RlsacError, match="row"):
+        tune.check_record(rec, "r.json", "hard", "entry", "usac", TRAIN, TEST)
+
+
+def test_scenes_of_reads_the_pair_scenes():
+    assert tune.scenes_of({"scene": np.array(["b", "a", "b"])}) == ["a", "b"]
