@@ -74,6 +74,25 @@ def finalize(task: Task, coords, mask, hyp, valid) -> dict[str, torch.Tensor]:
 OPENCV_CONFIDENCE = 0.999
 OPENCV_FLAGS = {"ransac": "RANSAC", "usac": "USAC_DEFAULT", "usac_accurate": "USAC_ACCURATE",
                 "magsac": "USAC_MAGSAC", "prosac": "USAC_PROSAC"}
+# The no-LO arm (issue #26): USAC's sampler and score without local optimisation and without the final polisher
+# (cv2.UsacParams: LOCAL_OPTIM_NULL, NONE_POLISHER), beside our samplers that have neither: method -> (sampler,
+# score) as in the presets of the same name
+OPENCV_NOLO = {"usac-nolo": ("SAMPLING_UNIFORM", "SCORE_METHOD_MSAC"),
+               "magsac-nolo": ("SAMPLING_UNIFORM", "SCORE_METHOD_MAGSAC"),
+               "prosac-nolo": ("SAMPLING_PROSAC", "SCORE_METHOD_MSAC")}
+
+
+def usac_params(method: str, threshold: float, confidence: float, iterations: int, seed: int):
+    """cv2.UsacParams of a no-LO method (``OPENCV_NOLO``): its sampler and score, no LO, no polisher, seeded."""
+    import cv2
+
+    sampler, score = OPENCV_NOLO[method]
+    p = cv2.UsacParams()
+    p.sampler, p.score = getattr(cv2, sampler), getattr(cv2, score)
+    p.loMethod, p.final_polisher = cv2.LOCAL_OPTIM_NULL, cv2.NONE_POLISHER
+    p.threshold, p.confidence, p.maxIterations = float(threshold), float(confidence), int(iterations)
+    p.randomGeneratorState, p.isParallel = int(seed), False
+    return p
 
 
 def opencv_estimate(task: Task, batch: dict, method: str, iterations: int, threshold: float | None = None,
@@ -93,18 +112,21 @@ def opencv_estimate(task: Task, batch: dict, method: str, iterations: int, thres
     import cv2
     import numpy as np
 
-    if method not in OPENCV_FLAGS:
-        raise RlsacError(f"unknown OpenCV method {method!r} (known: {', '.join(OPENCV_FLAGS)})")
+    if method not in OPENCV_FLAGS and method not in OPENCV_NOLO:
+        raise RlsacError(f"unknown OpenCV method {method!r} (known: {', '.join([*OPENCV_FLAGS, *OPENCV_NOLO])})")
     if not hasattr(task, "opencv_fit"):
         raise RlsacError(f"task '{task.name}' has no OpenCV estimator")
-    flag = getattr(cv2, OPENCV_FLAGS[method])
     thr = task.opencv_threshold if threshold is None else float(threshold)
     conf = OPENCV_CONFIDENCE if confidence is None else float(confidence)
+    # a preset flag, or the no-LO arm's UsacParams (seeded by ``seed``; the permutation below changes its draws too)
+    flag = getattr(cv2, OPENCV_FLAGS[method]) if method in OPENCV_FLAGS else usac_params(method, thr, conf, iterations,
+                                                                                          seed)
     coords, mask = _numpy(batch["coords"]), _numpy(batch["mask"]).astype(bool)
     B, N = mask.shape
     hyp, valid, inliers = np.zeros((B, *task.hypothesis_shape)), np.zeros(B, dtype=bool), np.zeros((B, N), dtype=bool)
     rng = np.random.default_rng(seed)
-    if method == "prosac" and quality is None:
+    prosac = method.startswith("prosac")
+    if prosac and quality is None:
         raise RlsacError("prosac needs the matches' quality to order them (quality=task.match_quality(batch))")
     quality = None if quality is None else _numpy(quality)
     for b in range(B):
@@ -112,7 +134,7 @@ def opencv_estimate(task: Task, batch: dict, method: str, iterations: int, thres
         if idx.size < task.sample_size:
             continue
         idx = idx[rng.permutation(idx.size)]
-        if method == "prosac":
+        if prosac:
             idx = idx[np.argsort(quality[b, idx], kind="stable")]
         out = task.opencv_fit(np.ascontiguousarray(coords[b, idx], dtype=np.float64), flag, thr, conf, int(iterations))
         if out is None:

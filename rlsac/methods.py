@@ -132,7 +132,7 @@ def _opencv(flag: str):
 
         def estimate(batch, g):
             seed = int(torch.randint(0, 2**31 - 1, (1,), generator=g, device=g.device).item())
-            quality = task.match_quality(batch) if flag == "prosac" else None
+            quality = task.match_quality(batch) if flag.startswith("prosac") else None
             return opencv_estimate(task, batch, flag, o["iterations"], threshold=thr, seed=seed, quality=quality)
 
         return task, estimate, {}
@@ -143,6 +143,10 @@ def _opencv(flag: str):
 OPENCV_METHODS = {"opencv_ransac": ("ransac", "OpenCV RANSAC"), "usac": ("usac", "OpenCV USAC"),
                   "usac_accurate": ("usac_accurate", "OpenCV USAC_ACCURATE"), "magsac": ("magsac", "OpenCV MAGSAC++"),
                   "prosac": ("prosac", "OpenCV PROSAC (matches ordered by SNN)")}
+# the no-LO arm (issue #26, rlsac.baselines.OPENCV_NOLO): the same samplers and scores without LO or polisher
+OPENCV_METHODS.update({"usac-nolo": ("usac-nolo", "OpenCV USAC, no LO / polisher"),
+                       "magsac-nolo": ("magsac-nolo", "OpenCV MAGSAC++, no LO / polisher"),
+                       "prosac-nolo": ("prosac-nolo", "OpenCV PROSAC, no LO / polisher")})
 for _name, (_flag, _label) in OPENCV_METHODS.items():
     register_method(_name, _label, needs="opencv_fit")(_opencv(_flag))
 

@@ -110,10 +110,14 @@ class EssentialTask(FundamentalTask):
     @staticmethod
     def opencv_fit(pts: np.ndarray, flag: int, threshold: float, confidence: float, iterations: int):
         """cv2.findEssentialMat on calibrated pts (n, 4) with K = I (threshold in normalised units) ->
-        (E (3, 3) unit Frobenius norm, inliers (n,) bool), None on failure (its first E of a stack)."""
+        (E (3, 3) unit Frobenius norm, inliers (n,) bool), None on failure (its first E of a stack). ``flag``: a
+        method preset, or a cv2.UsacParams holding threshold, confidence and budget."""
+        p1, p2 = np.ascontiguousarray(pts[:, :2]), np.ascontiguousarray(pts[:, 2:4])
         try:
-            E, inl = cv2.findEssentialMat(np.ascontiguousarray(pts[:, :2]), np.ascontiguousarray(pts[:, 2:4]),
-                                          np.eye(3), flag, confidence, threshold, iterations)
+            if isinstance(flag, cv2.UsacParams):
+                E, inl = cv2.findEssentialMat(p1, p2, np.eye(3), np.eye(3), np.zeros(5), np.zeros(5), flag)
+            else:
+                E, inl = cv2.findEssentialMat(p1, p2, np.eye(3), flag, confidence, threshold, iterations)
         except cv2.error:
             return None
         return opencv_model(E, inl)

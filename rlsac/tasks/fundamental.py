@@ -141,10 +141,14 @@ class FundamentalTask:
     @staticmethod
     def opencv_fit(pts: np.ndarray, flag: int, threshold: float, confidence: float, iterations: int):
         """cv2.findFundamentalMat on pts (n, 4) pixels -> (F (3, 3) unit Frobenius norm, inliers (n,) bool),
-        None on failure (OpenCV's stacked (3k, 3) output keeps its first F)."""
+        None on failure (OpenCV's stacked (3k, 3) output keeps its first F). ``flag``: a method preset, or a
+        cv2.UsacParams that holds the threshold, confidence and budget itself."""
+        p1, p2 = np.ascontiguousarray(pts[:, :2]), np.ascontiguousarray(pts[:, 2:4])
         try:
-            F, inl = cv2.findFundamentalMat(np.ascontiguousarray(pts[:, :2]), np.ascontiguousarray(pts[:, 2:4]),
-                                            flag, threshold, confidence, iterations)
+            if isinstance(flag, cv2.UsacParams):
+                F, inl = cv2.findFundamentalMat(p1, p2, flag)
+            else:
+                F, inl = cv2.findFundamentalMat(p1, p2, flag, threshold, confidence, iterations)
         except cv2.error:
             return None
         return opencv_model(F, inl)
