@@ -268,6 +268,7 @@ PARAM_SECTIONS = {
     "folds": "rlsac.folds:protocol",
     "essential": "rlsac.folds:check_essential",
     "ablation": "rlsac.ablate:protocol",
+    "tuning": "rlsac.tune:conf",
 }
 
 

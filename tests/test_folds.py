@@ -278,7 +278,9 @@ def test_folds_command_end_to_end(imported, tmp_path, monkeypatch):
                   "val_fraction": 0.3, "regimes": ["hard"], "pool": {"hard": 100},
                   "methods": ["uniform", "ransac"], "models": ["rlsac", "rlsac-ws"], "lo_models": ["rlsac-ws"],
                   "train": {"rlsac": {}, "rlsac-ws": {"sac": {"warm_start_updates": 2}, "selection": "val_mAA"}},
-                  "iterations": [15], "seed": 0},
+                  "iterations": [15], "seed": 0, "fast": ["rlsac"]},
+        "tuning": {"iterations": 15, "threshold_px": [1.0, 2.0], "prefilter": [0.9, 1.0], "extend": 0,
+                   "guide_temperature": [0.1], "lo_sigma_scale": [0.5], "sets_per_step": [2], "confidence": [0.99]},
     }
     (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
     run = CliRunner()
@@ -290,9 +292,32 @@ def test_folds_command_end_to_end(imported, tmp_path, monkeypatch):
     rec = json.loads((tmp_path / "reports/folds/data/hard/fountain.json").read_text())
     assert rec["test_scenes"] == "fountain-P11" and rec["train_scenes"] == "entry-P10"
     assert rec["splits"]["train"]["pairs"] + rec["splits"]["val"]["pairs"] == 8
+    # evaluation needs the row's tuning record, made on the fold's validation pairs only
+    r = run.invoke(cli, base + ["--stage", "evaluate", "--only", "uniform"])
+    assert r.exit_code == 2 and "no tuning record" in r.output
+    val, test = tmp_path / "data/folds/hard/fountain/val.h5", tmp_path / "data/folds/hard/fountain/test.h5"
+    kept = val.read_bytes()
+    val.write_bytes(test.read_bytes())  # the test pairs offered as validation pairs
+    r = run.invoke(cli, base + ["--stage", "tune", "--only", "uniform"])
+    assert r.exit_code == 2 and "test scene(s) ['fountain-P11']" in r.output
+    assert not (tmp_path / "reports/tuning").exists()
+    val.write_bytes(kept)
+    r = run.invoke(cli, base + ["--stage", "tune", "--only", "uniform"])
+    assert r.exit_code == 0, r.output
+    record_path = tmp_path / "reports/tuning/hard/fountain/uniform.json"
+    record = json.loads(record_path.read_text())
+    assert record["val_scenes"] == ["entry-P10"] and record["data"].endswith("val.h5")
+    assert len(record["grid"]) == 4 and record["chosen"]["threshold_px"] in (1.0, 2.0)
+    good = record_path.read_text()
+    record_path.write_text(json.dumps({**record, "val_scenes": ["entry-P10", "fountain-P11"]}))  # pooled val pairs
+    r = run.invoke(cli, base + ["--stage", "evaluate", "--only", "uniform"])
+    assert r.exit_code == 2 and "test scene(s) ['fountain-P11']" in r.output
+    record_path.write_text(good)
     # baselines can run before any model is trained; a model needs its checkpoint
     r = run.invoke(cli, base + ["--stage", "evaluate", "--only", "uniform"])
     assert r.exit_code == 0, r.output
+    conf = json.loads((tmp_path / "reports/eval/folds/hard/fountain/uniform/i15/config.json").read_text())
+    assert conf["threshold_px"] == record["chosen"]["threshold_px"] and conf["sets_per_step"] == 1
     assert (tmp_path / "reports/eval/folds/hard/fountain/uniform/i15/summary.json").is_file()
     assert not (tmp_path / "reports/eval/folds/hard/fountain/ransac").exists()
     r = run.invoke(cli, base + ["--stage", "evaluate", "--only", "rlsac"])
@@ -304,9 +329,13 @@ def test_folds_command_end_to_end(imported, tmp_path, monkeypatch):
     assert ws["selection"] == "val_mAA" and ws["conf"]["sac"]["warm_start_updates"] == 2
     assert paper["selection"] == "inlier_ratio" and paper["conf"]["sac"]["warm_start_updates"] == 0
     assert [h["step"] for h in paper["history"]][:2] == [4, 8]
+    r = run.invoke(cli, base + ["--stage", "tune"])
+    assert r.exit_code == 0, r.output
+    fast = json.loads((tmp_path / "reports/tuning/hard/fountain/rlsac-fast.json").read_text())
+    assert {"sets_per_step", "confidence"} <= set(fast["chosen"])
     r = run.invoke(cli, base + ["--stage", "evaluate"])
     assert r.exit_code == 0, r.output
-    for m in ("uniform", "ransac", "rlsac", "rlsac-ws", "rlsac-ws-lo"):
+    for m in ("uniform", "ransac", "rlsac", "rlsac-ws", "rlsac-ws-lo", "rlsac-fast"):
         s = json.loads((tmp_path / f"reports/eval/folds/hard/fountain/{m}/i15/summary.json").read_text())
         assert s["n_instances"] == 8 and s["iterations"] == 15
         assert ("lo" in s) == m.endswith("-lo")

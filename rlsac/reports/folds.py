@@ -34,9 +34,11 @@ MODEL_NAMES = {"rlsac": "RLSAC (paper recipe)", "rlsac-ws": "RLSAC + warm start,
                "rlsac-1k": "RLSAC (paper recipe, 1000 SAC steps)",
                "rlsac-nosnn": "RLSAC without the SNN ratio (not in the paper)",
                "rlsac-ws-lo": "RLSAC + warm start, GT selection + LO (not in the paper)",
-               "rlsac-lean": "RLSAC, lean network (~1/6 the multiply-adds; not in the paper)"}
-ROW_ORDER = ("uniform", "ransac", "opencv_ransac", "usac", "usac_accurate", "magsac", "prosac", "guided", "rlsac",
-             "rlsac-ws", "rlsac-1k", "rlsac-nosnn", "rlsac-lean", "ransac-lo", "rlsac-lo", "rlsac-ws-lo")
+               "rlsac-lean": "RLSAC, lean network (~1/6 the multiply-adds; not in the paper)",
+               "rlsac-fast": "RLSAC-fast: k sets per step, confidence stop, tuned (not in the paper)"}
+ROW_ORDER = ("uniform", "ransac", "opencv_ransac", "usac-nolo", "magsac-nolo", "prosac-nolo", "guided", "rlsac",
+             "rlsac-fast", "rlsac-ws", "rlsac-1k", "rlsac-nosnn", "rlsac-lean", "usac", "usac_accurate", "magsac",
+             "prosac", "ransac-lo", "rlsac-lo", "rlsac-ws-lo")
 NAMES = {**{m: spec.label for m, spec in METHODS.items()}, **MODEL_NAMES}
 REFERENCE = "rlsac"  # paired differences are taken against the paper-recipe RLSAC
 CONTROLS = ("uniform", "guided")  # the learned sampler against uniform sets, and against a hand-made SNN-guided one
@@ -84,7 +86,7 @@ def _check_cell(path: Path, name: str, iterations: int) -> None:
         raise RlsacError(f"{f}: unreadable") from None
     method, ckpt = conf.get("method"), Path(conf.get("checkpoint") or "").stem
     spec = METHODS.get(method)
-    is_model = spec is not None and spec.checkpoint and name in (ckpt, f"{ckpt}-lo", method)
+    is_model = spec is not None and spec.checkpoint and name in (ckpt, f"{ckpt}-lo", f"{ckpt}-fast", method)
     if conf.get("iterations") != iterations or not (method == name or is_model):
         raise RlsacError(f"{f}: holds method {method!r} ({ckpt or 'no checkpoint'}) at {conf.get('iterations')} "
                          f"iterations, not the {name!r} at {iterations} its folder names")
