@@ -52,9 +52,12 @@ def conf(params: dict[str, Any]) -> dict[str, Any]:
     c = {**copy.deepcopy(DEFAULTS), **copy.deepcopy(given)}
     c["iterations"] = check_value("tuning.iterations", c["iterations"], int, "[1, inf)")
     c["extend"] = check_value("tuning.extend", c["extend"], int, "[0, 10]")
-    ranges = {"threshold_px": (float, "(0, inf)"), "prefilter": (float, "(0, 1]"),
-              "guide_temperature": (float, "(0, inf)"), "lo_sigma_scale": (float, "(0, inf)"),
-              "sets_per_step": (int, "[1, 4096]"), "confidence": (float, "[0, 1)")}
+    from rlsac.evaluate import RANGES, TYPES
+
+    # each grid's values are evaluate options (their types and ranges), but the LO sigma, an LOConf field
+    ranges = {k: (TYPES[k], RANGES[k]) for k in ("threshold_px", "prefilter", "guide_temperature", "sets_per_step",
+                                                 "confidence")}
+    ranges["lo_sigma_scale"] = (float, "(0, inf)")
     for key, (tp, spec) in ranges.items():
         if not isinstance(c[key], list) or not c[key]:
             raise RlsacError(f"tuning.{key} must be a non-empty list, got {c[key]!r}")
