@@ -34,9 +34,10 @@ def ransac(task: Task, batch: dict, iterations: int, generator: torch.Generator 
         idx = uniform_minimal_sets(mask, task.sample_size, k, generator)  # (B, k, m)
         hyps, valid, res, count = score_sets(task, gather_points(coords, idx), coords, mask)  # (B, k, ...)
         best = update_best(task, lo, coords, mask, best, hyps, count.masked_fill(~valid, -1), res, generator)
-    if active(lo):
-        return finish(task, lo, coords, mask, best, generator)
-    return finalize(task, coords, mask, best.hyp, best.count >= task.sample_size)
+    out = finish(task, lo, coords, mask, best, generator) if active(lo) else finalize(
+        task, coords, mask, best.hyp, best.count >= task.sample_size)
+    out["hypotheses"] = torch.full((B,), iterations, dtype=torch.long, device=coords.device)  # every set is scored
+    return out
 
 
 @torch.no_grad()
@@ -124,6 +125,7 @@ def opencv_estimate(task: Task, batch: dict, method: str, iterations: int, thres
     coords, mask = _numpy(batch["coords"]), _numpy(batch["mask"]).astype(bool)
     B, N = mask.shape
     hyp, valid, inliers = np.zeros((B, *task.hypothesis_shape)), np.zeros(B, dtype=bool), np.zeros((B, N), dtype=bool)
+    hypotheses = np.full(B, int(iterations), dtype=np.int64)
     rng = np.random.default_rng(seed)
     prosac = method.startswith("prosac")
     if prosac and quality is None:
@@ -141,7 +143,23 @@ def opencv_estimate(task: Task, batch: dict, method: str, iterations: int, thres
             continue
         hyp[b], valid[b] = out[0], True
         inliers[b, idx] = out[1]
-    return {"hyp": hyp, "valid": valid, "inliers": inliers}
+        hypotheses[b] = stop_bound(int(np.count_nonzero(out[1])), idx.size, task.sample_size, conf, int(iterations))
+    return {"hyp": hyp, "valid": valid, "inliers": inliers, "hypotheses": hypotheses}
+
+
+def stop_bound(n_inliers: int, n_points: int, m: int, confidence: float, iterations: int) -> int:
+    """Hypotheses RANSAC's stopping rule allows at the final inlier ratio w = n_inliers / n_points:
+    min(iterations, ceil(log(1 - p) / log(1 - w^m))). OpenCV does not report how many hypotheses it scored;
+    its RANSAC-family stop is this bound (SPRT and LO change it), so this is what the tables report for it."""
+    import math
+
+    w = n_inliers / max(n_points, 1)
+    if w <= 0.0 or confidence <= 0.0:
+        return iterations
+    miss = 1.0 - w**m
+    if miss <= 0.0:
+        return 1
+    return int(min(iterations, max(1, math.ceil(math.log(1.0 - confidence) / math.log(miss)))))
 
 
 def _numpy(x):

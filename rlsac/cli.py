@@ -271,6 +271,9 @@ def ablate(tracking: bool, sets: tuple[str, ...], **options) -> None:
 @click.option("--regime", required=True, help="Data regime, a key of params.yaml folds.pool (e.g. easy, hard).")
 @click.option("--fold", required=True, help="Test building, one of params.yaml folds.test (e.g. castle).")
 @click.option("--model", help="With --stage train: one model of folds.models [default: all of them].")
+@click.option("--task", type=click.Choice(["fundamental", "essential"]), default="fundamental", show_default=True,
+              help="With --stage tune or evaluate: the fundamental matrix (Table 2, params folds) or the essential "
+                   "matrix (Table E, params essential) on the fold data.")
 @click.option("--only", help="With --stage tune or evaluate: comma-separated rows (methods, models, <model>-lo, "
                              "<row>-fast) [default: all].")
 @click.option("--params", "params", default="params.yaml", show_default=True,
@@ -279,7 +282,7 @@ def ablate(tracking: bool, sets: tuple[str, ...], **options) -> None:
 @device_option
 @tracking_option
 def folds(tracking: bool, **options) -> None:
-    """Leave-one-building-out fundamental-matrix benchmark, one stage of one fold (rlsac.folds)."""
+    """Leave-one-building-out benchmark (fundamental or essential matrix), one stage of one fold (rlsac.folds)."""
     from rlsac.folds import folds as run
     from rlsac.folds import format_summary
 

@@ -227,6 +227,7 @@ def run_method(task: Task, estimate: Callable, data: dict, to_batch: Callable, n
         batch_size = 1
     errs: dict[str, list[np.ndarray]] = {}
     counts: list[np.ndarray] = []
+    hyps: list[np.ndarray] = []
     with tqdm(total=n, desc=desc, unit="inst", disable=None, leave=False) as bar:
         for start in range(0, n, batch_size):
             idx = slice(start, min(start + batch_size, n))
@@ -239,8 +240,13 @@ def run_method(task: Task, estimate: Callable, data: dict, to_batch: Callable, n
             for k, v in task.errors(hyp, valid, inliers, np_batch).items():
                 errs.setdefault(k, []).append(np.asarray(v, dtype=np.float64))
             counts.append(inliers.sum(-1))
+            if "hypotheses" in out:
+                hyps.append(np.broadcast_to(_np(out["hypotheses"]), (idx.stop - idx.start,)).astype(np.int64))
             bar.update(idx.stop - idx.start)
-    return {k: np.concatenate(v) for k, v in errs.items()}, np.concatenate(counts)
+    out = {k: np.concatenate(v) for k, v in errs.items()}
+    if hyps and len(hyps) == len(counts):  # minimal sets scored per instance (an oracle scores none)
+        out["n_hypotheses"] = np.concatenate(hyps)
+    return out, np.concatenate(counts)
 
 
 def score(o: dict[str, Any], data: dict, device: str) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
@@ -250,7 +256,15 @@ def score(o: dict[str, Any], data: dict, device: str) -> tuple[dict[str, Any], d
     n = _n_instances(data)
     errors, _ = run_method(task, estimate, data, task_class(o["task"]).to_batch, n, o["seed"], device, o["batch_size"],
                            desc=f"{o['method']} {Path(o['data']).name}", prefilter=o["prefilter"])
-    return {k: _plain(v) for k, v in task.summarize(errors).items()}, errors
+    return summarize(task, errors), errors
+
+
+def summarize(task: Task, errors: dict[str, np.ndarray]) -> dict[str, Any]:
+    """The task's summary of the errors, plus the mean number of minimal sets scored per instance."""
+    s = {k: _plain(v) for k, v in task.summarize(errors).items()}
+    if "n_hypotheses" in errors:
+        s["hypotheses_mean"] = float(np.mean(errors["n_hypotheses"]))
+    return s
 
 
 def _n_instances(data: dict) -> int:
@@ -371,7 +385,7 @@ def run(p: Prepared, track: bool = True) -> dict[str, Any]:
             seconds = time.perf_counter() - t0
         finally:
             torch.set_num_threads(torch_threads)
-        summary = {k: _plain(v) for k, v in task.summarize(errors).items()}
+        summary = summarize(task, errors)
         summary.update(task=o["task"], method=o["method"], iterations=o["iterations"], data=str(o["data"]),
                        checkpoint=o["checkpoint"], seed=o["seed"], device=device, n_instances=n, **extra)
         if p.n_unusable:  # only then: a file without unusable instances keeps its summary's bytes

@@ -46,7 +46,7 @@ DEFAULTS: dict[str, Any] = {
     # confidence tuned on validation: rows <model>-fast (not in the paper; the plain rows are the paper's algorithm)
     "fast": [],
 }
-OPTIONS: dict[str, Any] = {"stage": None, "regime": None, "fold": None, "model": None, "only": None,
+OPTIONS: dict[str, Any] = {"stage": None, "regime": None, "fold": None, "model": None, "only": None, "task": "fundamental",
                            "params": "params.yaml",
                            "device": "auto", "threads": 1}
 
@@ -72,8 +72,9 @@ def protocol(params: dict[str, Any]) -> dict[str, Any]:
         raise RlsacError(f"folds.models {p['models']} and the keys of folds.train {sorted(p['train'])} differ")
     if p["model_regime"] not in p["regimes"]:
         raise RlsacError(f"folds.model_regime {p['model_regime']!r} is not one of folds.regimes {p['regimes']}")
-    if not p["iterations"]:
-        raise RlsacError(f"folds.iterations must be positive budgets, got {p['iterations']}")
+    if set(p["iterations"]) != set(p["regimes"]) or not all(p["iterations"].values()):
+        raise RlsacError(f"folds.iterations must give budgets for every regime of {p['regimes']} (a list for all, or "
+                         f"a mapping regime -> list), got {p['iterations']}")
     from rlsac.methods import METHODS
 
     bad = [m for m in p["methods"] if m not in METHODS or m in ("rlsac", "rlsac-lo", "oracle")]
@@ -98,10 +99,11 @@ def protocol(params: dict[str, Any]) -> dict[str, Any]:
 def rows(p: dict[str, Any], fold: str) -> dict[str, dict[str, Any]]:
     """Every row of the fold benchmark -> {method (evaluate's), checkpoint (RLSAC rows), fast (the -fast
     variant), knobs (the settings tuned after threshold x pre-filter, rlsac.tune)}."""
-    trained = p["model_regime"]  # every regime is evaluated with the models trained on this one's data
+    trained, task = p["model_regime"], p.get("task", "fundamental")  # every regime: the models of this one's data
     out = {m: {"method": m, "checkpoint": None} for m in p["methods"]}
-    out.update({m: {"method": "rlsac", "checkpoint": checkpoint(trained, fold, m)} for m in p["models"]})
-    out.update({f"{m}-lo": {"method": "rlsac-lo", "checkpoint": checkpoint(trained, fold, m)} for m in p["lo_models"]})
+    out.update({m: {"method": "rlsac", "checkpoint": checkpoint(trained, fold, m, task)} for m in p["models"]})
+    out.update({f"{m}-lo": {"method": "rlsac-lo", "checkpoint": checkpoint(trained, fold, m, task)}
+                for m in p["lo_models"]})
     out.update({f"{m}-fast": {**out[m], "fast": True} for m in p["fast"]})
     for r in out.values():
         r.setdefault("fast", False)
@@ -114,7 +116,7 @@ def rows(p: dict[str, Any], fold: str) -> dict[str, dict[str, Any]]:
 def row_options(row: dict[str, Any], p: dict[str, Any], ev: dict[str, Any], o: dict[str, Any]) -> dict[str, Any]:
     """The evaluate options of a row before tuning: the paper's one set per step and whole budget (the -fast rows
     tune both), evaluate.fundamental's LO conf and guided temperature as the starting point."""
-    return {"task": "fundamental", "method": row["method"],
+    return {"task": p.get("task", "fundamental"), "method": row["method"],
             "checkpoint": str(row["checkpoint"]) if row["checkpoint"] else None, "seed": int(p["seed"]),
             "device": o["device"], "lo": ev.get("lo"), "guide_temperature": ev.get("guide_temperature"),
             "sets_per_step": 1, "confidence": 0.0}
@@ -125,11 +127,10 @@ def _typed(p: dict[str, Any]) -> dict[str, Any]:
     `folds.iterations: ["x"]` were tracebacks, some only in the stage that reads them); -> the section, typed."""
     from rlsac.config import SEED_RANGE, check_value
 
-    for key in ("test", "regimes", "methods", "models", "lo_models", "fast", "iterations"):
+    for key in ("test", "regimes", "methods", "models", "lo_models", "fast"):
         if not isinstance(p[key], list):
             raise RlsacError(f"folds.{key} must be a list, got {p[key]!r}")
-        if key != "iterations":
-            p[key] = [check_value(f"folds.{key}", v, str) for v in p[key]]
+        p[key] = [check_value(f"folds.{key}", v, str) for v in p[key]]
     for key in ("scenes", "pool", "train"):
         if not isinstance(p[key], dict) or not all(isinstance(v, (dict if key == "train" else (str, int)))
                                                    for v in p[key].values()):
@@ -137,7 +138,7 @@ def _typed(p: dict[str, Any]) -> dict[str, Any]:
                              f"got {p[key]!r}")
     p["scenes"] = {b: check_value(f"folds.scenes.{b}", v, str) for b, v in p["scenes"].items()}
     p["pool"] = {r: check_value(f"folds.pool.{r}", v, int, "[0, inf)") for r, v in p["pool"].items()}
-    p["iterations"] = [check_value("folds.iterations", v, int, "[1, inf)") for v in p["iterations"]]
+    p["iterations"] = budgets(p["iterations"], p["regimes"], "folds.iterations")
     p["val_fraction"] = check_value("folds.val_fraction", p["val_fraction"], float, "(0, 1)")
     p["seed"] = check_value("folds.seed", p["seed"], int, SEED_RANGE)
     p["model_regime"] = check_value("folds.model_regime", p["model_regime"], str)
@@ -165,8 +166,26 @@ def check_fundamental(params: dict[str, Any]) -> None:
         check_range("fundamental.methods", given["methods"], METHODS)
 
 
-def check_essential(params: dict[str, Any]) -> None:
-    """params.yaml ``essential`` (Table E): a regime of folds.regimes, methods of `rlsac evaluate`, budgets."""
+def budgets(given: Any, regimes: list[str], where: str) -> dict[str, list[int]]:
+    """Budgets as a list (every regime) or a mapping regime -> list -> {regime: [int, ...]}, each checked."""
+    from rlsac.config import check_value
+
+    per = given if isinstance(given, dict) else dict.fromkeys(regimes, given)
+    out = {}
+    for r, its in per.items():
+        if not isinstance(its, list):
+            raise RlsacError(f"{where} must be a list of budgets (or regime -> list), got {given!r}")
+        out[str(r)] = [check_value(where, v, int, "[1, inf)") for v in its]
+    return out
+
+
+ESSENTIAL = {"regime": "hard", "methods": ["uniform", "ransac", "opencv_ransac", "usac", "magsac"],
+             "iterations": [100, 1000]}
+
+
+def check_essential(params: dict[str, Any]) -> dict[str, Any]:
+    """params.yaml ``essential`` (Table E): a regime of folds.regimes, methods of `rlsac evaluate`, budgets
+    -> the section over ``ESSENTIAL``."""
     from rlsac.config import check_mapping, check_range, section
     from rlsac.methods import METHODS
 
@@ -175,6 +194,20 @@ def check_essential(params: dict[str, Any]) -> None:
     check_range("essential.methods", given.get("methods") or [], METHODS)
     if "regime" in given:
         check_range("essential.regime", given["regime"], tuple(protocol(params)["regimes"]))
+    return {**ESSENTIAL, **given}
+
+
+def for_task(p: dict[str, Any], params: dict[str, Any], task: str) -> dict[str, Any]:
+    """The benchmark of ``task`` on the fold data: the fundamental matrix's rows are params ``folds``'s; the
+    essential matrix's (Table E) params ``essential``'s methods and its one RLSAC model per fold (``rlsac``,
+    trained by the essential_train stage), in its one regime."""
+    if task == "fundamental":
+        return {**p, "task": task}
+    if task != "essential":
+        raise RlsacError(f"folds --task must be fundamental or essential, got {task!r}")
+    e = check_essential(params)
+    return {**p, "task": task, "methods": list(e["methods"]), "models": ["rlsac"], "lo_models": [], "fast": [],
+            "regimes": [e["regime"]], "model_regime": e["regime"], "iterations": {e["regime"]: list(e["iterations"])}}
 
 
 def scene_list(scenes: str) -> list[str]:
@@ -193,12 +226,17 @@ def data_dir(regime: str, fold: str) -> Path:
     return Path("data") / "folds" / regime / fold
 
 
-def checkpoint(regime: str, fold: str, model: str) -> Path:
+def checkpoint(regime: str, fold: str, model: str, task: str = "fundamental") -> Path:
+    if task == "essential":  # one model per fold (essential_train)
+        return Path("checkpoints") / "essential" / regime / f"{fold}.pt"
     return Path("checkpoints") / "folds" / regime / fold / f"{model}.pt"
 
 
-def eval_dir(regime: str, fold: str, method: str, iterations: int) -> Path:
-    return Path("reports") / "eval" / "folds" / regime / fold / method / f"i{int(iterations)}"
+def eval_dir(regime: str, fold: str, method: str, iterations: int, task: str = "fundamental") -> Path:
+    return Path("reports") / "eval" / SUB[task] / regime / fold / method / f"i{int(iterations)}"
+
+
+SUB = {"fundamental": "folds", "essential": "essential"}  # reports/eval/<sub>/ of each task's fold benchmark
 
 
 def check_options(options: dict[str, Any], p: dict[str, Any] | None = None) -> dict[str, Any]:
@@ -212,6 +250,9 @@ def check_options(options: dict[str, Any], p: dict[str, Any] | None = None) -> d
         if o["regime"] not in p["regimes"]:
             raise RlsacError(f"unknown regime {o['regime']!r} (known: {', '.join(p['regimes'])})")
         split_scenes(p, o["fold"] or "")
+        if o["stage"] in ("data", "train") and o["task"] != "fundamental":
+            raise RlsacError(f"folds --stage {o['stage']} is the fundamental benchmark's (the essential task reads its "
+                             "data; its models train with `rlsac train --task essential`)")
         if o["stage"] == "train" and o["regime"] != p["model_regime"]:
             raise RlsacError(f"models are trained on regime {p['model_regime']!r} only (folds.model_regime)")
         if o["stage"] == "train" and o["model"] is not None and o["model"] not in p["models"]:
@@ -336,11 +377,12 @@ def tune_fold(p: dict, params: dict, regime: str, fold: str, o: dict, track: boo
     if not val.is_file():
         raise RlsacError(f"{val}: no such file (run `rlsac folds --stage data` first)")
     chosen_rows = _selected(p, fold, o)
-    data, _ = task_class("fundamental").read(val)
+    task = p["task"]
+    data, _ = task_class(task).read(val)
     train_scenes, test_scenes = (scene_list(s) for s in split_scenes(p, fold))
     val_scenes = tune.scenes_of(data)
     tune.check_scenes(val_scenes, train_scenes, test_scenes, str(val))
-    ev = section(params, "evaluate", "fundamental")
+    ev = section(params, "evaluate", task)
     device = resolve_device(o["device"])
     out = []
     for name, row in chosen_rows.items():
@@ -349,17 +391,18 @@ def tune_fold(p: dict, params: dict, regime: str, fold: str, o: dict, track: boo
         def run(options):
             return score(check_options(options), data, device)[0]
 
-        tags = {"benchmark": "folds", "regime": regime, "fold": fold, "row": name}
-        with start_run("fundamental", f"tune folds {regime} {fold} {name}", params={**base, "grid": c},
+        tags = {"benchmark": SUB[task], "regime": regime, "fold": fold, "row": name}
+        with start_run(task_class(task).experiment, f"tune {SUB[task]} {regime} {fold} {name}",
+                       params={**base, "grid": c},
                        tags=tags, enabled=track) as mlrun:
             best, points = tune.search(run, base, c, row["knobs"])
             top = next(pt for pt in points if pt["settings"] == best)
-            record = {"regime": regime, "fold": fold, "row": name, "method": row["method"],
+            record = {"task": task, "regime": regime, "fold": fold, "row": name, "method": row["method"],
                       "checkpoint": base["checkpoint"], "data": str(val), "val_scenes": val_scenes,
                       "val_pairs": int(len(data["pair"])), "iterations": c["iterations"], "seed": int(p["seed"]),
                       "criterion": f"validation {tune.CRITERION}@10deg of max(err_R, err_t)", "chosen": best,
                       "val": {k: top[k] for k in ("mAA", "mAA_R", "mAA_t")}, "grid": points}
-            write_json(tune.record_path(regime, fold, name), record)
+            write_json(tune.record_path(regime, fold, name, task), record)
             mlrun.metrics({f"val_{k}": v for k, v in record["val"].items()})
             mlrun.params({f"chosen.{k}": v for k, v in best.items()})
         out.append({"row": name, "chosen": best, **record["val"]})
@@ -380,10 +423,11 @@ def evaluate_fold(p: dict, params: dict, regime: str, fold: str, o: dict, track:
         raise RlsacError(f"{test}: no such file (run `rlsac folds --stage data` first)")
     chosen_rows = _selected(p, fold, o)
     train_scenes, test_scenes = (scene_list(s) for s in split_scenes(p, fold))
-    ev = section(params, "evaluate", "fundamental")
+    task = p["task"]
+    ev = section(params, "evaluate", task)
     settings = {}
     for name in chosen_rows:  # every record read and checked before the first evaluation
-        path = tune.record_path(regime, fold, name)
+        path = tune.record_path(regime, fold, name, task)
         if not path.is_file():
             raise RlsacError(f"{path}: no tuning record (run `rlsac folds --stage tune` first)")
         try:
@@ -394,10 +438,10 @@ def evaluate_fold(p: dict, params: dict, regime: str, fold: str, o: dict, track:
                                          ev.get("lo"))
     jobs = []
     for name, row in chosen_rows.items():
-        for it in p["iterations"]:
-            tags = {"benchmark": "folds", "regime": regime, "fold": fold, "model": name}
+        for it in p["iterations"][regime]:
+            tags = {"benchmark": SUB[task], "regime": regime, "fold": fold, "model": name}
             jobs.append((name, int(it), {**row_options(row, p, ev, o), **settings[name], "data": str(test),
-                                         "iterations": int(it), "out_dir": str(eval_dir(regime, fold, name, it)),
+                                         "iterations": int(it), "out_dir": str(eval_dir(regime, fold, name, it, task)),
                                          "tags": tags}))
     # every evaluation checked (its checkpoint loaded, the test file read) before the first one writes anything
     check_all([opts for _, _, opts in jobs], track)
@@ -415,7 +459,7 @@ def folds(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
 
     o = check_options(options)
     params = read_params(o["params"])
-    p = protocol(params)
+    p = for_task(protocol(params), params, o["task"])
     o = check_options(options, p)
     if int(o["threads"]) > 0:
         import torch
@@ -423,7 +467,7 @@ def folds(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
         torch.set_num_threads(int(o["threads"]))
     t0 = time.time()
     regime, fold = o["regime"], o["fold"]
-    result: dict[str, Any] = {"stage": o["stage"], "regime": regime, "fold": fold}
+    result: dict[str, Any] = {"stage": o["stage"], "task": o["task"], "regime": regime, "fold": fold}
     if o["stage"] == "data":
         made = make_data(p, section(params, "fundamental"), regime, fold, track)
         result["files"] = {k: {"out": v["out"], "pairs": v["pairs"], "skipped": v["skip_reasons"],
@@ -441,6 +485,8 @@ def folds(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
 
 
 def format_summary(s: dict[str, Any]) -> str:
+    from rlsac import tune
+
     head = f"folds {s['stage']} {s['regime']}/{s['fold']} ({s['seconds']} s): "
     if s["stage"] == "data":
         return head + "; ".join(f"{k} {v['pairs']} pairs, inlier ratio {v['mean_gt_inlier_ratio']:.2f} -> {v['out']}"
@@ -450,6 +496,6 @@ def format_summary(s: dict[str, Any]) -> str:
                                 f"{v['best_step']})" for m, v in s["models"].items())
     if s["stage"] == "tune":
         return head + "; ".join(f"{t['row']}: {t['chosen']} (val mAA {t['mAA']:.3f})" for t in s["tuned"]) + (
-            f" -> {Path('reports/tuning') / s['regime'] / s['fold']}")
+            f" -> {tune.record_path(s['regime'], s['fold'], '-', s['task']).parent}")
     return head + "; ".join(f"{e['method']}@{e['iterations']} R {e['mAA_R']:.3f} t {e['mAA_t']:.3f}"
-                            for e in s["evaluations"]) + f" -> {Path('reports/eval/folds') / s['regime'] / s['fold']}"
+                            for e in s["evaluations"]) + f" -> {eval_dir(s['regime'], s['fold'], '-', 1, s['task']).parent.parent}"

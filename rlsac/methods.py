@@ -166,7 +166,8 @@ def _with_lo(base: str):
     return build
 
 
-for _base, _label in (("ransac", "RANSAC"), ("uniform", "Uniform"), ("rlsac", "RLSAC")):  # not in the paper
+for _base, _label in (("ransac", "RANSAC"), ("uniform", "Uniform"), ("guided", "Guided"),
+                      ("rlsac", "RLSAC")):  # not in the paper: the same-LO arm (issue #26)
     register_method(f"{_base}-lo", f"{_label} + LO (not in the paper)", needs=METHODS[_base].needs,
                     checkpoint=METHODS[_base].checkpoint, lo=True)(_with_lo(_base))
 

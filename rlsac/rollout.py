@@ -94,7 +94,7 @@ def rlsac_estimate(task: Task, batch: dict, actor: Actor | None, iterations: int
         if record:
             steps.append(_snapshot(env))
     out = env.result()
-    out["hypotheses"] = env.hypotheses
+    out["hypotheses"] = env.spent.clone()  # (B,) minimal sets scored per instance (< budget after a confidence stop)
     if record:
         out["steps"] = steps
     return out

@@ -6,15 +6,18 @@ above it dropped before fitting), at confidence 0.999. Here every row of the fol
 model, their -lo and -fast variants) is tuned on its fold's ``val.h5`` (pairs of the training buildings, never of
 the test building), at ``tuning.iterations``, by coordinate search:
 
-1. the full grid ``threshold_px`` x ``prefilter`` (1.0 = no pre-filter: not in the tutorial's grid, added because
-   our data are already the matches below 0.8); a best threshold on an edge of the grid extends the grid outward
-   (x1.5 above, /1.5 below) up to ``extend`` times, so the optimum is never an artefact of the grid;
+1. the ``threshold_px`` grid at pre-filter ``start_prefilter`` (0.8, Lowe's ratio), then the ``prefilter`` grid at
+   the chosen threshold (1.0 = no pre-filter: not in the tutorial's grid, added because our matches are already
+   filtered), alternating for at most ``rounds`` rounds until neither moves: 9-15 points where the full grid
+   costs 24 (CPU time; the RLSAC rows run a network per point). A best threshold on an edge of the grid extends
+   the grid outward (x1.5 above, /1.5 below), at most ``extend`` times in all, so the optimum is never an artefact
+   of the grid;
 2. then, at the chosen pair, the row's own knobs one grid at a time: ``guide_temperature`` (guided), ``lo_sigma_scale``
    (the -lo rows: MAGSAC++'s sigma_max as a multiple of the threshold), ``sets_per_step`` then ``confidence`` (the
    -fast rows; the paper rows keep one set per step and the whole budget).
 
 Criterion: validation mAA@10 deg of max(err_R, err_t), the tutorial's; a tie keeps the earlier grid point. The record
-``reports/tuning/<regime>/<fold>/<row>.json`` holds the chosen settings, every grid point's validation mAA and the
+``reports/tuning/<task>/<regime>/<fold>/<row>.json`` holds the chosen settings, every grid point's validation mAA and the
 validation scenes; the fold's evaluation reads it and refuses one whose scenes meet its test scenes
 (``check_record``).
 """
@@ -32,6 +35,8 @@ DEFAULTS: dict[str, Any] = {
     "threshold_px": [0.1, 0.2, 0.25, 0.5, 0.75, 1.0],
     "prefilter": [0.75, 0.8, 0.85, 1.0],
     "extend": 3,
+    "start_prefilter": 0.8,
+    "rounds": 2,
     "guide_temperature": [0.02, 0.05, 0.1, 0.2],
     "lo_sigma_scale": [0.25, 0.5, 1.0],
     "sets_per_step": [2, 4, 8, 12, 16],
@@ -52,6 +57,8 @@ def conf(params: dict[str, Any]) -> dict[str, Any]:
     c = {**copy.deepcopy(DEFAULTS), **copy.deepcopy(given)}
     c["iterations"] = check_value("tuning.iterations", c["iterations"], int, "[1, inf)")
     c["extend"] = check_value("tuning.extend", c["extend"], int, "[0, 10]")
+    c["rounds"] = check_value("tuning.rounds", c["rounds"], int, "[1, 10]")
+    c["start_prefilter"] = check_value("tuning.start_prefilter", c["start_prefilter"], float, "(0, 1]")
     from rlsac.evaluate import RANGES, TYPES
 
     # each grid's values are evaluate options (their types and ranges), but the LO sigma, an LOConf field
@@ -65,8 +72,8 @@ def conf(params: dict[str, Any]) -> dict[str, Any]:
     return c
 
 
-def record_path(regime: str, fold: str, row: str) -> Path:
-    return Path("reports") / "tuning" / regime / fold / f"{row}.json"
+def record_path(regime: str, fold: str, row: str, task: str = "fundamental") -> Path:
+    return Path("reports") / "tuning" / task / regime / fold / f"{row}.json"
 
 
 def scenes_of(data: dict) -> list[str]:
@@ -127,14 +134,23 @@ def search(run, base: dict[str, Any], c: dict[str, Any], knobs: list[str]) -> tu
         return cache[key][CRITERION]
 
     thresholds, filters = list(c["threshold_px"]), list(c["prefilter"])
-    best: dict[str, Any] = {}
-    for extend_left in range(c["extend"], -1, -1):
-        grid = [{"threshold_px": t, "prefilter": f} for t in thresholds for f in filters]
+    start = c["start_prefilter"] if c["start_prefilter"] in filters else filters[0]
+    best: dict[str, Any] = {"threshold_px": thresholds[0], "prefilter": start}
+    extend_left = c["extend"]
+    for _ in range(c["rounds"]):  # alternate: the threshold grid (extended at an edge), then the pre-filter grid
+        before = dict(best)
+        while True:
+            grid = [{**best, "threshold_px": t} for t in thresholds]
+            best = max(grid, key=lambda s: (score(s), -grid.index(s)))
+            more = _edges(thresholds, best["threshold_px"], extend_left)
+            if not more:
+                break
+            extend_left -= 1
+            thresholds = sorted(thresholds + more)
+        grid = [{**best, "prefilter": f} for f in filters]
         best = max(grid, key=lambda s: (score(s), -grid.index(s)))
-        more = _edges(thresholds, best["threshold_px"], extend_left)
-        if not more:
+        if best == before:
             break
-        thresholds = sorted(thresholds + more)
     for knob in knobs:
         grid = [{**best, knob: v} for v in c[knob]]
         best = max(grid, key=lambda s: (score(s), -grid.index(s)))

@@ -137,7 +137,7 @@ def test_uniform_control_uses_the_rlsac_environment(imported, tmp_path):
     d = _prep(imported, tmp_path, "u", scenes="fountain-P11")
     batch = fundamental.to_batch(d, [0, 1])
     out = rlsac_estimate(FundamentalTask(), batch, None, 45, generator=torch.Generator().manual_seed(0), record=True)
-    assert out["hypotheses"] == 2 * 45 and len(out["steps"]) == 15  # 2 pairs x 3 episodes x psi=15
+    assert out["hypotheses"].tolist() == [45, 45] and len(out["steps"]) == 15  # per pair: 3 episodes x psi=15
     keys = torch.stack([set_keys(s["minimal_set"], 40) for s in out["steps"]]).view(15, 2, 3)  # (t, B, E)
     for b in range(2):
         assert keys[:, b].unique().numel() == 45
@@ -304,10 +304,11 @@ def test_folds_command_end_to_end(imported, tmp_path, monkeypatch):
     val.write_bytes(kept)
     r = run.invoke(cli, base + ["--stage", "tune", "--only", "uniform"])
     assert r.exit_code == 0, r.output
-    record_path = tmp_path / "reports/tuning/hard/fountain/uniform.json"
+    record_path = tmp_path / "reports/tuning/fundamental/hard/fountain/uniform.json"
     record = json.loads(record_path.read_text())
     assert record["val_scenes"] == ["entry-P10"] and record["data"].endswith("val.h5")
-    assert len(record["grid"]) == 4 and record["chosen"]["threshold_px"] in (1.0, 2.0)
+    # coordinate search: the 2 thresholds at pre-filter 0.9, then pre-filter 1.0 at the better one
+    assert len(record["grid"]) == 3 and record["chosen"]["threshold_px"] in (1.0, 2.0)
     good = record_path.read_text()
     record_path.write_text(json.dumps({**record, "val_scenes": ["entry-P10", "fountain-P11"]}))  # pooled val pairs
     r = run.invoke(cli, base + ["--stage", "evaluate", "--only", "uniform"])
@@ -331,7 +332,7 @@ def test_folds_command_end_to_end(imported, tmp_path, monkeypatch):
     assert [h["step"] for h in paper["history"]][:2] == [4, 8]
     r = run.invoke(cli, base + ["--stage", "tune"])
     assert r.exit_code == 0, r.output
-    fast = json.loads((tmp_path / "reports/tuning/hard/fountain/rlsac-fast.json").read_text())
+    fast = json.loads((tmp_path / "reports/tuning/fundamental/hard/fountain/rlsac-fast.json").read_text())
     assert {"sets_per_step", "confidence"} <= set(fast["chosen"])
     r = run.invoke(cli, base + ["--stage", "evaluate"])
     assert r.exit_code == 0, r.output
