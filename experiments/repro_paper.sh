@@ -23,8 +23,7 @@ mkdir -p logs
 line_stages() {  # the line stages of the given outlier rates
   local r s out=""
   for r in "$@"; do
-    for s in lines_data train_lines eval_lines_ransac eval_lines_ours eval_lines_oracle eval_lines_generalisation \
-      eval_lines_ransac_lo eval_lines_ours_lo; do
+    for s in lines_data train_lines eval_lines_ransac eval_lines_ours eval_lines_oracle eval_lines_generalisation; do
       out="$out $s@$r"
     done
   done

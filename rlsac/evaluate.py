@@ -59,8 +59,8 @@ DEFAULTS: dict[str, Any] = {
     "tags": None,  # extra MLflow run tags, e.g. {"ablation": "sampling", "variant": "full"} (rlsac.ablate)
     "threads": None,  # None = THREADS
     # guided: minimal sets drawn with probabilities ~ exp(-SNN / guide_temperature) in the RLSAC environment, a
-    # hand-made sampler that uses the same side information as the policy (not in the paper). 0.1 was the best
-    # of {0.02, 0.05, 0.1, 0.2} on the hard-regime fold validation pairs at 100 iterations (reports/folds.md)
+    # hand-made sampler that uses the same side information as the policy (not in the paper). 0.1: the middle of
+    # the tuning grid; the fold benchmark tunes T per fold on validation pairs (rlsac.tune)
     "guide_temperature": 0.1,
     "lo": None,  # *-lo methods: rlsac.lo.LOConf options (params.yaml evaluate.<task>.lo); ignored by the others
     # RLSAC: recompute the policy's logits every this many steps (1 = every step, the paper; a speed lever of
@@ -76,6 +76,8 @@ DEFAULTS: dict[str, Any] = {
     # pre-filter, matches whose SNN ratio is above it are dropped before the method sees the pair
     "threshold_px": None,
     "prefilter": None,
+    # our samplers' final refit on the inliers (None = the task's ``refit_output``); tuned on validation for Table E
+    "refit_output": None,
 }
 # sets_per_step's fixed cap (the data bound it further: check_sets_per_step). One step draws (R, 2k, N) random
 # numbers and remembers R k sets: 1024 keeps that near 200 MB for a batch of 256 line instances; the measured
@@ -92,7 +94,7 @@ TIMING_KEYS = ("seconds", "seconds_per_instance", "lo_seconds_per_instance", "lo
 TYPES = {"checkpoint": str, "iterations": int, "steps_per_episode": int, "seed": int, "device": str,
          "batch_size": int, "out_dir": str, "sampling": str, "tags": dict, "threads": int, "guide_temperature": float,
          "lo": dict, "policy_every": int, "sets_per_step": int, "confidence": float, "threshold_px": float,
-         "prefilter": float}
+         "prefilter": float, "refit_output": bool}
 RANGES = {"iterations": "[1, inf)", "steps_per_episode": "[1, inf)", "seed": SEED_RANGE,
           "device": ("auto", "cpu", "cuda"), "batch_size": "[1, inf)", "sampling": ("max", "prob"),
           "threads": "[0, inf)", "guide_temperature": "(0, inf)", "policy_every": "[1, inf)",

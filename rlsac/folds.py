@@ -42,6 +42,10 @@ DEFAULTS: dict[str, Any] = {
     "seed": 0,
     "model_regime": "hard",
     "lo_models": [],
+    # our samplers with rlsac.lo (the same-LO arm): rows <method>, e.g. ransac-lo, in variant_regimes only
+    "lo_methods": [],
+    # regimes of the variant rows (lo_methods, <model>-lo, <model>-fast); None = every regime
+    "variant_regimes": None,
     # models also run with the speed levers of issue #17 (several sets per step, the confidence stop), k and the
     # confidence tuned on validation: rows <model>-fast (not in the paper; the plain rows are the paper's algorithm)
     "fast": [],
@@ -80,6 +84,11 @@ def protocol(params: dict[str, Any]) -> dict[str, Any]:
     bad = [m for m in p["methods"] if m not in METHODS or m in ("rlsac", "rlsac-lo", "oracle")]
     if bad:
         raise RlsacError(f"folds.methods {bad}: not a baseline of `rlsac evaluate` (RLSAC models go in folds.models)")
+    bad = [m for m in p["lo_methods"] if m not in METHODS or not METHODS[m].lo or METHODS[m].checkpoint]
+    if bad:
+        raise RlsacError(f"folds.lo_methods {bad}: not a -lo baseline of `rlsac evaluate` (rlsac-lo: folds.lo_models)")
+    if not set(p["variant_regimes"]) <= set(p["regimes"]):
+        raise RlsacError(f"folds.variant_regimes {p['variant_regimes']} must be regimes of {p['regimes']}")
     if not set(p["lo_models"]) <= set(p["models"]):
         raise RlsacError(f"folds.lo_models {p['lo_models']} must be models of folds.models {p['models']}")
     clash = sorted(set(p["models"]) & set(METHODS))
@@ -96,20 +105,24 @@ def protocol(params: dict[str, Any]) -> dict[str, Any]:
     return p
 
 
-def rows(p: dict[str, Any], fold: str) -> dict[str, dict[str, Any]]:
-    """Every row of the fold benchmark -> {method (evaluate's), checkpoint (RLSAC rows), fast (the -fast
-    variant), knobs (the settings tuned after threshold x pre-filter, rlsac.tune)}."""
+def rows(p: dict[str, Any], fold: str, regime: str | None = None) -> dict[str, dict[str, Any]]:
+    """Every row of the fold benchmark in ``regime`` (None: any) -> {method (evaluate's), checkpoint (RLSAC rows),
+    fast (the -fast variant), knobs (the settings tuned after threshold x pre-filter, rlsac.tune)}; the variant rows
+    (lo_methods, <model>-lo, <model>-fast) only in ``variant_regimes``."""
     trained, task = p["model_regime"], p.get("task", "fundamental")  # every regime: the models of this one's data
     out = {m: {"method": m, "checkpoint": None} for m in p["methods"]}
     out.update({m: {"method": "rlsac", "checkpoint": checkpoint(trained, fold, m, task)} for m in p["models"]})
-    out.update({f"{m}-lo": {"method": "rlsac-lo", "checkpoint": checkpoint(trained, fold, m, task)}
-                for m in p["lo_models"]})
-    out.update({f"{m}-fast": {**out[m], "fast": True} for m in p["fast"]})
+    if regime is None or regime in p.get("variant_regimes", p["regimes"]):
+        out.update({m: {"method": m, "checkpoint": None} for m in p.get("lo_methods", [])})
+        out.update({f"{m}-lo": {"method": "rlsac-lo", "checkpoint": checkpoint(trained, fold, m, task)}
+                    for m in p["lo_models"]})
+        out.update({f"{m}-fast": {**out[m], "fast": True} for m in p["fast"]})
     for r in out.values():
         r.setdefault("fast", False)
-        r["knobs"] = (["guide_temperature"] if r["method"] == "guided" else []) + (
+        r["knobs"] = (["guide_temperature"] if r["method"] in ("guided", "guided-lo") else []) + (
             ["lo_sigma_scale"] if r["method"].endswith("-lo") else []) + (
-            ["sets_per_step", "confidence"] if r["fast"] else [])
+            ["sets_per_step", "confidence"] if r["fast"] else []) + (
+            ["refit_output"] if task == "essential" and r["method"] in OUR_SAMPLERS else [])
     return out
 
 
@@ -127,7 +140,9 @@ def _typed(p: dict[str, Any]) -> dict[str, Any]:
     `folds.iterations: ["x"]` were tracebacks, some only in the stage that reads them); -> the section, typed."""
     from rlsac.config import SEED_RANGE, check_value
 
-    for key in ("test", "regimes", "methods", "models", "lo_models", "fast"):
+    if p["variant_regimes"] is None:
+        p["variant_regimes"] = list(p["regimes"])
+    for key in ("test", "regimes", "methods", "models", "lo_models", "fast", "lo_methods", "variant_regimes"):
         if not isinstance(p[key], list):
             raise RlsacError(f"folds.{key} must be a list, got {p[key]!r}")
         p[key] = [check_value(f"folds.{key}", v, str) for v in p[key]]
@@ -207,6 +222,7 @@ def for_task(p: dict[str, Any], params: dict[str, Any], task: str) -> dict[str, 
         raise RlsacError(f"folds --task must be fundamental or essential, got {task!r}")
     e = check_essential(params)
     return {**p, "task": task, "methods": list(e["methods"]), "models": ["rlsac"], "lo_models": [], "fast": [],
+            "lo_methods": [], "variant_regimes": [e["regime"]],
             "regimes": [e["regime"]], "model_regime": e["regime"], "iterations": {e["regime"]: list(e["iterations"])}}
 
 
@@ -236,7 +252,9 @@ def eval_dir(regime: str, fold: str, method: str, iterations: int, task: str = "
     return Path("reports") / "eval" / SUB[task] / regime / fold / method / f"i{int(iterations)}"
 
 
-SUB = {"fundamental": "folds", "essential": "essential"}  # reports/eval/<sub>/ of each task's fold benchmark
+SUB = {"fundamental": "folds", "essential": "essential"}
+# our samplers, whose output is refit on its inliers unless the task says otherwise (OpenCV's rows have their own)
+OUR_SAMPLERS = ("uniform", "guided", "ransac", "rlsac")  # reports/eval/<sub>/ of each task's fold benchmark
 
 
 def check_options(options: dict[str, Any], p: dict[str, Any] | None = None) -> dict[str, Any]:
@@ -259,10 +277,11 @@ def check_options(options: dict[str, Any], p: dict[str, Any] | None = None) -> d
             raise RlsacError(f"unknown model {o['model']!r} (known: {', '.join(p['models'])})")
         if o["only"] is not None:
             o["only"] = [s.strip() for s in str(o["only"]).split(",") if s.strip()]
-            known = set(rows(p, o["fold"]))
+            known = set(rows(p, o["fold"], o["regime"]))
             bad = sorted(set(o["only"]) - known)
             if bad or not o["only"]:
-                raise RlsacError(f"--only {bad or o['only']}: not in folds.methods or folds.models")
+                raise RlsacError(f"--only {bad or o['only']}: not a row of regime {o['regime']!r} (folds.methods, "
+                                 "models, lo_methods; variants only in folds.variant_regimes)")
     return o
 
 
@@ -349,10 +368,10 @@ def train_models(p: dict, params: dict, regime: str, fold: str, models: list[str
 
 
 def _selected(p: dict, fold: str, o: dict) -> dict[str, dict[str, Any]]:
-    """The rows of ``--only`` (every row without it), their checkpoints checked before any work."""
+    """The rows of ``--only`` (every row of the regime without it), their checkpoints checked before any work."""
     from rlsac.checkpoint import read as read_checkpoint
 
-    table = rows(p, fold)
+    table = rows(p, fold, o["regime"])
     only = o.get("only") or list(table)
     chosen = {r: table[r] for r in table if r in only}
     for r in chosen.values():

@@ -14,7 +14,8 @@ the test building), at ``tuning.iterations``, by coordinate search:
    of the grid;
 2. then, at the chosen pair, the row's own knobs one grid at a time: ``guide_temperature`` (guided), ``lo_sigma_scale``
    (the -lo rows: MAGSAC++'s sigma_max as a multiple of the threshold), ``sets_per_step`` then ``confidence`` (the
-   -fast rows; the paper rows keep one set per step and the whole budget).
+   -fast rows; the paper rows keep one set per step and the whole budget), ``refit_output`` (our samplers on the
+   essential matrix, Table E: the 8-point refit projected onto the essential manifold, or the best minimal model).
 
 Criterion: validation mAA@10 deg of max(err_R, err_t), the tutorial's; a tie keeps the earlier grid point. The record
 ``reports/tuning/<task>/<regime>/<fold>/<row>.json`` holds the chosen settings, every grid point's validation mAA and the
@@ -41,6 +42,7 @@ DEFAULTS: dict[str, Any] = {
     "lo_sigma_scale": [0.25, 0.5, 1.0],
     "sets_per_step": [2, 4, 8, 12, 16],
     "confidence": [0.99, 0.999, 0.9999],
+    "refit_output": [False, True],
 }
 CRITERION = "mAA"  # the task summary's mAA of max(err_R, err_t) at 10 deg
 EXTEND_FACTOR = 1.5
@@ -65,6 +67,9 @@ def conf(params: dict[str, Any]) -> dict[str, Any]:
     ranges = {k: (TYPES[k], RANGES[k]) for k in ("threshold_px", "prefilter", "guide_temperature", "sets_per_step",
                                                  "confidence")}
     ranges["lo_sigma_scale"] = (float, "(0, inf)")
+    if not isinstance(c["refit_output"], list) or not c["refit_output"]:
+        raise RlsacError(f"tuning.refit_output must be a non-empty list, got {c['refit_output']!r}")
+    c["refit_output"] = [check_value("tuning.refit_output", v, bool) for v in c["refit_output"]]
     for key, (tp, spec) in ranges.items():
         if not isinstance(c[key], list) or not c[key]:
             raise RlsacError(f"tuning.{key} must be a non-empty list, got {c[key]!r}")

@@ -99,7 +99,8 @@ def test_evaluate_ransac_writes_csv_json_and_mlflow_run(workdir):
     assert r.exit_code == 0, r.output
     assert "mAA=" in r.stdout
     frame = pd.read_csv(workdir / "ev/errors.csv")
-    assert list(frame.columns) == ["instance", "err_deg", "n_inliers"] and len(frame) == 12
+    assert list(frame.columns) == ["instance", "err_deg", "n_hypotheses", "n_inliers"] and len(frame) == 12
+    assert (frame["n_hypotheses"] == 30).all()  # RANSAC scores every set of its budget
     assert frame["instance"].tolist() == list(range(12))
     summary = json.loads((workdir / "ev/summary.json").read_text())
     assert summary["method"] == "ransac" and summary["iterations"] == 30 and summary["n_instances"] == 12

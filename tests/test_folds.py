@@ -277,8 +277,10 @@ def test_folds_command_end_to_end(imported, tmp_path, monkeypatch):
         "folds": {"test": ["fountain"], "scenes": {"fountain": "fountain-P11", "entry": "entry-P10"},
                   "val_fraction": 0.3, "regimes": ["hard"], "pool": {"hard": 100},
                   "methods": ["uniform", "ransac"], "models": ["rlsac", "rlsac-ws"], "lo_models": ["rlsac-ws"],
+                  "lo_methods": ["ransac-lo", "guided-lo"],
                   "train": {"rlsac": {}, "rlsac-ws": {"sac": {"warm_start_updates": 2}, "selection": "val_mAA"}},
                   "iterations": [15], "seed": 0, "fast": ["rlsac"]},
+        "essential": {"regime": "hard", "methods": ["ransac", "usac"], "iterations": [15]},
         "tuning": {"iterations": 15, "threshold_px": [1.0, 2.0], "prefilter": [0.9, 1.0], "extend": 0,
                    "guide_temperature": [0.1], "lo_sigma_scale": [0.5], "sets_per_step": [2], "confidence": [0.99]},
     }
@@ -336,11 +338,34 @@ def test_folds_command_end_to_end(imported, tmp_path, monkeypatch):
     assert {"sets_per_step", "confidence"} <= set(fast["chosen"])
     r = run.invoke(cli, base + ["--stage", "evaluate"])
     assert r.exit_code == 0, r.output
-    for m in ("uniform", "ransac", "rlsac", "rlsac-ws", "rlsac-ws-lo", "rlsac-fast"):
+    guided_lo = json.loads((tmp_path / "reports/tuning/fundamental/hard/fountain/guided-lo.json").read_text())
+    assert {"guide_temperature", "lo_sigma_scale"} <= set(guided_lo["chosen"])  # the sampler's knob and LO's
+    for m in ("uniform", "ransac", "rlsac", "rlsac-ws", "rlsac-ws-lo", "rlsac-fast", "ransac-lo", "guided-lo"):
         s = json.loads((tmp_path / f"reports/eval/folds/hard/fountain/{m}/i15/summary.json").read_text())
         assert s["n_instances"] == 8 and s["iterations"] == 15
         assert ("lo" in s) == m.endswith("-lo")
     r = run.invoke(cli, ["table", "--which", "folds", "--no-tracking"])
     assert r.exit_code == 0, r.output
     md = (tmp_path / "reports/table2_folds.md").read_text()
-    assert "8 test pairs pooled over 1 folds" in md and "RLSAC + warm start" in md
+    assert "8 test pairs pooled over 1 folds" in md and "| same LO " in md
+    assert "Settings chosen on each fold's validation pairs" in md and ("SNN<0.9" in md or "no filter" in md)
+    errors = pd.read_csv(tmp_path / "reports/eval/folds/hard/fountain/uniform/i15/errors.csv")
+    assert (errors["n_hypotheses"] == 15).all()  # the paper's algorithm: the whole budget, every pair
+    # Table E through the same protocol: our RANSAC also tunes the final refit, OpenCV's rows do not
+    ess = base + ["--task", "essential"]
+    r = run.invoke(cli, ess + ["--stage", "train"])
+    assert r.exit_code == 2 and "essential" in r.output
+    r = run.invoke(cli, ess + ["--stage", "tune"])
+    assert r.exit_code == 2 and "no checkpoint checkpoints/essential/hard/fountain.pt" in r.output
+    r = run.invoke(cli, ess + ["--stage", "tune", "--only", "ransac,usac"])
+    assert r.exit_code == 0, r.output
+    rec = json.loads((tmp_path / "reports/tuning/essential/hard/fountain/ransac.json").read_text())
+    assert rec["task"] == "essential" and "refit_output" in rec["chosen"]
+    usac = json.loads((tmp_path / "reports/tuning/essential/hard/fountain/usac.json").read_text())
+    assert set(usac["chosen"]) == {"threshold_px", "prefilter"}
+    r = run.invoke(cli, ess + ["--stage", "evaluate", "--only", "ransac,usac"])
+    assert r.exit_code == 0, r.output
+    conf = json.loads((tmp_path / "reports/eval/essential/hard/fountain/ransac/i15/config.json").read_text())
+    assert conf["task"] == "essential" and conf["refit_output"] == rec["chosen"]["refit_output"]
+    usac_err = pd.read_csv(tmp_path / "reports/eval/essential/hard/fountain/usac/i15/errors.csv")
+    assert (usac_err["n_hypotheses"] <= 15).all()  # OpenCV: its stopping rule's bound, capped at the budget

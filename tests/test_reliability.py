@@ -464,7 +464,7 @@ CASES = [
     ("folds-iter-type", ["folds", "--stage", "data", "--regime", "hard", "--fold", "castle", "--params",
                          "{p_folds_iter}"], "folds.iterations must be an integer, got 'x'"),
     ("folds-iter-list", ["folds", "--stage", "train", "--regime", "hard", "--fold", "castle", "--params",
-                         "{p_folds_iter_scalar}"], "folds.iterations must be a list, got 100"),
+                         "{p_folds_iter_scalar}"], "folds.iterations must be a list of budgets (or regime -> list), got 100"),
     ("folds-seed", ["folds", "--stage", "evaluate", "--regime", "hard", "--fold", "castle", "--params",
                     "{p_folds_seed}"], "folds.seed must be in [0, 4294967295]"),
     ("folds-val", ["folds", "--stage", "data", "--regime", "easy", "--fold", "entry", "--params", "{p_folds_val}"],

@@ -110,3 +110,44 @@ def test_settings_that_saw_a_test_pair_are_refused():
 
 def test_scenes_of_reads_the_pair_scenes():
     assert tune.scenes_of({"scene": np.array(["b", "a", "b"])}) == ["a", "b"]
+
+
+def test_search_takes_a_second_round_when_the_prefilter_moves():
+    """The best threshold depends on the pre-filter (0.5 px with SNN < 0.8, 2 px without it, which scores higher):
+    round one finds 0.5 px at the start filter 0.8 and then prefers no filter; round two moves the threshold."""
+    def run(o):
+        f = o["prefilter"] or 1.0
+        base, want = (1.0, 0.5) if f == 0.8 else (3.0, 2.0)
+        v = base - abs(o["threshold_px"] - want)
+        return {"mAA": v, "mAA_R": v, "mAA_t": v}
+
+    c = _conf(threshold_px=[0.5, 1.0, 2.0, 3.0], prefilter=[0.8, 1.0], extend=0, rounds=2)
+    best, points = tune.search(run, {}, c, [])
+    assert best == {"threshold_px": 2.0, "prefilter": 1.0}
+    one, _ = tune.search(run, {}, {**c, "rounds": 1}, [])  # one round keeps the first pass's threshold
+    assert one == {"threshold_px": 0.5, "prefilter": 1.0}
+    # 4 thresholds at 0.8, the filter pass (1 new point), 3 new thresholds at 1.0 (0.5 px at 1.0 already scored)
+    assert len(points) == 4 + 1 + 3
+
+
+def test_opencv_hypotheses_bound_follows_the_stopping_rule():
+    from rlsac.baselines import stop_bound
+
+    # w = 0.5, m = 8, p = 0.999: log(0.001) / log(1 - 2^-8) = 1764.9 -> 1765
+    assert stop_bound(75, 150, 8, 0.999, 5000) == 1765
+    assert stop_bound(75, 150, 8, 0.999, 1000) == 1000  # capped at the budget
+    assert stop_bound(150, 150, 8, 0.999, 1000) == 1  # every point an inlier: the first set suffices
+    assert stop_bound(0, 150, 8, 0.999, 1000) == 1000  # no inliers: the whole budget
+    # w = 0.9, m = 7: log(0.001) / log(1 - 0.9^7) = 10.6 -> 11
+    assert stop_bound(135, 150, 7, 0.999, 1000) == 11
+
+
+def test_refit_output_option_reaches_the_task_and_only_where_it_exists():
+    assert task_for({"task": "essential", "refit_output": True}).refit_output is True
+    assert task_for({"task": "essential"}).refit_output is False  # the task's default
+    with pytest.raises(RlsacError, match="no refit_output"):
+        task_for({"task": "fundamental", "refit_output": True})
+    assert tune.conf({"tuning": {"refit_output": [True, False]}})["refit_output"] == [True, False]
+    for bad in ([], ["true"], True):
+        with pytest.raises(RlsacError):
+            tune.conf({"tuning": {"refit_output": bad}})

@@ -25,9 +25,12 @@ from rlsac.reports import figfile  # noqa: E402
 STYLE = {"uniform": ("tab:blue", "x"), "guided": ("tab:cyan", "<"), "prosac": ("olive", ">"),
          "ransac": ("tab:purple", "o"), "opencv_ransac": ("tab:gray", "s"),
          "usac": ("tab:orange", "^"), "usac_accurate": ("tab:brown", "v"), "magsac": ("tab:green", "D"),
-         "rlsac": ("tab:red", "*"), "rlsac-ws": ("darkred", "P"), "rlsac-1k": ("salmon", "X"),
-         "rlsac-nosnn": ("black", "1"), "rlsac-lean": ("orchid", "2"), "ransac-lo": ("violet", "h"),
-         "rlsac-lo": ("crimson", "p"), "rlsac-ws-lo": ("crimson", "p")}
+         "rlsac": ("tab:red", "*"), "rlsac-fast": ("salmon", "X"), "rlsac-nosnn": ("black", "1"),
+         "usac-nolo": ("tab:orange", "3"), "magsac-nolo": ("tab:green", "4"), "prosac-nolo": ("olive", "+"),
+         "ransac-lo": ("violet", "h"), "uniform-lo": ("royalblue", "8"), "guided-lo": ("darkcyan", "d"),
+         "rlsac-lo": ("crimson", "p")}
+# the paired-difference panels (Figure 4 on the folds): RLSAC against the controls and the strongest peers of each arm
+DIFF_ROWS = ("uniform", "guided", "ransac", "usac-nolo", "magsac-nolo", "prosac-nolo", "prosac", "magsac")
 
 
 def _save(fig, out_dir: Path, name: str) -> list[str]:
@@ -60,11 +63,16 @@ def plot_folds_iterations(csv: str | Path | pd.DataFrame, out_dir: Path, name: s
     Table E: essential_iterations; or the frame ``read_iterations`` read), saved as ``name``."""
     df = csv if isinstance(csv, pd.DataFrame) else read_iterations(csv, name)
     regimes = sorted(df["regime"].unique())
-    fig, axes = plt.subplots(len(regimes), 2, figsize=(11, 4 * len(regimes)), squeeze=False, layout="constrained")
+    diffs = "dR" in df and df["dR"].notna().any()  # the table's paired differences to RLSAC, with 95% intervals
+    per = 2 if diffs else 1
+    fig, axes = plt.subplots(per * len(regimes), 2, figsize=(11, 4 * per * len(regimes)), squeeze=False,
+                             layout="constrained")
     for r, regime in enumerate(regimes):
         d = df[df["regime"] == regime]
+        if diffs:
+            _plot_diffs(axes[per * r + 1], d, regime)
         for c, (col, what) in enumerate((("mAA_R", "rotation"), ("mAA_t", "translation"))):
-            ax = axes[r, c]
+            ax = axes[per * r, c]
             for m, g in d.groupby("method", sort=False):
                 g = g.sort_values("iterations")
                 colour, marker = STYLE.get(m, ("black", "."))
@@ -74,8 +82,29 @@ def plot_folds_iterations(csv: str | Path | pd.DataFrame, out_dir: Path, name: s
             ax.set_ylabel(f"pooled mAA@10° ({what})")
             ax.set_title(f"{regime} regime, {int(d['n_pairs'].max())} test pairs over all folds")
             ax.grid(alpha=0.3)
-    axes[0, 1].legend(loc="lower right", fontsize=8)
+    axes[0, 1].legend(loc="lower right", fontsize=7, ncol=2)
     return _save(fig, out_dir, name), ""
+
+
+def _plot_diffs(axes, d: pd.DataFrame, regime: str) -> None:
+    """RLSAC minus each of ``DIFF_ROWS`` against the budget, pooled, with the paired 95% interval as a band (the
+    table stores method - RLSAC; the sign is flipped so that above zero means RLSAC is ahead)."""
+    for c, (col, what) in enumerate((("dR", "rotation"), ("dt", "translation"))):
+        ax = axes[c]
+        for m in DIFF_ROWS:
+            g = d[d["method"] == m].sort_values("iterations")
+            if g.empty or g[col].isna().all():
+                continue
+            colour, marker = STYLE.get(m, ("black", "."))
+            ax.plot(g["iterations"], -g[col], marker=marker, color=colour, label=f"RLSAC − {m}")
+            ax.fill_between(g["iterations"], -g[f"{col}_hi"], -g[f"{col}_lo"], color=colour, alpha=0.12)
+        ax.axhline(0.0, color="black", lw=0.8)
+        ax.set_xscale("log")
+        ax.set_xlabel("iterations (hypotheses per pair)")
+        ax.set_ylabel(f"RLSAC − method, pooled mAA@10° ({what})")
+        ax.set_title(f"{regime}: paired differences, 95% interval (bootstrap over pairs)")
+        ax.grid(alpha=0.3)
+    axes[1].legend(loc="best", fontsize=7, ncol=2)
 
 
 def read_checkpoints(ckpt_root: str | Path) -> dict[Path, dict]:

@@ -462,6 +462,7 @@ def build(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
                 extra = {} if key == "folds" else {"sub": "essential", "stem": "tableE_essential",
                                                    "iterations_stem": "essential_iterations",
                                                    "head": folds.TABLE_E_HEAD}
+                extra["tuning"] = Path(out_dir) / "tuning" / ("fundamental" if key == "folds" else "essential")
                 got = folds.build(eval_root, out_dir, Path(out_dir) / "folds" / "data", **extra)
                 files += got["files"]
                 missing += got["missing"]

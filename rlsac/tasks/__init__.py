@@ -115,12 +115,16 @@ def task_from(name: str, options: dict[str, Any] | None = None) -> Task:
 
 def task_for(o: dict[str, Any], options: dict[str, Any] | None = None) -> Task:
     """The task of the resolved evaluate options ``o`` (with ``options``, e.g. a checkpoint's), its inlier
-    threshold set from ``o['threshold_px']`` when given."""
+    threshold set from ``o['threshold_px']`` and its final refit from ``o['refit_output']`` when given."""
+    import dataclasses
+
     task = task_from(o["task"], options)
     if o.get("threshold_px") is not None:
-        import dataclasses
-
         task = dataclasses.replace(task, threshold=task.px_thresholds(o["threshold_px"])[0])
+    if o.get("refit_output") is not None:
+        if not hasattr(task, "refit_output"):
+            raise RlsacError(f"task '{task.name}' has no refit_output option")
+        task = dataclasses.replace(task, refit_output=bool(o["refit_output"]))
     return task
 
 
