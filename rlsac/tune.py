@@ -10,7 +10,8 @@ the test building), at ``tuning.iterations``, by coordinate search:
    the chosen threshold (1.0 = no pre-filter: not in the tutorial's grid, added because our matches are already
    filtered), alternating for at most ``rounds`` rounds until neither moves: 9-15 points where the full grid
    costs 24 (CPU time; the RLSAC rows run a network per point). A best threshold on an edge of the grid extends
-   the grid outward (x1.5 above, /1.5 below), at most ``extend`` times in all, so the optimum is never an artefact
+   the grid outward (x1.5 above, /1.5 below), a best pre-filter on its strict edge extends it by ``prefilter_step``
+   (1.0, no filter, is the other edge), each at most ``extend`` times in all, so the optimum is never an artefact
    of the grid;
 2. then, at the chosen pair, the row's own knobs one grid at a time: ``guide_temperature`` (guided), ``lo_sigma_scale``
    (the -lo rows: MAGSAC++'s sigma_max as a multiple of the threshold), ``sets_per_step`` then ``confidence`` (the
@@ -37,6 +38,7 @@ DEFAULTS: dict[str, Any] = {
     "prefilter": [0.75, 0.8, 0.85, 1.0],
     "extend": 3,
     "start_prefilter": 0.8,
+    "prefilter_step": 0.05,
     "rounds": 2,
     "guide_temperature": [0.02, 0.05, 0.1, 0.2],
     "lo_sigma_scale": [0.25, 0.5, 1.0],
@@ -61,6 +63,7 @@ def conf(params: dict[str, Any]) -> dict[str, Any]:
     c["extend"] = check_value("tuning.extend", c["extend"], int, "[0, 10]")
     c["rounds"] = check_value("tuning.rounds", c["rounds"], int, "[1, 10]")
     c["start_prefilter"] = check_value("tuning.start_prefilter", c["start_prefilter"], float, "(0, 1]")
+    c["prefilter_step"] = check_value("tuning.prefilter_step", c["prefilter_step"], float, "(0, 1)")
     from rlsac.evaluate import RANGES, TYPES
 
     # each grid's values are evaluate options (their types and ranges), but the LO sigma, an LOConf field
@@ -141,7 +144,7 @@ def search(run, base: dict[str, Any], c: dict[str, Any], knobs: list[str]) -> tu
     thresholds, filters = list(c["threshold_px"]), list(c["prefilter"])
     start = c["start_prefilter"] if c["start_prefilter"] in filters else filters[0]
     best: dict[str, Any] = {"threshold_px": thresholds[0], "prefilter": start}
-    extend_left = c["extend"]
+    extend_left = filter_left = c["extend"]
     for _ in range(c["rounds"]):  # alternate: the threshold grid (extended at an edge), then the pre-filter grid
         before = dict(best)
         while True:
@@ -152,8 +155,14 @@ def search(run, base: dict[str, Any], c: dict[str, Any], knobs: list[str]) -> tu
                 break
             extend_left -= 1
             thresholds = sorted(thresholds + more)
-        grid = [{**best, "prefilter": f} for f in filters]
-        best = max(grid, key=lambda s: (score(s), -grid.index(s)))
+        while True:
+            grid = [{**best, "prefilter": f} for f in filters]
+            best = max(grid, key=lambda s: (score(s), -grid.index(s)))
+            lower = round(best["prefilter"] - c["prefilter_step"], 6)
+            if best["prefilter"] != min(filters) or filter_left <= 0 or lower <= 0:
+                break
+            filter_left -= 1  # the strictest filter won: try a stricter one (the grid's edge is not an optimum)
+            filters = sorted(filters + [lower])
         if best == before:
             break
     for knob in knobs:

@@ -151,3 +151,17 @@ def test_refit_output_option_reaches_the_task_and_only_where_it_exists():
     for bad in ([], ["true"], True):
         with pytest.raises(RlsacError):
             tune.conf({"tuning": {"refit_output": bad}})
+
+
+def test_prefilter_optimum_on_the_strict_edge_extends_the_grid():
+    """mAA peaks at SNN < 0.65, below the tutorial's grid: the filter grid grows by 0.05 until the peak is inside."""
+    def run(o):
+        v = 1.0 - abs((o["prefilter"] or 1.0) - 0.65) - abs(o["threshold_px"] - 1.0)
+        return {"mAA": v, "mAA_R": v, "mAA_t": v}
+
+    c = _conf(threshold_px=[0.5, 1.0, 2.0], prefilter=[0.75, 0.8, 0.85, 1.0], extend=3, rounds=2)
+    best, points = tune.search(run, {}, c, [])
+    assert best == {"threshold_px": 1.0, "prefilter": 0.65}
+    assert sorted({p["settings"]["prefilter"] for p in points}) == [0.6, 0.65, 0.7, 0.75, 0.8, 0.85, 1.0]
+    capped, _ = tune.search(run, {}, {**c, "extend": 1}, [])  # one extension only: stops at 0.7
+    assert capped["prefilter"] == 0.7

@@ -166,8 +166,9 @@ PROTOCOL = ("Every row's inlier threshold (px) and SNN pre-filter, and its own k
             "*no LO* (the sampler, scoring and one refit on the inliers: our rows and OpenCV's without LO or "
             "polisher), *same LO* (our samplers with the same local optimisation, rlsac.lo; not in the paper), "
             "*OpenCV LO+polish* (OpenCV's presets as they ship). `hypotheses`: minimal sets scored per pair, mean "
-            "over pairs; † OpenCV does not report its count: the bound of its stopping rule (confidence 0.999) at "
-            "the returned inlier ratio. ")
+            "over pairs (the LO rows' non-minimal fits are counted apart, `lo_fits_per_instance` in each cell's "
+            "summary.json); † OpenCV does not report its count: the bound of its stopping rule (confidence 0.999) "
+            "at the returned inlier ratio. ")
 TABLE2_HEAD = ("# Table 2 (folds): fundamental matrix, leave-one-building-out over the six Strecha scenes\n\n"
                "mAA@10° of the rotation (R) and translation (t) errors, pooled over every test pair of all folds and "
                "per test building. Each fold trains on the other buildings (validation: a held-out fifth of their "
