@@ -3,7 +3,7 @@
 ``ransac``: our own batched RANSAC for any task (uniform minimal sets, inlier count, refinement on
 the best hypothesis' inliers). ``oracle``: the refinement on the true inliers, the best any sampler
 followed by that refinement can do (synthetic data only). OpenCV's RANSAC / USAC / MAGSAC++ for
-fundamental matrices follow.
+fundamental matrices follow, then the peers of issue #29 (DEGENSAC, PoseLib) through the same loop.
 """
 
 from __future__ import annotations
@@ -166,3 +166,47 @@ def _numpy(x):
     import numpy as np
 
     return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+
+
+# Peers (issue #29): robust estimators researchers use, called through the task's ``<method>_fit`` (DEGENSAC:
+# pydegensac, F only; PoseLib: F and the calibrated relative pose). Each runs its own LO and final refinement (the
+# "own LO+polish" arm, as OpenCV's USAC presets), with the OpenCV rows' threshold and stopping confidence.
+PEERS = ("degensac", "poselib")
+
+
+def peer_estimate(task: Task, batch: dict, method: str, iterations: int, threshold: float | None = None,
+                  confidence: float | None = None, seed: int = 0) -> dict:
+    """A peer estimator (``PEERS``) of ``task`` per batch row on its valid points.
+
+    batch: coords (B, N, d), mask (B, N) -> hyp np (B, *H), valid np bool (B,), inliers np bool (B, N), hypotheses
+    np int (B,) (the count the library reports; the budget where it reports none). Seeding as ``opencv_estimate``:
+    ``seed`` permutes the points (DEGENSAC has no seed of its own) and seeds PoseLib; the inliers are permuted back.
+    """
+    import numpy as np
+
+    if method not in PEERS:
+        raise RlsacError(f"unknown peer method {method!r} (known: {', '.join(PEERS)})")
+    fit = getattr(task, f"{method}_fit", None)
+    if fit is None:
+        raise RlsacError(f"task '{task.name}' has no {method} estimator")
+    thr = task.opencv_threshold if threshold is None else float(threshold)
+    conf = OPENCV_CONFIDENCE if confidence is None else float(confidence)
+    coords, mask = _numpy(batch["coords"]), _numpy(batch["mask"]).astype(bool)
+    B, N = mask.shape
+    hyp, valid, inliers = np.zeros((B, *task.hypothesis_shape)), np.zeros(B, dtype=bool), np.zeros((B, N), dtype=bool)
+    hypotheses = np.full(B, int(iterations), dtype=np.int64)
+    rng = np.random.default_rng(seed)
+    for b in range(B):
+        idx = np.flatnonzero(mask[b])
+        if idx.size < task.sample_size:
+            continue
+        idx = idx[rng.permutation(idx.size)]
+        out = fit(np.ascontiguousarray(coords[b, idx], dtype=np.float64), thr, conf, int(iterations),
+                  int(rng.integers(0, 2**31 - 1)))
+        if out is None:
+            continue
+        hyp[b], valid[b] = out[0], True
+        inliers[b, idx] = out[1]
+        hypotheses[b] = out[2] if out[2] is not None else stop_bound(  # DEGENSAC reports no count: its stop's bound
+            int(np.count_nonzero(out[1])), idx.size, task.sample_size, conf, int(iterations))
+    return {"hyp": hyp, "valid": valid, "inliers": inliers, "hypotheses": hypotheses}

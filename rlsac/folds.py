@@ -50,7 +50,8 @@ DEFAULTS: dict[str, Any] = {
     # confidence tuned on validation: rows <model>-fast (not in the paper; the plain rows are the paper's algorithm)
     "fast": [],
 }
-OPTIONS: dict[str, Any] = {"stage": None, "regime": None, "fold": None, "model": None, "only": None, "task": "fundamental",
+OPTIONS: dict[str, Any] = {"stage": None, "regime": None, "fold": None, "model": None, "only": None,
+                           "task": "fundamental",
                            "params": "params.yaml",
                            "device": "auto", "threads": 1}
 
@@ -517,4 +518,5 @@ def format_summary(s: dict[str, Any]) -> str:
         return head + "; ".join(f"{t['row']}: {t['chosen']} (val mAA {t['mAA']:.3f})" for t in s["tuned"]) + (
             f" -> {tune.record_path(s['regime'], s['fold'], '-', s['task']).parent}")
     return head + "; ".join(f"{e['method']}@{e['iterations']} R {e['mAA_R']:.3f} t {e['mAA_t']:.3f}"
-                            for e in s["evaluations"]) + f" -> {eval_dir(s['regime'], s['fold'], '-', 1, s['task']).parent.parent}"
+                            for e in s["evaluations"]) + (
+        f" -> {eval_dir(s['regime'], s['fold'], '-', 1, s['task']).parent.parent}")

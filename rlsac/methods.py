@@ -32,6 +32,8 @@ class Method:
 
 
 CAPABILITIES = {"match_quality": "per-point match quality (the SNN ratio)", "opencv_fit": "an OpenCV estimator",
+                "degensac_fit": "a DEGENSAC estimator (pydegensac: fundamental matrices)",
+                "poselib_fit": "a PoseLib estimator (fundamental matrix, relative pose)",
                 "true_inlier_data": "the true inlier mask in its data (synthetic data)"}
 METHODS: dict[str, Method] = {}
 
@@ -149,6 +151,30 @@ OPENCV_METHODS.update({"usac-nolo": ("usac-nolo", "OpenCV USAC, no LO / polisher
                        "prosac-nolo": ("prosac-nolo", "OpenCV PROSAC, no LO / polisher")})
 for _name, (_flag, _label) in OPENCV_METHODS.items():
     register_method(_name, _label, needs="opencv_fit")(_opencv(_flag))
+
+
+# ------------------------------------------------------------------------------ peers (issue #29)
+def _peer(name: str):
+    """A peer robust estimator (rlsac.baselines.PEERS) through the task's ``<name>_fit``."""
+    def build(o, device, lo=None):
+        import torch
+
+        from rlsac.baselines import peer_estimate
+        from rlsac.tasks import opencv_threshold, task_for
+
+        task = task_for(o)
+        thr = opencv_threshold(o, task)
+
+        def estimate(batch, g):
+            seed = int(torch.randint(0, 2**31 - 1, (1,), generator=g, device=g.device).item())
+            return peer_estimate(task, batch, name, o["iterations"], threshold=thr, seed=seed)
+
+        return task, estimate, {}
+    return build
+
+
+register_method("degensac", "DEGENSAC (pydegensac; own LO)", needs="degensac_fit")(_peer("degensac"))
+register_method("poselib", "PoseLib LO-RANSAC (own LO and bundle adjustment)", needs="poselib_fit")(_peer("poselib"))
 
 
 # ------------------------------------------------------------------------------ local optimisation

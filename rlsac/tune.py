@@ -19,8 +19,8 @@ the test building), at ``tuning.iterations``, by coordinate search:
    essential matrix, Table E: the 8-point refit projected onto the essential manifold, or the best minimal model).
 
 Criterion: validation mAA@10 deg of max(err_R, err_t), the tutorial's; a tie keeps the earlier grid point. The record
-``reports/tuning/<task>/<regime>/<fold>/<row>.json`` holds the chosen settings, every grid point's validation mAA and the
-validation scenes; the fold's evaluation reads it and refuses one whose scenes meet its test scenes
+``reports/tuning/<task>/<regime>/<fold>/<row>.json`` holds the chosen settings, every grid point's validation mAA and
+the validation scenes; the fold's evaluation reads it and refuses one whose scenes meet its test scenes
 (``check_record``).
 """
 

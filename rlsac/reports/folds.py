@@ -36,12 +36,14 @@ MODEL_NAMES = {"rlsac": "RLSAC (paper recipe and algorithm)",
                "rlsac-fast": "RLSAC-fast: k sets per step, confidence stop, tuned (not in the paper)"}
 ROW_ORDER = ("uniform", "ransac", "opencv_ransac", "usac-nolo", "magsac-nolo", "prosac-nolo", "guided", "rlsac",
              "rlsac-nosnn", "rlsac-fast", "ransac-lo", "uniform-lo", "guided-lo", "rlsac-lo", "usac", "usac_accurate",
-             "magsac", "prosac")
+             "magsac", "prosac", "degensac", "poselib")
 # the like-for-like arms of issue #26: which machinery follows the sampler (a row not named is "no LO")
 ARMS = {"ransac-lo": "same LO", "uniform-lo": "same LO", "guided-lo": "same LO", "rlsac-lo": "same LO",
         "usac": "OpenCV LO+polish", "usac_accurate": "OpenCV LO+polish", "magsac": "OpenCV LO+polish",
-        "prosac": "OpenCV LO+polish"}
-OPENCV_ROWS = ("opencv_ransac", "usac", "usac_accurate", "magsac", "prosac", "usac-nolo", "magsac-nolo", "prosac-nolo")
+        "prosac": "OpenCV LO+polish", "degensac": "library LO+polish", "poselib": "library LO+polish"}
+# rows whose library reports no hypothesis count: the table gives their stopping rule's bound (†)
+OPENCV_ROWS = ("opencv_ransac", "usac", "usac_accurate", "magsac", "prosac", "usac-nolo", "magsac-nolo", "prosac-nolo",
+               "degensac")
 
 
 def arm(method: str) -> str:
@@ -238,10 +240,11 @@ def build(eval_root: str | Path = "reports/eval", out_dir: str | Path = "reports
             if not table:
                 continue
             t = pd.DataFrame(table)
-            show = t[["method", "arm", "hypotheses", "mAA_R", "mAA_t", *[c for f in folds for c in (f"{f} R", f"{f} t")],
-                      f"R − {REFERENCE}", f"t − {REFERENCE}"]].copy()
+            per_fold = [c for f in folds for c in (f"{f} R", f"{f} t")]
+            show = t[["method", "arm", "hypotheses", "mAA_R", "mAA_t", *per_fold, f"R − {REFERENCE}",
+                      f"t − {REFERENCE}"]].copy()
             show["hypotheses"] = [("–" if math.isnan(h) else f"{h:.0f}" + ("†" if m in OPENCV_ROWS else ""))
-                                  for m, h in zip(t["method"], t["hypotheses"])]
+                                  for m, h in zip(t["method"], t["hypotheses"], strict=True)]
             show["method"] = show["method"].map(lambda m: NAMES.get(m, m))
             for c in show.columns:
                 if show[c].dtype.kind == "f":

@@ -220,7 +220,8 @@ def table1(eval_root: str | Path = "reports/eval", out_dir: str | Path = "report
                + (f" (checkpoints: {', '.join(ckpts)})." if ckpts else ".")
                + " Ours and Ours-0.5 run the paper's algorithm (one minimal set per episode step, the whole budget; "
                + "params.yaml `evaluate.line`); each result's `config.json` / MLflow run records its settings. "
-               + "The oracle is the ceiling of this generator: the paper's Ours lies above it at every rate (issue #27).")
+               + "The oracle is the ceiling of this generator: the paper's Ours lies above it at every rate "
+               + "(issue #27).")
     paired = _paired_vs_ransac(root, rates)
     notes = ""
     if paired is not None:

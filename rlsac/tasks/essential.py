@@ -21,7 +21,7 @@ from rlsac import geometry
 from rlsac.data import fundamental as fundamental_data
 from rlsac.errors import RlsacError
 from rlsac.tasks import register_task
-from rlsac.tasks.fundamental import FundamentalTask, opencv_model, recover_pose
+from rlsac.tasks.fundamental import FundamentalTask, opencv_model, poselib_ransac, recover_pose
 
 # Our Strecha copy is imported at 1024 x 683 px with f = 920 px (every pair), so thresholds in normalised
 # units are pixels / 920.
@@ -105,6 +105,25 @@ class EssentialTask(FundamentalTask):
     def pose(hyp: np.ndarray, K1: np.ndarray, K2: np.ndarray, pts: np.ndarray):
         """(R, t) from E (3, 3) and its calibrated inliers pts (n, 4); None on failure."""
         return recover_pose(hyp, pts[:, :2], pts[:, 2:4])
+
+    # DEGENSAC is a fundamental-matrix (and homography) estimator: no degensac_fit here
+    degensac_fit = None
+
+    @staticmethod
+    def poselib_fit(pts: np.ndarray, threshold: float, confidence: float, iterations: int, seed: int):
+        """poselib.estimate_relative_pose (five-point LO-RANSAC, then bundle adjustment of the pose) on calibrated
+        pts (n, 4), cameras with f = 1 (so the threshold is in normalised units) -> (E = [t]x R, inliers, hypotheses
+        scored) or None."""
+        import poselib
+
+        cam = {"model": "PINHOLE", "width": 2, "height": 2, "params": [1.0, 1.0, 0.0, 0.0]}
+        pose, info = poselib.estimate_relative_pose(np.ascontiguousarray(pts[:, :2]), np.ascontiguousarray(pts[:, 2:4]),
+                                                    cam, cam, poselib_ransac(threshold, confidence, iterations, seed),
+                                                    {})
+        t = np.asarray(pose.t, np.float64)
+        tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+        out = opencv_model(tx @ np.asarray(pose.R, np.float64), info.get("inliers"))
+        return None if out is None else (*out, int(info["iterations"]))
 
     @staticmethod
     def opencv_fit(pts: np.ndarray, flag: int, threshold: float, confidence: float, iterations: int):

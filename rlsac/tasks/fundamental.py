@@ -153,6 +153,30 @@ class FundamentalTask:
             return None
         return opencv_model(F, inl)
 
+    # ----------------------------------------------------------------------------- peers (issue #29)
+    @staticmethod
+    def degensac_fit(pts: np.ndarray, threshold: float, confidence: float, iterations: int, seed: int):
+        """pydegensac.findFundamentalMatrix (DEGENSAC: LO-RANSAC with a check for a dominant plane) on pts (n, 4)
+        pixels, Sampson error at ``threshold`` px -> (F, inliers) or None. It has no seed (its RNG state is fixed
+        per call): ``rlsac.baselines.peer_estimate`` permutes the points instead."""
+        import pydegensac
+
+        F, inl = pydegensac.findFundamentalMatrix(np.ascontiguousarray(pts[:, :2]), np.ascontiguousarray(pts[:, 2:4]),
+                                                  float(threshold), float(confidence), int(iterations))
+        out = opencv_model(F, inl)
+        return None if out is None else (*out, None)
+
+    @staticmethod
+    def poselib_fit(pts: np.ndarray, threshold: float, confidence: float, iterations: int, seed: int):
+        """poselib.estimate_fundamental (LO-RANSAC, then bundle adjustment of F on the inliers) on pts (n, 4)
+        pixels, epipolar error at ``threshold`` px -> (F, inliers, hypotheses scored) or None."""
+        import poselib
+
+        F, info = poselib.estimate_fundamental(np.ascontiguousarray(pts[:, :2]), np.ascontiguousarray(pts[:, 2:4]),
+                                               poselib_ransac(threshold, confidence, iterations, seed), {})
+        out = opencv_model(F, info.get("inliers"))
+        return None if out is None else (*out, int(info["iterations"]))
+
     # ----------------------------------------------------------------------------- evaluation
     def errors(self, hyps, valid, inliers, batch) -> dict[str, np.ndarray]:
         """Tutorial pose errors in degrees: {'err_R': (B,), 'err_t': (B,)}; failures get 180 / 90."""
@@ -185,6 +209,13 @@ class FundamentalTask:
             "mAA_R": metrics.mAA(eR, lim), "mAA_t": metrics.mAA(et, lim), "mAA": metrics.mAA(np.maximum(eR, et), lim),
             "median_R": metrics.median(eR), "median_t": metrics.median(et), "n": int(eR.size),
         }
+
+
+def poselib_ransac(threshold: float, confidence: float, iterations: int, seed: int) -> dict:
+    """PoseLib's RansacOptions with the benchmark's budget and stopping confidence (its other options are its
+    defaults; min_iterations, 100 by default, never above the budget)."""
+    return {"max_epipolar_error": float(threshold), "success_prob": float(confidence),
+            "max_iterations": int(iterations), "min_iterations": min(100, int(iterations)), "seed": int(seed)}
 
 
 def opencv_model(M, inl) -> tuple[np.ndarray, np.ndarray] | None:
