@@ -44,8 +44,12 @@ DEFAULTS: dict[str, Any] = {
     "lo_models": [],
     # our samplers with rlsac.lo (the same-LO arm): rows <method>, e.g. ransac-lo, in variant_regimes only
     "lo_methods": [],
-    # regimes of the variant rows (lo_methods, <model>-lo, <model>-fast); None = every regime
+    # regimes of the variant rows (lo_methods, <model>-lo, <model>-fast, ablations); None = every regime
     "variant_regimes": None,
+    # Table 3 on the folds (variant regimes only): models trained with the paper's ablations (folds.train recipes,
+    # the full model's budget), and models also run with probabilistic test-time sampling (rows <model>-prob)
+    "ablation_models": [],
+    "prob_models": [],
     # models also run with the speed levers of issue #17 (several sets per step, the confidence stop), k and the
     # confidence tuned on validation: rows <model>-fast (not in the paper; the plain rows are the paper's algorithm)
     "fast": [],
@@ -73,8 +77,12 @@ def protocol(params: dict[str, Any]) -> dict[str, Any]:
         raise RlsacError("folds.scenes: a scene belongs to two buildings")
     if set(p["regimes"]) != set(p["pool"]):
         raise RlsacError(f"folds.regimes {p['regimes']} and the keys of folds.pool {sorted(p['pool'])} differ")
-    if set(p["models"]) != set(p["train"]):
-        raise RlsacError(f"folds.models {p['models']} and the keys of folds.train {sorted(p['train'])} differ")
+    trained = p["models"] + p["ablation_models"]
+    if set(trained) != set(p["train"]) or len(set(trained)) != len(trained):
+        raise RlsacError(f"folds.models + folds.ablation_models {trained} and the keys of folds.train "
+                         f"{sorted(p['train'])} differ")
+    if not set(p["prob_models"]) <= set(trained):
+        raise RlsacError(f"folds.prob_models {p['prob_models']} must be models of folds.models or ablation_models")
     if p["model_regime"] not in p["regimes"]:
         raise RlsacError(f"folds.model_regime {p['model_regime']!r} is not one of folds.regimes {p['regimes']}")
     if set(p["iterations"]) != set(p["regimes"]) or not all(p["iterations"].values()):
@@ -118,6 +126,10 @@ def rows(p: dict[str, Any], fold: str, regime: str | None = None) -> dict[str, d
         out.update({f"{m}-lo": {"method": "rlsac-lo", "checkpoint": checkpoint(trained, fold, m, task)}
                     for m in p["lo_models"]})
         out.update({f"{m}-fast": {**out[m], "fast": True} for m in p["fast"]})
+        out.update({m: {"method": "rlsac", "checkpoint": checkpoint(trained, fold, m, task)}
+                    for m in p.get("ablation_models", [])})
+        out.update({f"{m}-prob": {"method": "rlsac", "checkpoint": checkpoint(trained, fold, m, task),
+                                  "sampling": "prob"} for m in p.get("prob_models", [])})
     for r in out.values():
         r.setdefault("fast", False)
         r["knobs"] = (["guide_temperature"] if r["method"] in ("guided", "guided-lo") else []) + (
@@ -130,7 +142,7 @@ def rows(p: dict[str, Any], fold: str, regime: str | None = None) -> dict[str, d
 def row_options(row: dict[str, Any], p: dict[str, Any], ev: dict[str, Any], o: dict[str, Any]) -> dict[str, Any]:
     """The evaluate options of a row before tuning: the paper's one set per step and whole budget (the -fast rows
     tune both), evaluate.fundamental's LO conf and guided temperature as the starting point."""
-    return {"task": p.get("task", "fundamental"), "method": row["method"],
+    return {"task": p.get("task", "fundamental"), "method": row["method"], "sampling": row.get("sampling", "max"),
             "checkpoint": str(row["checkpoint"]) if row["checkpoint"] else None, "seed": int(p["seed"]),
             "device": o["device"], "lo": ev.get("lo"), "guide_temperature": ev.get("guide_temperature"),
             "sets_per_step": 1, "confidence": 0.0}
@@ -143,7 +155,8 @@ def _typed(p: dict[str, Any]) -> dict[str, Any]:
 
     if p["variant_regimes"] is None:
         p["variant_regimes"] = list(p["regimes"])
-    for key in ("test", "regimes", "methods", "models", "lo_models", "fast", "lo_methods", "variant_regimes"):
+    for key in ("test", "regimes", "methods", "models", "lo_models", "fast", "lo_methods", "variant_regimes",
+                "ablation_models", "prob_models"):
         if not isinstance(p[key], list):
             raise RlsacError(f"folds.{key} must be a list, got {p[key]!r}")
         p[key] = [check_value(f"folds.{key}", v, str) for v in p[key]]
@@ -223,7 +236,7 @@ def for_task(p: dict[str, Any], params: dict[str, Any], task: str) -> dict[str, 
         raise RlsacError(f"folds --task must be fundamental or essential, got {task!r}")
     e = check_essential(params)
     return {**p, "task": task, "methods": list(e["methods"]), "models": ["rlsac"], "lo_models": [], "fast": [],
-            "lo_methods": [], "variant_regimes": [e["regime"]],
+            "lo_methods": [], "variant_regimes": [e["regime"]], "ablation_models": [], "prob_models": [],
             "regimes": [e["regime"]], "model_regime": e["regime"], "iterations": {e["regime"]: list(e["iterations"])}}
 
 
@@ -274,8 +287,8 @@ def check_options(options: dict[str, Any], p: dict[str, Any] | None = None) -> d
                              "data; its models train with `rlsac train --task essential`)")
         if o["stage"] == "train" and o["regime"] != p["model_regime"]:
             raise RlsacError(f"models are trained on regime {p['model_regime']!r} only (folds.model_regime)")
-        if o["stage"] == "train" and o["model"] is not None and o["model"] not in p["models"]:
-            raise RlsacError(f"unknown model {o['model']!r} (known: {', '.join(p['models'])})")
+        if o["stage"] == "train" and o["model"] is not None and o["model"] not in p["models"] + p["ablation_models"]:
+            raise RlsacError(f"unknown model {o['model']!r} (known: {', '.join(p['models'] + p['ablation_models'])})")
         if o["only"] is not None:
             o["only"] = [s.strip() for s in str(o["only"]).split(",") if s.strip()]
             known = set(rows(p, o["fold"], o["regime"]))
@@ -494,7 +507,7 @@ def folds(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
                                "mean_gt_inlier_ratio": v["mean_gt_inlier_ratio_sampson_2px"]}
                            for k, v in made.items()}
     elif o["stage"] == "train":
-        models = [o["model"]] if o["model"] else p["models"]
+        models = [o["model"]] if o["model"] else p["models"] + p["ablation_models"]
         result["models"] = train_models(p, params, regime, fold, models, o, track)
     elif o["stage"] == "tune":
         result["tuned"] = tune_fold(p, params, regime, fold, o, track)

@@ -277,8 +277,10 @@ def test_folds_command_end_to_end(imported, tmp_path, monkeypatch):
         "folds": {"test": ["fountain"], "scenes": {"fountain": "fountain-P11", "entry": "entry-P10"},
                   "val_fraction": 0.3, "regimes": ["hard"], "pool": {"hard": 100},
                   "methods": ["uniform", "ransac"], "models": ["rlsac", "rlsac-ws"], "lo_models": ["rlsac-ws"],
-                  "lo_methods": ["ransac-lo", "guided-lo"],
-                  "train": {"rlsac": {}, "rlsac-ws": {"sac": {"warm_start_updates": 2}, "selection": "val_mAA"}},
+                  "lo_methods": ["ransac-lo", "guided-lo"], "ablation_models": ["rlsac-trainmax"],
+                  "prob_models": ["rlsac"],
+                  "train": {"rlsac": {}, "rlsac-ws": {"sac": {"warm_start_updates": 2}, "selection": "val_mAA"},
+                            "rlsac-trainmax": {"sac": {"train_sampling": "max"}}},
                   "iterations": [15], "seed": 0, "fast": ["rlsac"]},
         "essential": {"regime": "hard", "methods": ["ransac", "usac"], "iterations": [15]},
         "tuning": {"iterations": 15, "threshold_px": [1.0, 2.0], "prefilter": [0.9, 1.0], "extend": 0,
@@ -340,7 +342,12 @@ def test_folds_command_end_to_end(imported, tmp_path, monkeypatch):
     assert r.exit_code == 0, r.output
     guided_lo = json.loads((tmp_path / "reports/tuning/fundamental/hard/fountain/guided-lo.json").read_text())
     assert {"guide_temperature", "lo_sigma_scale"} <= set(guided_lo["chosen"])  # the sampler's knob and LO's
-    for m in ("uniform", "ransac", "rlsac", "rlsac-ws", "rlsac-ws-lo", "rlsac-fast", "ransac-lo", "guided-lo"):
+    trainmax = torch.load(tmp_path / "checkpoints/folds/hard/fountain/rlsac-trainmax.pt", weights_only=False)
+    assert trainmax["conf"]["sac"]["train_sampling"] == "max"  # Table 3 (b)'s model, trained with the others
+    prob = json.loads((tmp_path / "reports/eval/folds/hard/fountain/rlsac-prob/i15/config.json").read_text())
+    assert prob["sampling"] == "prob" and prob["checkpoint"].endswith("rlsac.pt")
+    for m in ("uniform", "ransac", "rlsac", "rlsac-ws", "rlsac-ws-lo", "rlsac-fast", "ransac-lo", "guided-lo",
+              "rlsac-trainmax", "rlsac-prob"):
         s = json.loads((tmp_path / f"reports/eval/folds/hard/fountain/{m}/i15/summary.json").read_text())
         assert s["n_instances"] == 8 and s["iterations"] == 15
         assert ("lo" in s) == m.endswith("-lo")
@@ -348,6 +355,8 @@ def test_folds_command_end_to_end(imported, tmp_path, monkeypatch):
     assert r.exit_code == 0, r.output
     md = (tmp_path / "reports/table2_folds.md").read_text()
     assert "8 test pairs pooled over 1 folds" in md and "| same LO " in md
+    t3 = (tmp_path / "reports/table3_folds.md").read_text()  # Table 3 on the folds, each variant against the full model
+    assert "Ours (max sampling in training, max in testing)" in t3 and "rlsac-trainmax" in t3 and "rlsac-prob" in t3
     assert "Settings chosen on each fold's validation pairs" in md and ("SNN<0.9" in md or "no filter" in md)
     errors = pd.read_csv(tmp_path / "reports/eval/folds/hard/fountain/uniform/i15/errors.csv")
     assert (errors["n_hypotheses"] == 15).all()  # the paper's algorithm: the whole budget, every pair

@@ -31,6 +31,10 @@ N_BOOT = 2000
 # row labels: each registered method's (rlsac.methods), the fold models' (RLSAC variants of folds.models) here;
 # rows follow ROW_ORDER, then any other method or model alphabetically
 MODEL_NAMES = {"rlsac": "RLSAC (paper recipe and algorithm)",
+               "rlsac-nodesc": "RLSAC without descriptors (Table 3 a)",
+               "rlsac-trainmax": "RLSAC, max sampling in training (Table 3 b)",
+               "rlsac-prob": "RLSAC, probabilistic sampling in testing (Table 3 b)",
+               "rlsac-trainmax-prob": "RLSAC, max in training, probabilistic in testing (Table 3 b)",
                "rlsac-nosnn": "RLSAC without the SNN ratio (not in the paper)",
                "rlsac-lo": "RLSAC + LO (not in the paper)",
                "rlsac-fast": "RLSAC-fast: k sets per step, confidence stop, tuned (not in the paper)"}
@@ -95,7 +99,9 @@ def _check_cell(path: Path, name: str, iterations: int) -> None:
         raise RlsacError(f"{f}: unreadable") from None
     method, ckpt = conf.get("method"), Path(conf.get("checkpoint") or "").stem
     spec = METHODS.get(method)
-    is_model = spec is not None and spec.checkpoint and name in (ckpt, f"{ckpt}-lo", f"{ckpt}-fast", method)
+    prob = conf.get("sampling") == "prob"  # Table 3 (b)'s <model>-prob rows: probabilistic test-time sampling
+    is_model = spec is not None and spec.checkpoint and name in (
+        (f"{ckpt}-prob",) if prob else (ckpt, f"{ckpt}-lo", f"{ckpt}-fast", method))
     if conf.get("iterations") != iterations or not (method == name or is_model):
         raise RlsacError(f"{f}: holds method {method!r} ({ckpt or 'no checkpoint'}) at {conf.get('iterations')} "
                          f"iterations, not the {name!r} at {iterations} its folder names")
@@ -270,6 +276,8 @@ def build(eval_root: str | Path = "reports/eval", out_dir: str | Path = "reports
         with atomic_path(out_dir / f"{stem}.csv") as tmp:
             pd.DataFrame(rows).to_csv(tmp, index=False, float_format="%.4f")
         files = [str(out_dir / f"{stem}.md"), str(out_dir / f"{stem}.csv")]
+        if sub == "folds":
+            files += table3(res, out_dir)
         if iterations_stem:
             with atomic_path(out_dir / f"{iterations_stem}.csv") as tmp:
                 pd.DataFrame(it_rows, columns=["regime", "method", "iterations", "mAA_R", "mAA_t", "n_pairs", "dR",
@@ -337,3 +345,58 @@ def _tuning_section(root: Path, regime: str, methods: list[str], folds: list[str
         return ""
     return ("### Settings chosen on each fold's validation pairs (rlsac.tune; validation mAA@10° of max(R, t) at the "
             "tuning budget)\n\n" + pd.DataFrame(rows).to_markdown(index=False, disable_numparse=True) + "\n")
+
+
+# Table 3 on the folds (issue #26): the paper's ablations as fold rows, each tuned per fold like every row. Paper
+# variant -> our row (the N study needs fold data with other N: not yet a row).
+TABLE3_ROWS = {"no_descriptors": "rlsac-nodesc", "full": "rlsac", "train_max-test_max": "rlsac-trainmax",
+               "train_max-test_prob": "rlsac-trainmax-prob", "train_prob-test_prob": "rlsac-prob"}
+TABLE3_REGIME = "hard"
+
+
+def table3(res: dict[tuple[str, str, int], pd.DataFrame], out_dir: Path) -> list[str]:
+    """Write table3_folds.{md,csv} from the fold results when the hard regime has RLSAC and an ablation row:
+    pooled mAA@10° R / t and medians of each variant beside the paper's, and each variant − the full model, paired
+    over the same pairs with its 95% interval. -> the files written."""
+    from rlsac.reports import paper
+
+    budgets = sorted({it for r, m, it in res if r == TABLE3_REGIME and m == REFERENCE})
+    if not budgets or not any((TABLE3_REGIME, TABLE3_ROWS[v], it) in res for v in TABLE3_ROWS if v != "full"
+                              for it in budgets):
+        return []
+    rows, md = [], []
+    for it in budgets:
+        ref = res[(TABLE3_REGIME, REFERENCE, it)]
+        table = []
+        for group, label, variant, numbers in paper.TABLE3:
+            m = TABLE3_ROWS.get(variant)
+            df = res.get((TABLE3_REGIME, m, it)) if m else None
+            row = {"iterations": it, "group": group, "variant": label, "row": m or "–",
+                   "mAA_R": mAA(df["err_R"], LIMIT) if df is not None else math.nan,
+                   "mAA_t": mAA(df["err_t"], LIMIT) if df is not None else math.nan,
+                   "median_R": float(np.median(df["err_R"])) if df is not None else math.nan,
+                   "median_t": float(np.median(df["err_t"])) if df is not None else math.nan,
+                   "paper R / t": f"{numbers[0]:.3f} / {numbers[1]:.3f}"}
+            for col, name in (("err_R", "R"), ("err_t", "t")):
+                d = _paired(df, ref, col) if df is not None and m != REFERENCE else None
+                row[f"{name} − full"] = _ci(d)
+            table.append(row)
+            rows.append(row)
+        t = pd.DataFrame(table)
+        for c in ("mAA_R", "mAA_t", "median_R", "median_t"):
+            t[c] = t[c].map(lambda v: "–" if math.isnan(v) else f"{v:.3f}")
+        md.append(f"### {it} iterations\n\n" + t.drop(columns="iterations").to_markdown(index=False,
+                                                                                         disable_numparse=True) + "\n")
+    n = len(res[(TABLE3_REGIME, REFERENCE, budgets[-1])])
+    head = ("# Table 3 (folds): ablations of RLSAC on the leave-one-building-out benchmark\n\n"
+            f"The paper's ablations as rows of Table 2 (folds), `{TABLE3_REGIME}` regime, {n} test pairs pooled over "
+            f"the folds (one pair = {1 / max(n, 1):.4f} mAA). Every model is trained per fold with the full model's "
+            "recipe and budget (params.yaml `folds.train`), one training seed; every row's threshold and pre-filter "
+            "are tuned on its fold's validation pairs. `− full`: paired difference to the full model (probabilistic "
+            f"sampling in training, max in testing, descriptors, N = 150) with its 95% interval ({N_BOOT} bootstrap "
+            "resamples over pairs). The paper's numbers (CVPR 2020 tutorial validation set) are beside ours; the N "
+            "study (c) is not yet a fold row. Generated by `rlsac table --which folds`.\n")
+    write_text(out_dir / "table3_folds.md", head + "\n" + "\n".join(md))
+    with atomic_path(out_dir / "table3_folds.csv") as tmp:
+        pd.DataFrame(rows).to_csv(tmp, index=False, float_format="%.4f")
+    return [str(out_dir / "table3_folds.md"), str(out_dir / "table3_folds.csv")]
