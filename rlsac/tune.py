@@ -34,7 +34,9 @@ from rlsac.errors import RlsacError
 
 DEFAULTS: dict[str, Any] = {
     "iterations": 1000,
-    "threshold_px": [0.1, 0.2, 0.25, 0.5, 0.75, 1.0],
+    # the tutorial's grid widened to 3 px: a validation curve need not be monotone, and the edge rule alone can stop
+    # short of a learned sampler's training threshold (2 px)
+    "threshold_px": [0.1, 0.2, 0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0],
     "prefilter": [0.75, 0.8, 0.85, 1.0],
     "extend": 3,
     "start_prefilter": 0.8,
