@@ -122,28 +122,47 @@ def opencv_estimate(task: Task, batch: dict, method: str, iterations: int, thres
     # a preset flag, or the no-LO arm's UsacParams (seeded by ``seed``; the permutation below changes its draws too)
     flag = getattr(cv2, OPENCV_FLAGS[method]) if method in OPENCV_FLAGS else usac_params(method, thr, conf, iterations,
                                                                                           seed)
+    order = None
+    if method.startswith("prosac"):
+        if quality is None:
+            raise RlsacError("prosac needs the matches' quality to order them (quality=task.match_quality(batch))")
+        quality = _numpy(quality)
+        order = lambda b, idx: idx[np.argsort(quality[b, idx], kind="stable")]  # noqa: E731
+    return fit_rows(task, batch, seed, lambda pts, rng: task.opencv_fit(pts, flag, thr, conf, int(iterations)),
+                    conf, int(iterations), order)
+
+
+def fit_rows(task: Task, batch: dict, seed: int, fit, confidence: float, iterations: int, order=None) -> dict:
+    """A per-pair library estimator over a batch: each row's valid points in a seeded random order (``order(b, idx)``
+    may reorder them, e.g. PROSAC's best first), ``fit(pts (n, d) float64, rng)`` -> None or (hyp, inliers (n,)[,
+    hypotheses or None]), the inliers permuted back. A library whose RNG state is fixed per call (OpenCV's flag API)
+    draws differently for a different ``seed`` this way.
+
+    -> hyp np (B, *H) (zero where invalid), valid np bool (B,), inliers np bool (B, N), hypotheses np int (B,): the
+    count the library reports, else its stopping rule's bound (``stop_bound`` at ``confidence``, ``iterations``);
+    rows with fewer points than the minimal set or no result are invalid (their count is ``iterations``)."""
+    import numpy as np
+
     coords, mask = _numpy(batch["coords"]), _numpy(batch["mask"]).astype(bool)
     B, N = mask.shape
     hyp, valid, inliers = np.zeros((B, *task.hypothesis_shape)), np.zeros(B, dtype=bool), np.zeros((B, N), dtype=bool)
     hypotheses = np.full(B, int(iterations), dtype=np.int64)
     rng = np.random.default_rng(seed)
-    prosac = method.startswith("prosac")
-    if prosac and quality is None:
-        raise RlsacError("prosac needs the matches' quality to order them (quality=task.match_quality(batch))")
-    quality = None if quality is None else _numpy(quality)
     for b in range(B):
         idx = np.flatnonzero(mask[b])
         if idx.size < task.sample_size:
             continue
         idx = idx[rng.permutation(idx.size)]
-        if prosac:
-            idx = idx[np.argsort(quality[b, idx], kind="stable")]
-        out = task.opencv_fit(np.ascontiguousarray(coords[b, idx], dtype=np.float64), flag, thr, conf, int(iterations))
+        if order is not None:
+            idx = order(b, idx)
+        out = fit(np.ascontiguousarray(coords[b, idx], dtype=np.float64), rng)
         if out is None:
             continue
         hyp[b], valid[b] = out[0], True
         inliers[b, idx] = out[1]
-        hypotheses[b] = stop_bound(int(np.count_nonzero(out[1])), idx.size, task.sample_size, conf, int(iterations))
+        reported = out[2] if len(out) > 2 else None
+        hypotheses[b] = reported if reported is not None else stop_bound(
+            int(np.count_nonzero(out[1])), idx.size, task.sample_size, confidence, int(iterations))
     return {"hyp": hyp, "valid": valid, "inliers": inliers, "hypotheses": hypotheses}
 
 
@@ -179,11 +198,10 @@ def peer_estimate(task: Task, batch: dict, method: str, iterations: int, thresho
     """A peer estimator (``PEERS``) of ``task`` per batch row on its valid points.
 
     batch: coords (B, N, d), mask (B, N) -> hyp np (B, *H), valid np bool (B,), inliers np bool (B, N), hypotheses
-    np int (B,) (the count the library reports; the budget where it reports none). Seeding as ``opencv_estimate``:
-    ``seed`` permutes the points (DEGENSAC has no seed of its own) and seeds PoseLib; the inliers are permuted back.
+    np int (B,) (the count the library reports, else its stopping rule's bound). ``seed`` permutes the points and
+    seeds PoseLib (``fit_rows``): PoseLib's results are reproducible, DEGENSAC's are not (it seeds itself from the
+    clock, ``FundamentalTask.degensac_fit``).
     """
-    import numpy as np
-
     if method not in PEERS:
         raise RlsacError(f"unknown peer method {method!r} (known: {', '.join(PEERS)})")
     fit = getattr(task, f"{method}_fit", None)
@@ -191,22 +209,5 @@ def peer_estimate(task: Task, batch: dict, method: str, iterations: int, thresho
         raise RlsacError(f"task '{task.name}' has no {method} estimator")
     thr = task.opencv_threshold if threshold is None else float(threshold)
     conf = OPENCV_CONFIDENCE if confidence is None else float(confidence)
-    coords, mask = _numpy(batch["coords"]), _numpy(batch["mask"]).astype(bool)
-    B, N = mask.shape
-    hyp, valid, inliers = np.zeros((B, *task.hypothesis_shape)), np.zeros(B, dtype=bool), np.zeros((B, N), dtype=bool)
-    hypotheses = np.full(B, int(iterations), dtype=np.int64)
-    rng = np.random.default_rng(seed)
-    for b in range(B):
-        idx = np.flatnonzero(mask[b])
-        if idx.size < task.sample_size:
-            continue
-        idx = idx[rng.permutation(idx.size)]
-        out = fit(np.ascontiguousarray(coords[b, idx], dtype=np.float64), thr, conf, int(iterations),
-                  int(rng.integers(0, 2**31 - 1)))
-        if out is None:
-            continue
-        hyp[b], valid[b] = out[0], True
-        inliers[b, idx] = out[1]
-        hypotheses[b] = out[2] if out[2] is not None else stop_bound(  # DEGENSAC reports no count: its stop's bound
-            int(np.count_nonzero(out[1])), idx.size, task.sample_size, conf, int(iterations))
-    return {"hyp": hyp, "valid": valid, "inliers": inliers, "hypotheses": hypotheses}
+    return fit_rows(task, batch, seed, lambda pts, rng: fit(pts, thr, conf, int(iterations),
+                                                            int(rng.integers(0, 2**31 - 1))), conf, int(iterations))

@@ -120,9 +120,8 @@ class EssentialTask(FundamentalTask):
         pose, info = poselib.estimate_relative_pose(np.ascontiguousarray(pts[:, :2]), np.ascontiguousarray(pts[:, 2:4]),
                                                     cam, cam, poselib_ransac(threshold, confidence, iterations, seed),
                                                     {})
-        t = np.asarray(pose.t, np.float64)
-        tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
-        out = opencv_model(tx @ np.asarray(pose.R, np.float64), info.get("inliers"))
+        E = fundamental_data.skew(pose.t) @ np.asarray(pose.R, np.float64)
+        out = opencv_model(E, info.get("inliers"))
         return None if out is None else (*out, int(info["iterations"]))
 
     @staticmethod

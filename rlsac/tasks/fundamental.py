@@ -157,8 +157,8 @@ class FundamentalTask:
     @staticmethod
     def degensac_fit(pts: np.ndarray, threshold: float, confidence: float, iterations: int, seed: int):
         """pydegensac.findFundamentalMatrix (DEGENSAC: LO-RANSAC with a check for a dominant plane) on pts (n, 4)
-        pixels, Sampson error at ``threshold`` px -> (F, inliers) or None. It has no seed (its RNG state is fixed
-        per call): ``rlsac.baselines.peer_estimate`` permutes the points instead."""
+        pixels, Sampson error at ``threshold`` px -> (F, inliers) or None. Not reproducible: pydegensac seeds its own
+        RNG from the clock (gettimeofday) and takes no seed, so two runs on the same pairs may differ."""
         import pydegensac
 
         F, inl = pydegensac.findFundamentalMatrix(np.ascontiguousarray(pts[:, :2]), np.ascontiguousarray(pts[:, 2:4]),
