@@ -178,6 +178,8 @@ def stop_bound(n_inliers: int, n_points: int, m: int, confidence: float, iterati
     miss = 1.0 - w**m
     if miss <= 0.0:
         return 1
+    if miss >= 1.0:  # w^m below double precision (a handful of inliers): the rule never stops
+        return iterations
     return int(min(iterations, max(1, math.ceil(math.log(1.0 - confidence) / math.log(miss)))))
 
 

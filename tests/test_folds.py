@@ -238,6 +238,26 @@ def test_fold_table_pools_pairs_and_pairs_methods(tmp_path):
     assert got["files"] and not got["missing"]
 
 
+def test_fold_table_sets_the_lo_model_against_the_lo_control(tmp_path):
+    """Issue #26, like for like: RLSAC with LO is paired with uniform sets with the same LO (uniform-lo), never with
+    the uniform control without LO. Here rlsac-lo equals uniform-lo and is far above uniform: a zero difference
+    proves the pairing."""
+    ev = tmp_path / "eval"
+    _write_errors(ev, "hard", "a", "rlsac", 100, [0.5] * 4, [0.5] * 4)
+    _write_errors(ev, "hard", "a", "uniform", 100, [20.0] * 4, [20.0] * 4)
+    _write_errors(ev, "hard", "a", "rlsac-lo", 100, [0.5, 20.0, 0.5, 0.5], [0.5] * 4)
+    _write_errors(ev, "hard", "a", "uniform-lo", 100, [0.5, 20.0, 0.5, 0.5], [0.5, 0.5, 0.5, 20.0])
+    fold_table.build(ev, tmp_path / "out", tmp_path / "rec")
+    md = (tmp_path / "out" / "table2_folds.md").read_text()
+    section = md.split("### RLSAC − uniform", 1)[1].split("###", 1)[0]
+    rows = {cells[1].strip(): cells for cells in (line.split("|") for line in section.splitlines()[4:] if line)}
+    lo = next(cells for name, cells in rows.items() if "LO" in name)
+    assert "local optimisation" in lo[2] or "LO" in lo[2]  # the control named is the LO one
+    assert lo[4].strip() == "+0.000 [+0.000, +0.000]" and lo[5].strip().startswith("+0.250")  # R equal, t: one pair
+    plain = next(cells for name, cells in rows.items() if "LO" not in name)
+    assert plain[4].strip().startswith("+1.000")  # RLSAC (no LO) against uniform (no LO): every pair
+
+
 def test_fold_table_refuses_one_method_shown_as_two_rows(tmp_path):
     """Issue #26: Table E showed USAC_ACCURATE beside USAC although OpenCV's findEssentialMat ignores the flag (every
     error identical). Identical errors in every regime and budget are refused before anything is written; equal

@@ -291,17 +291,19 @@ def build(eval_root: str | Path = "reports/eval", out_dir: str | Path = "reports
 
 def _control_section(res, regime: str, budgets, folds) -> str:
     """Each RLSAC model minus each control (uniform sets: the learned sampler alone; SNN-guided sets: what it
-    adds beyond ranking matches by their SNN ratio), per fold and pooled, paired over pairs."""
+    adds beyond ranking matches by their SNN ratio), per fold and pooled, paired over pairs. A model in the same-LO
+    arm (``-lo``) is set against the control with the same LO (``uniform-lo``, ``guided-lo``): like for like."""
     models = [m for m in _order({k[1] for k in res if k[0] == regime}) if m.startswith("rlsac")]
     out = []
     for control in CONTROLS:
         rows = []
         for m in models:
+            against = f"{control}-lo" if m.endswith("-lo") else control
             for it in budgets:
-                a, b = res.get((regime, m, it)), res.get((regime, control, it))
+                a, b = res.get((regime, m, it)), res.get((regime, against, it))
                 if a is None or b is None:
                     continue
-                row = {"model": NAMES.get(m, m), "iterations": it}
+                row = {"model": NAMES.get(m, m), "control": NAMES.get(against, against), "iterations": it}
                 for col, name in (("err_R", "R"), ("err_t", "t")):
                     row[f"pooled {name}"] = _ci(_paired(a, b, col))
                 for f in folds:
@@ -309,8 +311,8 @@ def _control_section(res, regime: str, budgets, folds) -> str:
                                                     for c in ("err_R", "err_t"))
                 rows.append(row)
         if rows:
-            what = ("the learned sampler alone; same environment, episodes, de-duplication, scoring, refinement and "
-                    "budget" if control == "uniform" else "what the policy adds beyond drawing sets by SNN ratio, "
+            what = ("the learned sampler alone; same environment, episodes, de-duplication, scoring, refinement, LO "
+                    "and budget" if control == "uniform" else "what the policy adds beyond drawing sets by SNN ratio, "
                     "in the same environment")
             out.append(f"### RLSAC − {control} ({what}), paired over pairs, 95% interval\n\n"
                        + pd.DataFrame(rows).to_markdown(index=False, disable_numparse=True) + "\n")
