@@ -138,7 +138,7 @@ def test_opencv_hypotheses_bound_follows_the_stopping_rule():
     assert stop_bound(75, 150, 8, 0.999, 1000) == 1000  # capped at the budget
     assert stop_bound(150, 150, 8, 0.999, 1000) == 1  # every point an inlier: the first set suffices
     assert stop_bound(0, 150, 8, 0.999, 1000) == 1000  # no inliers: the whole budget
-    assert stop_bound(1, 150, 8, 0.999, 1000) == 1000  # w^m underflows (1 - w^m == 1.0): the whole budget, no ZeroDivisionError
+    assert stop_bound(1, 150, 8, 0.999, 1000) == 1000  # w^m underflows (1 - w^m == 1.0): the whole budget
     # w = 0.9, m = 7: log(0.001) / log(1 - 0.9^7) = 10.6 -> 11
     assert stop_bound(135, 150, 7, 0.999, 1000) == 11
 
