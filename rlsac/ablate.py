@@ -38,7 +38,6 @@ Options (all optional but ``what``):
 
 from __future__ import annotations
 
-import copy
 from pathlib import Path
 from typing import Any
 
@@ -114,14 +113,10 @@ VARIANT_KEYS = {"study": str, "model": str, "sampling": str, "suffix": str, "che
 def protocol(params: dict[str, Any]) -> dict[str, Any]:
     """``DEFAULTS`` with each top-level key replaced by params.yaml ``ablation``'s, every key typed and checked
     (issue #28, item 3), each model's training recipe a valid TrainConf."""
-    from rlsac.config import SEED_RANGE, build, check_mapping, check_value, deep_update, section
+    from rlsac.config import SEED_RANGE, build, check_mapping, check_value, deep_update, over_defaults, section
     from rlsac.train import TrainConf
 
-    given = section(params, "ablation")
-    unknown = sorted(set(given) - set(DEFAULTS))
-    if unknown:
-        raise RlsacError(f"unknown params key(s) ablation.{unknown}; known: {sorted(DEFAULTS)}")
-    p = {**copy.deepcopy(DEFAULTS), **copy.deepcopy(given)}
+    p = over_defaults(params, "ablation", DEFAULTS)
     p["iterations"] = check_value("ablation.iterations", p["iterations"], int, "[1, inf)")
     p["seed"] = check_value("ablation.seed", p["seed"], int, SEED_RANGE)
     p["n_points"] = check_value("ablation.n_points", p["n_points"], list[int], "[8, inf)")

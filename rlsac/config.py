@@ -298,6 +298,18 @@ def section(params: dict, *keys: str) -> dict[str, Any]:
     return dict(d)
 
 
+def over_defaults(params: dict, name: str, defaults: dict[str, Any]) -> dict[str, Any]:
+    """params.yaml section ``name`` over ``defaults`` (deep copies; each top-level key replaced); RlsacError for a key
+    ``defaults`` does not have. The caller types and range-checks the values."""
+    import copy
+
+    given = section(params, name)
+    unknown = sorted(set(given) - set(defaults))
+    if unknown:
+        raise RlsacError(f"unknown params key(s) {name}.{unknown}; known: {sorted(defaults)}")
+    return {**copy.deepcopy(defaults), **copy.deepcopy(given)}
+
+
 def parse_sets(pairs: tuple[str, ...] | list[str]) -> dict[str, Any]:
     """("a.b=1", "c=[1, 2]") -> {"a": {"b": 1}, "c": [1, 2]}; values are parsed as YAML."""
     out: dict[str, Any] = {}

@@ -62,13 +62,9 @@ OPTIONS: dict[str, Any] = {"stage": None, "regime": None, "fold": None, "model":
 
 def protocol(params: dict[str, Any]) -> dict[str, Any]:
     """``DEFAULTS`` with each key replaced by params.yaml ``folds``'s, checked for consistency."""
-    from rlsac.config import section
+    from rlsac.config import over_defaults, section
 
-    given = section(params, "folds")
-    unknown = sorted(set(given) - set(DEFAULTS))
-    if unknown:
-        raise RlsacError(f"unknown params key(s) folds.{unknown}; known: {sorted(DEFAULTS)}")
-    p = _typed({**copy.deepcopy(DEFAULTS), **copy.deepcopy(given)})
+    p = _typed(over_defaults(params, "folds", DEFAULTS))
     if not p["test"] or not set(p["test"]) <= set(p["scenes"]) or len(p["scenes"]) < 2:
         raise RlsacError(f"folds.test {p['test']} must name buildings of folds.scenes {sorted(p['scenes'])} "
                          "(at least two buildings: one to test, one to train)")

@@ -26,7 +26,6 @@ the validation scenes; the fold's evaluation reads it and refuses one whose scen
 
 from __future__ import annotations
 
-import copy
 from pathlib import Path
 from typing import Any
 
@@ -54,13 +53,9 @@ EXTEND_FACTOR = 1.5
 
 def conf(params: dict[str, Any]) -> dict[str, Any]:
     """params.yaml ``tuning`` over ``DEFAULTS``, every key typed and range-checked; unknown keys are errors."""
-    from rlsac.config import check_value, section
+    from rlsac.config import check_value, over_defaults
 
-    given = section(params, "tuning")
-    unknown = sorted(set(given) - set(DEFAULTS))
-    if unknown:
-        raise RlsacError(f"unknown params key(s) tuning.{unknown}; known: {sorted(DEFAULTS)}")
-    c = {**copy.deepcopy(DEFAULTS), **copy.deepcopy(given)}
+    c = over_defaults(params, "tuning", DEFAULTS)
     c["iterations"] = check_value("tuning.iterations", c["iterations"], int, "[1, inf)")
     c["extend"] = check_value("tuning.extend", c["extend"], int, "[0, 10]")
     c["rounds"] = check_value("tuning.rounds", c["rounds"], int, "[1, 10]")
