@@ -73,7 +73,7 @@ def protocol(params: dict[str, Any]) -> dict[str, Any]:
         raise RlsacError("folds.scenes: a scene belongs to two buildings")
     if set(p["regimes"]) != set(p["pool"]):
         raise RlsacError(f"folds.regimes {p['regimes']} and the keys of folds.pool {sorted(p['pool'])} differ")
-    trained = p["models"] + p["ablation_models"]
+    trained = trained_models(p)
     if set(trained) != set(p["train"]) or len(set(trained)) != len(trained):
         raise RlsacError(f"folds.models + folds.ablation_models {trained} and the keys of folds.train "
                          f"{sorted(p['train'])} differ")
@@ -110,6 +110,11 @@ def protocol(params: dict[str, Any]) -> dict[str, Any]:
     return p
 
 
+def trained_models(p: dict[str, Any]) -> list[str]:
+    """The models trained per fold: Table 2's (folds.models), then Table 3's (folds.ablation_models)."""
+    return p["models"] + p["ablation_models"]
+
+
 def rows(p: dict[str, Any], fold: str, regime: str | None = None) -> dict[str, dict[str, Any]]:
     """Every row of the fold benchmark in ``regime`` (None: any) -> {method (evaluate's), checkpoint (RLSAC rows),
     fast (the -fast variant), knobs (the settings tuned after threshold x pre-filter, rlsac.tune)}; the variant rows
@@ -124,8 +129,7 @@ def rows(p: dict[str, Any], fold: str, regime: str | None = None) -> dict[str, d
         out.update({f"{m}-fast": {**out[m], "fast": True} for m in p["fast"]})
         out.update({m: {"method": "rlsac", "checkpoint": checkpoint(trained, fold, m, task)}
                     for m in p.get("ablation_models", [])})
-        out.update({f"{m}-prob": {"method": "rlsac", "checkpoint": checkpoint(trained, fold, m, task),
-                                  "sampling": "prob"} for m in p.get("prob_models", [])})
+        out.update({f"{m}-prob": {**out[m], "sampling": "prob"} for m in p.get("prob_models", [])})
     for r in out.values():
         r.setdefault("fast", False)
         r["knobs"] = (["guide_temperature"] if r["method"] in ("guided", "guided-lo") else []) + (
@@ -283,8 +287,8 @@ def check_options(options: dict[str, Any], p: dict[str, Any] | None = None) -> d
                              "data; its models train with `rlsac train --task essential`)")
         if o["stage"] == "train" and o["regime"] != p["model_regime"]:
             raise RlsacError(f"models are trained on regime {p['model_regime']!r} only (folds.model_regime)")
-        if o["stage"] == "train" and o["model"] is not None and o["model"] not in p["models"] + p["ablation_models"]:
-            raise RlsacError(f"unknown model {o['model']!r} (known: {', '.join(p['models'] + p['ablation_models'])})")
+        if o["stage"] == "train" and o["model"] is not None and o["model"] not in trained_models(p):
+            raise RlsacError(f"unknown model {o['model']!r} (known: {', '.join(trained_models(p))})")
         if o["only"] is not None:
             o["only"] = [s.strip() for s in str(o["only"]).split(",") if s.strip()]
             known = set(rows(p, o["fold"], o["regime"]))
@@ -503,7 +507,7 @@ def folds(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
                                "mean_gt_inlier_ratio": v["mean_gt_inlier_ratio_sampson_2px"]}
                            for k, v in made.items()}
     elif o["stage"] == "train":
-        models = [o["model"]] if o["model"] else p["models"] + p["ablation_models"]
+        models = [o["model"]] if o["model"] else trained_models(p)
         result["models"] = train_models(p, params, regime, fold, models, o, track)
     elif o["stage"] == "tune":
         result["tuned"] = tune_fold(p, params, regime, fold, o, track)
