@@ -270,12 +270,15 @@ def ablate(tracking: bool, sets: tuple[str, ...], **options) -> None:
                    "with its tuned settings.")
 @click.option("--regime", required=True, help="Data regime, a key of params.yaml folds.pool (e.g. easy, hard).")
 @click.option("--fold", required=True, help="Test building, one of params.yaml folds.test (e.g. castle).")
-@click.option("--model", help="With --stage train: one model of folds.models [default: all of them].")
+@click.option("--model", help="With --stage train: one model of folds.models, ablation_models or the N study's "
+                              "<model>-n<N> [default: all of them].")
+@click.option("--points", type=click.IntRange(min=8), help="With --stage data: N points per pair, one of params.yaml "
+                                                             "folds.points (Table 3 c; data/folds/<regime>-n<N>).")
 @click.option("--task", type=click.Choice(["fundamental", "essential"]), default="fundamental", show_default=True,
               help="With --stage tune or evaluate: the fundamental matrix (Table 2, params folds) or the essential "
                    "matrix (Table E, params essential) on the fold data.")
 @click.option("--only", help="With --stage tune or evaluate: comma-separated rows (methods, models, <model>-lo, "
-                             "<row>-fast) [default: all].")
+                             "<row>-fast, <row>-n<N>) [default: all].")
 @click.option("--params", "params", default="params.yaml", show_default=True,
               help="params.yaml: its folds, fundamental and train.fundamental sections.")
 @click.option("--threads", type=int, default=1, show_default=True, help="torch CPU threads (1 is fastest here).")

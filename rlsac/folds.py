@@ -10,7 +10,7 @@ including ``uniform`` (the RLSAC environment with uniform minimal sets: RLSAC - 
 learned sampler alone) and each RLSAC model of ``models`` (train overrides over ``train.fundamental``).
 
 Stages (one DVC stage per regime x fold, per model for training):
-    data      data/folds/<regime>/<fold>/{train,val,test}.h5
+    data      data/folds/<regime>/<fold>/{train,val,test}.h5 (--points N: data/folds/<regime>-n<N>/<fold>, Table 3 c)
     train     checkpoints/folds/<regime>/<fold>/<model>.pt
     evaluate  reports/eval/folds/<regime>/<fold>/<method>/i<iterations>/{errors.csv,summary.json}
 The data stage also writes reports/folds/data/<regime>/<fold>.json (pairs, dropped pairs and why, ground-truth
@@ -50,11 +50,17 @@ DEFAULTS: dict[str, Any] = {
     # the full model's budget), and models also run with probabilistic test-time sampling (rows <model>-prob)
     "ablation_models": [],
     "prob_models": [],
+    # Table 3 (c), the paper's N study (variant regimes only): the regime's data prepared again with N points per pair
+    # (data/folds/<regime>-n<N>) and rows <row>-n<N> on it: models of folds.models trained on that data with their
+    # own recipe, methods of folds.methods
+    "points": [],
+    "points_models": [],
+    "points_methods": [],
     # models also run with the speed levers of issue #17 (several sets per step, the confidence stop), k and the
     # confidence tuned on validation: rows <model>-fast (not in the paper; the plain rows are the paper's algorithm)
     "fast": [],
 }
-OPTIONS: dict[str, Any] = {"stage": None, "regime": None, "fold": None, "model": None, "only": None,
+OPTIONS: dict[str, Any] = {"stage": None, "regime": None, "fold": None, "model": None, "only": None, "points": None,
                            "task": "fundamental",
                            "params": "params.yaml",
                            "device": "auto", "threads": 1}
@@ -101,6 +107,12 @@ def protocol(params: dict[str, Any]) -> dict[str, Any]:
         raise RlsacError(f"folds.models {clash}: a model may not share a method's name")
     if not set(p["fast"]) <= set(p["models"]):
         raise RlsacError(f"folds.fast {p['fast']} must be models of folds.models {p['models']} (rows <model>-fast)")
+    if not set(p["points_models"]) <= set(p["models"]) or not set(p["points_methods"]) <= set(p["methods"]):
+        raise RlsacError(f"folds.points_models {p['points_models']} / points_methods {p['points_methods']} must be "
+                         "models of folds.models / methods of folds.methods")
+    if p["points"] and p["model_regime"] not in p["variant_regimes"]:
+        raise RlsacError(f"folds.points needs folds.model_regime {p['model_regime']!r} among folds.variant_regimes "
+                         f"{p['variant_regimes']} (its models train on that regime's data with N points)")
     from rlsac.config import build, deep_update
     from rlsac.train import TrainConf
 
@@ -111,8 +123,25 @@ def protocol(params: dict[str, Any]) -> dict[str, Any]:
 
 
 def trained_models(p: dict[str, Any]) -> list[str]:
-    """The models trained per fold: Table 2's (folds.models), then Table 3's (folds.ablation_models)."""
+    """The models trained per fold with a recipe of folds.train: Table 2's (folds.models), then Table 3's
+    (folds.ablation_models); the N study's (``points_models``) reuse their model's recipe."""
     return p["models"] + p["ablation_models"]
+
+
+def points_name(row: str, points: int) -> str:
+    """Table 3 (c)'s row of ``row`` on the data with ``points`` points per pair (``split_points`` reads it back)."""
+    return f"{row}-n{int(points)}"
+
+
+def n_study_models(p: dict[str, Any]) -> dict[str, tuple[str, int]]:
+    """Table 3 (c)'s models: <model>-n<N> -> (the model of folds.models whose recipe it trains with, N)."""
+    return {points_name(m, n): (m, int(n)) for n in p.get("points", []) for m in p.get("points_models", [])}
+
+
+def split_points(row: str) -> tuple[str, int | None]:
+    """A row's name -> (the row it varies, N) for the N study's <row>-n<N>, (row, None) for any other row."""
+    base, _, n = row.rpartition("-n")
+    return (base, int(n)) if base and n.isdigit() else (row, None)
 
 
 def rows(p: dict[str, Any], fold: str, regime: str | None = None) -> dict[str, dict[str, Any]]:
@@ -130,8 +159,13 @@ def rows(p: dict[str, Any], fold: str, regime: str | None = None) -> dict[str, d
         out.update({m: {"method": "rlsac", "checkpoint": checkpoint(trained, fold, m, task)}
                     for m in p.get("ablation_models", [])})
         out.update({f"{m}-prob": {**out[m], "sampling": "prob"} for m in p.get("prob_models", [])})
+        for n in p.get("points", []):  # Table 3 (c): each row on the data with N points, a model trained on it
+            out.update({points_name(r, n): {**out[r], "points": int(n), "checkpoint": checkpoint(
+                trained, fold, points_name(r, n), task) if out[r]["checkpoint"] else None}
+                for r in p.get("points_methods", []) + p.get("points_models", [])})
     for r in out.values():
         r.setdefault("fast", False)
+        r.setdefault("points", None)
         r["knobs"] = (["guide_temperature"] if r["method"] in ("guided", "guided-lo") else []) + (
             ["lo_sigma_scale"] if r["method"].endswith("-lo") else []) + (
             ["sets_per_step", "confidence"] if r["fast"] else []) + (
@@ -156,7 +190,7 @@ def _typed(p: dict[str, Any]) -> dict[str, Any]:
     if p["variant_regimes"] is None:
         p["variant_regimes"] = list(p["regimes"])
     for key in ("test", "regimes", "methods", "models", "lo_models", "fast", "lo_methods", "variant_regimes",
-                "ablation_models", "prob_models"):
+                "ablation_models", "prob_models", "points_models", "points_methods"):
         if not isinstance(p[key], list):
             raise RlsacError(f"folds.{key} must be a list, got {p[key]!r}")
         p[key] = [check_value(f"folds.{key}", v, str) for v in p[key]]
@@ -170,6 +204,9 @@ def _typed(p: dict[str, Any]) -> dict[str, Any]:
     p["iterations"] = budgets(p["iterations"], p["regimes"], "folds.iterations")
     p["val_fraction"] = check_value("folds.val_fraction", p["val_fraction"], float, "(0, 1)")
     p["seed"] = check_value("folds.seed", p["seed"], int, SEED_RANGE)
+    if not isinstance(p["points"], list):
+        raise RlsacError(f"folds.points must be a list of point counts, got {p['points']!r}")
+    p["points"] = [check_value("folds.points", v, int, "[8, inf)") for v in p["points"]]
     p["model_regime"] = check_value("folds.model_regime", p["model_regime"], str)
     return p
 
@@ -237,6 +274,7 @@ def for_task(p: dict[str, Any], params: dict[str, Any], task: str) -> dict[str, 
     e = check_essential(params)
     return {**p, "task": task, "methods": list(e["methods"]), "models": ["rlsac"], "lo_models": [], "fast": [],
             "lo_methods": [], "variant_regimes": [e["regime"]], "ablation_models": [], "prob_models": [],
+            "points": [], "points_models": [], "points_methods": [],
             "regimes": [e["regime"]], "model_regime": e["regime"], "iterations": {e["regime"]: list(e["iterations"])}}
 
 
@@ -252,8 +290,13 @@ def split_scenes(p: dict[str, Any], fold: str) -> tuple[str, str]:
     return ",".join(train), ",".join(scene_list(p["scenes"][fold]))
 
 
-def data_dir(regime: str, fold: str) -> Path:
-    return Path("data") / "folds" / regime / fold
+def data_regime(regime: str, points: int | None = None) -> str:
+    """The folder name of a regime's data: the regime's own, or <regime>-n<N> for the N study's."""
+    return regime if points is None else f"{regime}-n{int(points)}"
+
+
+def data_dir(regime: str, fold: str, points: int | None = None) -> Path:
+    return Path("data") / "folds" / data_regime(regime, points) / fold
 
 
 def checkpoint(regime: str, fold: str, model: str, task: str = "fundamental") -> Path:
@@ -287,8 +330,15 @@ def check_options(options: dict[str, Any], p: dict[str, Any] | None = None) -> d
                              "data; its models train with `rlsac train --task essential`)")
         if o["stage"] == "train" and o["regime"] != p["model_regime"]:
             raise RlsacError(f"models are trained on regime {p['model_regime']!r} only (folds.model_regime)")
-        if o["stage"] == "train" and o["model"] is not None and o["model"] not in trained_models(p):
-            raise RlsacError(f"unknown model {o['model']!r} (known: {', '.join(trained_models(p))})")
+        models = trained_models(p) + list(n_study_models(p))
+        if o["stage"] == "train" and o["model"] is not None and o["model"] not in models:
+            raise RlsacError(f"unknown model {o['model']!r} (known: {', '.join(models)})")
+        if o["points"] is not None:
+            if o["stage"] != "data":
+                raise RlsacError("folds --points goes with --stage data (the N study's rows name their N: <row>-n<N>)")
+            if int(o["points"]) not in p["points"] or o["regime"] not in p["variant_regimes"]:
+                raise RlsacError(f"folds --points {o['points']} --regime {o['regime']}: the N study prepares N of "
+                                 f"folds.points {p['points']} in folds.variant_regimes {p['variant_regimes']}")
         if o["only"] is not None:
             o["only"] = [s.strip() for s in str(o["only"]).split(",") if s.strip()]
             known = set(rows(p, o["fold"], o["regime"]))
@@ -299,19 +349,21 @@ def check_options(options: dict[str, Any], p: dict[str, Any] | None = None) -> d
     return o
 
 
-def data_record(regime: str, fold: str) -> Path:
-    return Path("reports") / "folds" / "data" / regime / f"{fold}.json"
+def data_record(regime: str, fold: str, points: int | None = None) -> Path:
+    return Path("reports") / "folds" / "data" / data_regime(regime, points) / f"{fold}.json"
 
 
-def make_data(p: dict, fundamental: dict, regime: str, fold: str, track: bool) -> dict[str, Any]:
-    """The fold's three files through ``rlsac prepare-cvpr2020`` (same descriptors, seeded selection)."""
+def make_data(p: dict, fundamental: dict, regime: str, fold: str, track: bool,
+              points: int | None = None) -> dict[str, Any]:
+    """The fold's three files through ``rlsac prepare-cvpr2020`` (same descriptors, seeded selection); ``points``:
+    N points per pair instead of fundamental.n_points (Table 3 c), from the same pool."""
     from rlsac.data.tutorial import PrepareConf, collect, prepare
     from rlsac.tracking import check_store
 
     train_scenes, test_scenes = split_scenes(p, fold)
-    d = data_dir(regime, fold)
+    d = data_dir(regime, fold, points)
     common = {"root": fundamental.get("raw", "data/raw/strecha"), "split": "all",
-              "n_points": int(fundamental.get("n_points", 150)),
+              "n_points": int(points or fundamental.get("n_points", 150)),
               "max_pairs_per_scene": int(fundamental.get("max_pairs_per_scene", 0)),
               "pool": int(p["pool"][regime]), "val_fraction": float(p["val_fraction"])}
     confs = {split: PrepareConf(**common, scenes=scenes, holdout=holdout, out=str(d / f"{split}.h5"))
@@ -321,17 +373,18 @@ def make_data(p: dict, fundamental: dict, regime: str, fold: str, track: bool) -
     # the first file is written (issue #28, item 2: train and val were written before a test scene was found missing)
     collected = {split: collect(conf, progress=False) for split, conf in confs.items()}
     imported = _import_record(common["root"])
-    for path in [c.out for c in confs.values()] + [data_record(regime, fold)]:
+    for path in [c.out for c in confs.values()] + [data_record(regime, fold, points)]:
         check_writable(path)
     check_store(track, "fundamental")
     out = {split: prepare(conf, track=track, progress=False, collected=collected[split])
            for split, conf in confs.items()}
-    record = {"regime": regime, "fold": fold, "pool": int(p["pool"][regime]), "train_scenes": train_scenes,
+    record = {"regime": regime, "fold": fold, "pool": int(p["pool"][regime]), "n_points": common["n_points"],
+              "train_scenes": train_scenes,
               "test_scenes": test_scenes, "splits": {k: {key: v[key] for key in (
                   "out", "pairs", "pairs_per_scene", "skipped", "skip_reasons", "mean_gt_inlier_ratio_sampson_2px",
                   "gt_inlier_ratio_quantiles")} for k, v in out.items()},
               "import": imported}
-    write_json(data_record(regime, fold), record)
+    write_json(data_record(regime, fold, points), record)
     return out
 
 
@@ -355,9 +408,10 @@ def train_options(p: dict, params: dict, regime: str, fold: str, model: str, o: 
     """`rlsac train`'s options of fold model ``model``: train.fundamental <- folds.train.<model> <- the fold's files."""
     from rlsac.config import deep_update, section
 
-    d = data_dir(regime, fold)
+    recipe, points = n_study_models(p).get(model, (model, None))
+    d = data_dir(regime, fold, points)
     base = section(params, "train", "fundamental")
-    return deep_update(deep_update(base, copy.deepcopy(p["train"][model] or {})), {
+    return deep_update(deep_update(base, copy.deepcopy(p["train"][recipe] or {})), {
         "task": "fundamental", "data": str(d / "train.h5"), "val_data": str(d / "val.h5"),
         "out": str(checkpoint(regime, fold, model)), "device": o["device"], "threads": int(o["threads"]),
         "run_name": f"train folds {regime} {fold} {model}",
@@ -370,24 +424,30 @@ def train_models(p: dict, params: dict, regime: str, fold: str, models: list[str
     from rlsac.data.fundamental import read
     from rlsac.train import check, train
 
-    d = data_dir(regime, fold)
-    for split in ("train", "val"):
-        if not (d / f"{split}.h5").is_file():
-            raise RlsacError(f"{d / f'{split}.h5'}: no such file (run `rlsac folds --stage data` first)")
-        read(d / f"{split}.h5")
+    for model in models:
+        d = data_dir(regime, fold, n_study_models(p).get(model, (model, None))[1])
+        for split in ("train", "val"):
+            if not (d / f"{split}.h5").is_file():
+                raise RlsacError(f"{d / f'{split}.h5'}: no such file (run `rlsac folds --stage data` first)")
+            read(d / f"{split}.h5")
     options = {m: train_options(p, params, regime, fold, m, o) for m in models}
     for opts in options.values():
         check(opts, track)
     return {m: train(opts, track=track) for m, opts in options.items()}
 
 
-def _selected(p: dict, fold: str, o: dict) -> dict[str, dict[str, Any]]:
-    """The rows of ``--only`` (every row of the regime without it), their checkpoints checked before any work."""
+def _selected(p: dict, fold: str, o: dict, split: str) -> dict[str, dict[str, Any]]:
+    """The rows of ``--only`` (every row of the regime without it), their data file (``split``.h5 of their N) and
+    checkpoints checked before any work."""
     from rlsac.checkpoint import read as read_checkpoint
 
     table = rows(p, fold, o["regime"])
     only = o.get("only") or list(table)
     chosen = {r: table[r] for r in table if r in only}
+    for r in chosen.values():
+        path = data_dir(o["regime"], fold, r["points"]) / f"{split}.h5"
+        if not path.is_file():
+            raise RlsacError(f"{path}: no such file (run `rlsac folds --stage data` first)")
     for r in chosen.values():
         if r["checkpoint"] is not None:
             if not Path(r["checkpoint"]).is_file():
@@ -406,22 +466,25 @@ def tune_fold(p: dict, params: dict, regime: str, fold: str, o: dict, track: boo
     from rlsac.tracking import start_run
 
     c = tune.conf(params)
-    val = data_dir(regime, fold) / "val.h5"
-    if not val.is_file():
-        raise RlsacError(f"{val}: no such file (run `rlsac folds --stage data` first)")
-    chosen_rows = _selected(p, fold, o)
+    chosen_rows = _selected(p, fold, o, "val")
     task = p["task"]
-    data, _ = task_class(task).read(val)
     train_scenes, test_scenes = (scene_list(s) for s in split_scenes(p, fold))
-    val_scenes = tune.scenes_of(data)
-    tune.check_scenes(val_scenes, train_scenes, test_scenes, str(val))
+    files = {}  # every row's validation file (the N study's rows: their N's) read and checked before any tuning
+    for row in chosen_rows.values():
+        val = data_dir(regime, fold, row["points"]) / "val.h5"
+        if val not in files:
+            data, _ = task_class(task).read(val)
+            tune.check_scenes(tune.scenes_of(data), train_scenes, test_scenes, str(val))
+            files[val] = data
     ev = section(params, "evaluate", task)
     device = resolve_device(o["device"])
     out = []
     for name, row in chosen_rows.items():
+        val = data_dir(regime, fold, row["points"]) / "val.h5"
+        data, val_scenes = files[val], tune.scenes_of(files[val])
         base = {**row_options(row, p, ev, o), "data": str(val), "iterations": c["iterations"]}
 
-        def run(options):
+        def run(options, data=data):
             return score(check_options(options), data, device)[0]
 
         tags = {"benchmark": SUB[task], "regime": regime, "fold": fold, "row": name}
@@ -451,10 +514,7 @@ def evaluate_fold(p: dict, params: dict, regime: str, fold: str, o: dict, track:
     from rlsac.config import section
     from rlsac.evaluate import check_all, evaluate
 
-    test = data_dir(regime, fold) / "test.h5"
-    if not test.is_file():
-        raise RlsacError(f"{test}: no such file (run `rlsac folds --stage data` first)")
-    chosen_rows = _selected(p, fold, o)
+    chosen_rows = _selected(p, fold, o, "test")
     train_scenes, test_scenes = (scene_list(s) for s in split_scenes(p, fold))
     task = p["task"]
     ev = section(params, "evaluate", task)
@@ -473,6 +533,7 @@ def evaluate_fold(p: dict, params: dict, regime: str, fold: str, o: dict, track:
     for name, row in chosen_rows.items():
         for it in p["iterations"][regime]:
             tags = {"benchmark": SUB[task], "regime": regime, "fold": fold, "model": name}
+            test = data_dir(regime, fold, row["points"]) / "test.h5"
             jobs.append((name, int(it), {**row_options(row, p, ev, o), **settings[name], "data": str(test),
                                          "iterations": int(it), "out_dir": str(eval_dir(regime, fold, name, it, task)),
                                          "tags": tags}))
@@ -502,12 +563,12 @@ def folds(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
     regime, fold = o["regime"], o["fold"]
     result: dict[str, Any] = {"stage": o["stage"], "task": o["task"], "regime": regime, "fold": fold}
     if o["stage"] == "data":
-        made = make_data(p, section(params, "fundamental"), regime, fold, track)
+        made = make_data(p, section(params, "fundamental"), regime, fold, track, o["points"])
         result["files"] = {k: {"out": v["out"], "pairs": v["pairs"], "skipped": v["skip_reasons"],
                                "mean_gt_inlier_ratio": v["mean_gt_inlier_ratio_sampson_2px"]}
                            for k, v in made.items()}
     elif o["stage"] == "train":
-        models = [o["model"]] if o["model"] else trained_models(p)
+        models = [o["model"]] if o["model"] else trained_models(p) + list(n_study_models(p))
         result["models"] = train_models(p, params, regime, fold, models, o, track)
     elif o["stage"] == "tune":
         result["tuned"] = tune_fold(p, params, regime, fold, o, track)

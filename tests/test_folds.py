@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -55,6 +56,10 @@ def test_every_test_building_is_tested_once_and_never_trained_on(params):
     ({"pool": {"easy": 0}}, "folds.pool"),
     ({"val_fraction": 1.0}, "val_fraction"),
     ({"bogus": 1}, "unknown params key"),
+    ({"points": [100], "points_models": ["rlsac-nosnn"]}, "folds.points_models"),
+    ({"points": [100], "points_methods": ["magsac"], "methods": ["uniform"]}, "points_methods"),
+    ({"points": [5]}, "folds.points"),
+    ({"points": [100], "variant_regimes": ["easy"]}, "model_regime"),
 ])
 def test_protocol_rejects_inconsistent_folds(change, message):
     with pytest.raises(RlsacError, match=message):
@@ -67,6 +72,31 @@ def test_unknown_fold_and_regime_are_user_errors():
         folds.check_options({"stage": "data", "regime": "easy", "fold": "moon"}, p)
     with pytest.raises(RlsacError, match="unknown regime"):
         folds.check_options({"stage": "data", "regime": "medium", "fold": "castle"}, p)
+
+
+def test_n_study_rows_read_their_own_data_and_checkpoints():
+    """Table 3 (c): <row>-n<N> runs on data/folds/<regime>-n<N> (its model trained there with the model's recipe),
+    only in the variant regimes; --points only prepares data, and only an N of folds.points."""
+    p = folds.protocol({"folds": {"points": [100, 300], "points_models": ["rlsac"], "points_methods": ["uniform"],
+                                  "variant_regimes": ["hard"]}})
+    hard, easy = folds.rows(p, "castle", "hard"), folds.rows(p, "castle", "easy")
+    assert hard["rlsac-n300"]["points"] == 300 and hard["rlsac"]["points"] is None
+    assert hard["rlsac-n300"]["checkpoint"] == Path("checkpoints/folds/hard/castle/rlsac-n300.pt")
+    assert hard["uniform-n100"] == {**hard["uniform"], "points": 100}
+    assert "rlsac-n100" not in easy and "uniform-n100" not in easy
+    assert folds.n_study_models(p) == {"rlsac-n100": ("rlsac", 100), "rlsac-n300": ("rlsac", 300)}
+    assert folds.data_dir("hard", "castle", 100) == Path("data/folds/hard-n100/castle")
+    assert folds.split_points("uniform-n100") == ("uniform", 100)
+    assert folds.split_points("rlsac-nosnn") == ("rlsac-nosnn", None) and folds.split_points("rlsac") == ("rlsac", None)
+    opts = folds.train_options(p, {}, "hard", "castle", "rlsac-n300", {"device": "cpu", "threads": 1})
+    assert opts["data"] == "data/folds/hard-n300/castle/train.h5" and opts["out"].endswith("castle/rlsac-n300.pt")
+    assert folds.check_options({"stage": "train", "regime": "hard", "fold": "castle", "model": "rlsac-n100"}, p)
+    with pytest.raises(RlsacError, match="--points goes with --stage data"):
+        folds.check_options({"stage": "tune", "regime": "hard", "fold": "castle", "points": 100}, p)
+    with pytest.raises(RlsacError, match=r"folds.points \[100, 300\]"):
+        folds.check_options({"stage": "data", "regime": "hard", "fold": "castle", "points": 200}, p)
+    with pytest.raises(RlsacError, match="folds.variant_regimes"):
+        folds.check_options({"stage": "data", "regime": "easy", "fold": "castle", "points": 100}, p)
 
 
 # ------------------------------------------------------------------------------- data: two real scenes
@@ -279,6 +309,47 @@ def test_fold_table_refuses_one_method_shown_as_two_rows(tmp_path):
     assert fold_table.build(ev, tmp_path / "out", tmp_path / "rec")["files"]
 
 
+def test_table3_sets_each_n_against_uniform_on_the_same_points_and_keeps_them_out_of_table2(tmp_path):
+    """Table 3 (c): rlsac-n<N> and uniform-n<N> ran on other data (N points per pair): they are Table 3's rows, set
+    against each other on the same pairs, and never rows of Table 2 (whose rows share the N = 150 data)."""
+    ev = tmp_path / "eval"
+    _write_errors(ev, "hard", "a", "rlsac", 100, [0.5] * 4, [0.5] * 4)
+    _write_errors(ev, "hard", "a", "uniform", 100, [0.5] * 4, [20.0] * 4)
+    _write_errors(ev, "hard", "a", "rlsac-nodesc", 100, [0.5, 0.5, 0.5, 0.6], [0.5] * 4)
+    _write_errors(ev, "hard", "a", "rlsac-n100", 100, [0.5, 0.5, 20.0, 20.0], [0.5] * 4)
+    _write_errors(ev, "hard", "a", "uniform-n100", 100, [20.0] * 4, [0.5, 0.5, 0.5, 20.0])
+    fold_table.build(ev, tmp_path / "out", tmp_path / "rec")
+    t2 = pd.read_csv(tmp_path / "out" / "table2_folds.csv")
+    assert set(t2["method"]) == {"rlsac", "uniform", "rlsac-nodesc"}
+    assert set(pd.read_csv(tmp_path / "out" / "folds_iterations.csv")["method"]) == {"rlsac", "uniform",
+                                                                                    "rlsac-nodesc"}
+    t3 = pd.read_csv(tmp_path / "out" / "table3_folds.csv")
+    n100 = t3[t3["row"] == "rlsac-n100"].iloc[0]
+    assert n100["mAA_R"] == pytest.approx(0.5) and n100["R − full"].startswith("-0.500")  # two pairs lost of four
+    md = (tmp_path / "out" / "table3_folds.md").read_text()
+    section = md.split("#### (c) against the uniform control", 1)[1]
+    rows = {c[1].strip(): [x.strip() for x in c] for c in (line.split("|") for line in section.splitlines()[4:6])}
+    assert rows["100"][2] == "rlsac-n100 / uniform-n100" and rows["100"][6].startswith("+0.500")  # R: 2 of 4 pairs
+    assert rows["100"][7].startswith("+0.250")  # t: uniform-n100 loses one pair of four
+    assert rows["150 (full)"][2] == "rlsac / uniform" and rows["150 (full)"][7].startswith("+1.000")
+
+
+def test_table_refuses_an_n_row_run_on_other_data(tmp_path):
+    ev = tmp_path / "eval"
+    _write_errors(ev, "hard", "a", "rlsac", 100, [0.5] * 2, [0.5] * 2)
+    _write_errors(ev, "hard", "a", "uniform-n100", 100, [0.5, 20.0], [0.5] * 2)
+    cell = ev / "folds/hard/a/uniform-n100/i100"
+    (cell / "config.json").write_text(json.dumps({"method": "uniform", "iterations": 100, "checkpoint": None,
+                                                  "data": "data/folds/hard/a/test.h5",
+                                                  "data_attrs": {"n_points": 150}}))
+    with pytest.raises(RlsacError, match="not on the data with 100 points"):
+        fold_table.build(ev, tmp_path / "out", tmp_path / "rec")
+    (cell / "config.json").write_text(json.dumps({"method": "uniform", "iterations": 100, "checkpoint": None,
+                                                  "data": "data/folds/hard-n100/a/test.h5",
+                                                  "data_attrs": {"n_points": 100}}))
+    assert fold_table.build(ev, tmp_path / "out", tmp_path / "rec")["files"]
+
+
 def test_fold_table_without_results_writes_nothing(tmp_path):
     got = fold_table.build(tmp_path / "none", tmp_path / "out", tmp_path / "rec")
     assert got["files"] == [] and not (tmp_path / "out").exists()
@@ -302,7 +373,8 @@ def test_folds_command_end_to_end(imported, tmp_path, monkeypatch):
                   "prob_models": ["rlsac"],
                   "train": {"rlsac": {}, "rlsac-ws": {"sac": {"warm_start_updates": 2}, "selection": "val_mAA"},
                             "rlsac-trainmax": {"sac": {"train_sampling": "max"}}},
-                  "iterations": [15], "seed": 0, "fast": ["rlsac"]},
+                  "iterations": [15], "seed": 0, "fast": ["rlsac"],
+                  "points": [30], "points_models": ["rlsac"], "points_methods": ["uniform"]},
         "essential": {"regime": "hard", "methods": ["ransac", "usac"], "iterations": [15]},
         "tuning": {"iterations": 15, "threshold_px": [1.0, 2.0], "prefilter": [0.9, 1.0], "extend": 0,
                    "guide_temperature": [0.1], "lo_sigma_scale": [0.5], "sets_per_step": [2], "confidence": [0.99]},
@@ -317,6 +389,14 @@ def test_folds_command_end_to_end(imported, tmp_path, monkeypatch):
     rec = json.loads((tmp_path / "reports/folds/data/hard/fountain.json").read_text())
     assert rec["test_scenes"] == "fountain-P11" and rec["train_scenes"] == "entry-P10"
     assert rec["splits"]["train"]["pairs"] + rec["splits"]["val"]["pairs"] == 8
+    # Table 3 (c): the same fold with 30 points per pair, its own folder
+    r = run.invoke(cli, base + ["--stage", "tune", "--only", "uniform-n30"])
+    assert r.exit_code == 2 and "data/folds/hard-n30/fountain/val.h5: no such file" in r.output
+    r = run.invoke(cli, base + ["--stage", "data", "--points", "30"])
+    assert r.exit_code == 0, r.output
+    rec30 = json.loads((tmp_path / "reports/folds/data/hard-n30/fountain.json").read_text())
+    assert rec30["n_points"] == 30 and rec30["splits"]["test"]["pairs"] == rec["splits"]["test"]["pairs"]
+    assert fundamental.read(tmp_path / "data/folds/hard-n30/fountain/test.h5")[0]["coords"].shape[1] == 30
     # evaluation needs the row's tuning record, made on the fold's validation pairs only
     r = run.invoke(cli, base + ["--stage", "evaluate", "--only", "uniform"])
     assert r.exit_code == 2 and "no tuning record" in r.output
@@ -355,6 +435,8 @@ def test_folds_command_end_to_end(imported, tmp_path, monkeypatch):
     assert ws["selection"] == "val_mAA" and ws["conf"]["sac"]["warm_start_updates"] == 2
     assert paper["selection"] == "inlier_ratio" and paper["conf"]["sac"]["warm_start_updates"] == 0
     assert [h["step"] for h in paper["history"]][:2] == [4, 8]
+    n30 = torch.load(tmp_path / "checkpoints/folds/hard/fountain/rlsac-n30.pt", weights_only=False)
+    assert n30["conf"]["data"] == "data/folds/hard-n30/fountain/train.h5"  # the full recipe on the N = 30 data
     r = run.invoke(cli, base + ["--stage", "tune"])
     assert r.exit_code == 0, r.output
     fast = json.loads((tmp_path / "reports/tuning/fundamental/hard/fountain/rlsac-fast.json").read_text())
@@ -367,8 +449,12 @@ def test_folds_command_end_to_end(imported, tmp_path, monkeypatch):
     assert trainmax["conf"]["sac"]["train_sampling"] == "max"  # Table 3 (b)'s model, trained with the others
     prob = json.loads((tmp_path / "reports/eval/folds/hard/fountain/rlsac-prob/i15/config.json").read_text())
     assert prob["sampling"] == "prob" and prob["checkpoint"].endswith("rlsac.pt")
+    for m in ("uniform-n30", "rlsac-n30"):  # tuned on the N = 30 validation pairs, tested on the N = 30 test pairs
+        tuned = json.loads((tmp_path / f"reports/tuning/fundamental/hard/fountain/{m}.json").read_text())
+        conf = json.loads((tmp_path / f"reports/eval/folds/hard/fountain/{m}/i15/config.json").read_text())
+        assert tuned["data"] == "data/folds/hard-n30/fountain/val.h5" and conf["data_attrs"]["n_points"] == 30
     for m in ("uniform", "ransac", "rlsac", "rlsac-ws", "rlsac-ws-lo", "rlsac-fast", "ransac-lo", "guided-lo",
-              "rlsac-trainmax", "rlsac-prob"):
+              "rlsac-trainmax", "rlsac-prob", "rlsac-n30", "uniform-n30"):
         s = json.loads((tmp_path / f"reports/eval/folds/hard/fountain/{m}/i15/summary.json").read_text())
         assert s["n_instances"] == 8 and s["iterations"] == 15
         assert ("lo" in s) == m.endswith("-lo")
@@ -378,6 +464,7 @@ def test_folds_command_end_to_end(imported, tmp_path, monkeypatch):
     assert "8 test pairs pooled over 1 folds" in md and "| same LO " in md
     t3 = (tmp_path / "reports/table3_folds.md").read_text()  # Table 3 on the folds, each variant against the full model
     assert "Ours (max sampling in training, max in testing)" in t3 and "rlsac-trainmax" in t3 and "rlsac-prob" in t3
+    assert re.search(r"\| 30 +\| rlsac-n30 / uniform-n30 ", t3) and "rlsac-n30" not in md  # (c): Table 3 only
     assert "Settings chosen on each fold's validation pairs" in md and ("SNN<0.9" in md or "no filter" in md)
     errors = pd.read_csv(tmp_path / "reports/eval/folds/hard/fountain/uniform/i15/errors.csv")
     assert (errors["n_hypotheses"] == 15).all()  # the paper's algorithm: the whole budget, every pair

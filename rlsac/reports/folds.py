@@ -97,6 +97,15 @@ def _check_cell(path: Path, name: str, iterations: int) -> None:
         conf = json.loads(f.read_text())
     except (OSError, ValueError):
         raise RlsacError(f"{f}: unreadable") from None
+    from rlsac.folds import split_points
+
+    base, points = split_points(name)  # Table 3 (c)'s <row>-n<N>: the row of that name on the data with N points
+    if points is not None:
+        if (conf.get("data_attrs") or {}).get("n_points") != points:
+            raise RlsacError(f"{f}: holds a run on {conf.get('data')!r}, not on the data with {points} points its "
+                             f"folder {name!r} names")
+        spec = METHODS.get(conf.get("method"))
+        name = name if spec is not None and spec.checkpoint else base  # a model's checkpoint is named <model>-n<N>
     method, ckpt = conf.get("method"), Path(conf.get("checkpoint") or "").stem
     spec = METHODS.get(method)
     prob = conf.get("sampling") == "prob"  # Table 3 (b)'s <model>-prob rows: probabilistic test-time sampling
@@ -200,8 +209,12 @@ def build(eval_root: str | Path = "reports/eval", out_dir: str | Path = "reports
           iterations_stem: str | None = "folds_iterations", head: str = TABLE2_HEAD,
           tuning: str | Path | None = None) -> dict[str, Any]:
     """Write <stem>.{md,csv} and <iterations_stem>.csv from <eval_root>/<sub>; -> {"files", "missing"}."""
-    res = collect(eval_root, sub)
-    check_distinct(res, sub)
+    from rlsac.folds import split_points
+
+    everything = collect(eval_root, sub)
+    check_distinct(everything, sub)
+    # Table 3 (c)'s rows (<row>-n<N>) ran on other data (N points per pair): Table 3 only, never beside Table 2's
+    res = {k: v for k, v in everything.items() if split_points(k[1])[1] is None}
     regimes_found = {r for r, _, _ in res}
     recs = {k: v for k, v in load_records(records).items() if k[0] in regimes_found}
     out_dir = Path(out_dir)
@@ -277,7 +290,7 @@ def build(eval_root: str | Path = "reports/eval", out_dir: str | Path = "reports
             pd.DataFrame(rows).to_csv(tmp, index=False, float_format="%.4f")
         files = [str(out_dir / f"{stem}.md"), str(out_dir / f"{stem}.csv")]
         if sub == "folds":
-            files += table3(res, out_dir)
+            files += table3(everything, out_dir, load_records(records))
         if iterations_stem:
             with atomic_path(out_dir / f"{iterations_stem}.csv") as tmp:
                 pd.DataFrame(it_rows, columns=["regime", "method", "iterations", "mAA_R", "mAA_t", "n_pairs", "dR",
@@ -350,13 +363,54 @@ def _tuning_section(root: Path, regime: str, methods: list[str], folds: list[str
 
 
 # Table 3 on the folds (issue #26): the paper's ablations as fold rows, each tuned per fold like every row. Paper
-# variant -> our row (the N study needs fold data with other N: not yet a row).
+# variant -> our row; (c)'s rows ran on the fold data prepared with N points per pair (folds.points)
 TABLE3_ROWS = {"no_descriptors": "rlsac-nodesc", "full": "rlsac", "train_max-test_max": "rlsac-trainmax",
-               "train_max-test_prob": "rlsac-trainmax-prob", "train_prob-test_prob": "rlsac-prob"}
+               "train_max-test_prob": "rlsac-trainmax-prob", "train_prob-test_prob": "rlsac-prob",
+               "n100": "rlsac-n100", "n200": "rlsac-n200", "n300": "rlsac-n300"}
 TABLE3_REGIME = "hard"
+FULL_POINTS = 150  # the full model's N (fundamental.n_points, the paper's)
 
 
-def table3(res: dict[tuple[str, str, int], pd.DataFrame], out_dir: Path) -> list[str]:
+def _test_inlier_ratio(recs: dict[tuple[str, str], dict], data_regime: str) -> float:
+    """Mean ground-truth inlier ratio over the test pairs of every fold of ``data_regime`` (data stage records)."""
+    tests = [r["splits"]["test"] for (g, _), r in recs.items() if g == data_regime]
+    n = sum(int(t["pairs"]) for t in tests)
+    return sum(t["mean_gt_inlier_ratio_sampson_2px"] * int(t["pairs"]) for t in tests) / n if n else math.nan
+
+
+def _n_study(res: dict[tuple[str, str, int], pd.DataFrame], it: int, recs: dict[tuple[str, str], dict]) -> str:
+    """Table 3 (c) against the uniform control on the same data: for every N, RLSAC trained and tested with N points
+    per pair, uniform minimal sets on those points, and their paired difference (the policy's share; the data change
+    with N for both)."""
+    from rlsac.folds import points_name, split_points
+
+    control = CONTROLS[0]
+    ns = {n for r, m, i in res if r == TABLE3_REGIME and i == it
+          for base, n in [split_points(m)] if base == REFERENCE and n is not None}
+    if not ns:
+        return ""
+    rows = []
+    for n in sorted({*ns, FULL_POINTS}):
+        full = n == FULL_POINTS
+        m, c = (REFERENCE, control) if full else (points_name(REFERENCE, n), points_name(control, n))
+        a, b = res.get((TABLE3_REGIME, m, it)), res.get((TABLE3_REGIME, c, it))
+        if a is None:
+            continue
+        row = {"N": f"{n}" + (" (full)" if full else ""), "rows": f"{m} / {c}",
+               "test inlier ratio": _test_inlier_ratio(recs, TABLE3_REGIME if full else f"{TABLE3_REGIME}-n{n}"),
+               "RLSAC R / t": f"{mAA(a['err_R'], LIMIT):.3f} / {mAA(a['err_t'], LIMIT):.3f}",
+               "uniform R / t": "–" if b is None else f"{mAA(b['err_R'], LIMIT):.3f} / {mAA(b['err_t'], LIMIT):.3f}"}
+        for col, name in (("err_R", "R"), ("err_t", "t")):
+            row[f"RLSAC − uniform {name}"] = _ci(_paired(a, b, col) if b is not None else None)
+        rows.append(row)
+    t = pd.DataFrame(rows)
+    t["test inlier ratio"] = t["test inlier ratio"].map(lambda v: "–" if math.isnan(v) else f"{v:.2f}")
+    return (f"#### (c) against the uniform control on the same data ({it} iterations)\n\n"
+            + t.to_markdown(index=False, disable_numparse=True) + "\n")
+
+
+def table3(res: dict[tuple[str, str, int], pd.DataFrame], out_dir: Path,
+           recs: dict[tuple[str, str], dict] | None = None) -> list[str]:
     """Write table3_folds.{md,csv} from the fold results when the hard regime has RLSAC and an ablation row:
     pooled mAA@10° R / t and medians of each variant beside the paper's, and each variant − the full model, paired
     over the same pairs with its 95% interval. -> the files written."""
@@ -389,15 +443,20 @@ def table3(res: dict[tuple[str, str, int], pd.DataFrame], out_dir: Path) -> list
             t[c] = t[c].map(lambda v: "–" if math.isnan(v) else f"{v:.3f}")
         md.append(f"### {it} iterations\n\n" + t.drop(columns="iterations").to_markdown(index=False,
                                                                                          disable_numparse=True) + "\n")
+        md.append(_n_study(res, it, recs or {}))
     n = len(res[(TABLE3_REGIME, REFERENCE, budgets[-1])])
     head = ("# Table 3 (folds): ablations of RLSAC on the leave-one-building-out benchmark\n\n"
             f"The paper's ablations as rows of Table 2 (folds), `{TABLE3_REGIME}` regime, {n} test pairs pooled over "
             f"the folds (one pair = {1 / max(n, 1):.4f} mAA). Every model is trained per fold with the full model's "
             "recipe and budget (params.yaml `folds.train`), one training seed; every row's threshold and pre-filter "
             "are tuned on its fold's validation pairs. `− full`: paired difference to the full model (probabilistic "
-            f"sampling in training, max in testing, descriptors, N = 150) with its 95% interval ({N_BOOT} bootstrap "
-            "resamples over pairs). The paper's numbers (CVPR 2020 tutorial validation set) are beside ours; the N "
-            "study (c) is not yet a fold row. Generated by `rlsac table --which folds`.\n")
+            f"sampling in training, max in testing, descriptors, N = {FULL_POINTS}) with its 95% interval ({N_BOOT} "
+            "bootstrap resamples over pairs). (c): the fold data prepared again with N points per pair (drawn from "
+            "the same pool of low-SNN matches; params.yaml `folds.points`), a model trained on each N with the full "
+            "recipe: its `− full` compares the same image pairs with other correspondences, so it mixes the data's "
+            "change with the policy's; the table under each budget sets every N against uniform minimal sets on the "
+            "same points (not in the paper). The paper's numbers (CVPR 2020 tutorial validation set) are beside ours. "
+            "Generated by `rlsac table --which folds`.\n")
     write_text(out_dir / "table3_folds.md", head + "\n" + "\n".join(md))
     with atomic_path(out_dir / "table3_folds.csv") as tmp:
         pd.DataFrame(rows).to_csv(tmp, index=False, float_format="%.4f")
