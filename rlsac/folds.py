@@ -56,6 +56,10 @@ DEFAULTS: dict[str, Any] = {
     "points": [],
     "points_models": [],
     "points_methods": [],
+    # training seeds (issue #27): each model of seed_models trained again with every seed of ``seeds`` (its recipe's
+    # own seed is the model itself), tuned and evaluated like it in every regime: rows <model>-s<seed>
+    "seeds": [],
+    "seed_models": [],
     # models also run with the speed levers of issue #17 (several sets per step, the confidence stop), k and the
     # confidence tuned on validation: rows <model>-fast (not in the paper; the plain rows are the paper's algorithm)
     "fast": [],
@@ -110,6 +114,8 @@ def protocol(params: dict[str, Any]) -> dict[str, Any]:
     if not set(p["points_models"]) <= set(p["models"]) or not set(p["points_methods"]) <= set(p["methods"]):
         raise RlsacError(f"folds.points_models {p['points_models']} / points_methods {p['points_methods']} must be "
                          "models of folds.models / methods of folds.methods")
+    if not set(p["seed_models"]) <= set(p["models"]):
+        raise RlsacError(f"folds.seed_models {p['seed_models']} must be models of folds.models {p['models']}")
     if p["points"] and p["model_regime"] not in p["variant_regimes"]:
         raise RlsacError(f"folds.points needs folds.model_regime {p['model_regime']!r} among folds.variant_regimes "
                          f"{p['variant_regimes']} (its models train on that regime's data with N points)")
@@ -118,13 +124,16 @@ def protocol(params: dict[str, Any]) -> dict[str, Any]:
 
     base = {**section(params, "train", "fundamental"), "task": "fundamental"}
     for model, recipe in p["train"].items():  # each model's recipe a TrainConf, whichever stage reads the params
-        build(TrainConf, deep_update(base, recipe or {}), f"folds.train.{model}")
+        conf = build(TrainConf, deep_update(base, recipe or {}), f"folds.train.{model}")
+        if model in p["seed_models"] and conf.seed in p["seeds"]:
+            raise RlsacError(f"folds.seeds {p['seeds']} holds seed {conf.seed}, the seed of model {model!r} itself "
+                             "(its recipe's train seed): list the other seeds")
     return p
 
 
 def trained_models(p: dict[str, Any]) -> list[str]:
     """The models trained per fold with a recipe of folds.train: Table 2's (folds.models), then Table 3's
-    (folds.ablation_models); the N study's (``points_models``) reuse their model's recipe."""
+    (folds.ablation_models); the N study's and the other training seeds' (``derived_models``) reuse a recipe."""
     return p["models"] + p["ablation_models"]
 
 
@@ -133,9 +142,25 @@ def points_name(row: str, points: int) -> str:
     return f"{row}-n{int(points)}"
 
 
-def n_study_models(p: dict[str, Any]) -> dict[str, tuple[str, int]]:
-    """Table 3 (c)'s models: <model>-n<N> -> (the model of folds.models whose recipe it trains with, N)."""
-    return {points_name(m, n): (m, int(n)) for n in p.get("points", []) for m in p.get("points_models", [])}
+def seed_name(model: str, seed: int) -> str:
+    """``model`` trained with training seed ``seed`` (``split_seed`` reads it back)."""
+    return f"{model}-s{int(seed)}"
+
+
+def split_seed(row: str) -> tuple[str, int | None]:
+    """A row's name -> (the model, training seed) for <model>-s<seed>, (row, None) for any other row."""
+    base, _, n = row.rpartition("-s")
+    return (base, int(n)) if base and n.isdigit() else (row, None)
+
+
+def derived_models(p: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """The models trained with another model's recipe: Table 3 (c)'s <model>-n<N> on the data with N points, and
+    issue #27's <model>-s<seed> with another training seed -> {name: {recipe, points, seed}}."""
+    out = {points_name(m, n): {"recipe": m, "points": int(n), "seed": None}
+           for n in p.get("points", []) for m in p.get("points_models", [])}
+    out.update({seed_name(m, s): {"recipe": m, "points": None, "seed": int(s)}
+                for s in p.get("seeds", []) for m in p.get("seed_models", [])})
+    return out
 
 
 def split_points(row: str) -> tuple[str, int | None]:
@@ -151,6 +176,8 @@ def rows(p: dict[str, Any], fold: str, regime: str | None = None) -> dict[str, d
     trained, task = p["model_regime"], p.get("task", "fundamental")  # every regime: the models of this one's data
     out = {m: {"method": m, "checkpoint": None} for m in p["methods"]}
     out.update({m: {"method": "rlsac", "checkpoint": checkpoint(trained, fold, m, task)} for m in p["models"]})
+    out.update({seed_name(m, s): {"method": "rlsac", "checkpoint": checkpoint(trained, fold, seed_name(m, s), task)}
+                for s in p.get("seeds", []) for m in p.get("seed_models", [])})  # issue #27: every regime
     if regime is None or regime in p.get("variant_regimes", p["regimes"]):
         out.update({m: {"method": m, "checkpoint": None} for m in p.get("lo_methods", [])})
         out.update({f"{m}-lo": {"method": "rlsac-lo", "checkpoint": checkpoint(trained, fold, m, task)}
@@ -190,7 +217,7 @@ def _typed(p: dict[str, Any]) -> dict[str, Any]:
     if p["variant_regimes"] is None:
         p["variant_regimes"] = list(p["regimes"])
     for key in ("test", "regimes", "methods", "models", "lo_models", "fast", "lo_methods", "variant_regimes",
-                "ablation_models", "prob_models", "points_models", "points_methods"):
+                "ablation_models", "prob_models", "points_models", "points_methods", "seed_models"):
         if not isinstance(p[key], list):
             raise RlsacError(f"folds.{key} must be a list, got {p[key]!r}")
         p[key] = [check_value(f"folds.{key}", v, str) for v in p[key]]
@@ -207,6 +234,9 @@ def _typed(p: dict[str, Any]) -> dict[str, Any]:
     if not isinstance(p["points"], list):
         raise RlsacError(f"folds.points must be a list of point counts, got {p['points']!r}")
     p["points"] = [check_value("folds.points", v, int, "[8, inf)") for v in p["points"]]
+    if not isinstance(p["seeds"], list) or len(set(map(str, p["seeds"]))) != len(p["seeds"]):
+        raise RlsacError(f"folds.seeds must be a list of distinct training seeds, got {p['seeds']!r}")
+    p["seeds"] = [check_value("folds.seeds", v, int, SEED_RANGE) for v in p["seeds"]]
     p["model_regime"] = check_value("folds.model_regime", p["model_regime"], str)
     return p
 
@@ -274,7 +304,7 @@ def for_task(p: dict[str, Any], params: dict[str, Any], task: str) -> dict[str, 
     e = check_essential(params)
     return {**p, "task": task, "methods": list(e["methods"]), "models": ["rlsac"], "lo_models": [], "fast": [],
             "lo_methods": [], "variant_regimes": [e["regime"]], "ablation_models": [], "prob_models": [],
-            "points": [], "points_models": [], "points_methods": [],
+            "points": [], "points_models": [], "points_methods": [], "seeds": [], "seed_models": [],
             "regimes": [e["regime"]], "model_regime": e["regime"], "iterations": {e["regime"]: list(e["iterations"])}}
 
 
@@ -330,7 +360,7 @@ def check_options(options: dict[str, Any], p: dict[str, Any] | None = None) -> d
                              "data; its models train with `rlsac train --task essential`)")
         if o["stage"] == "train" and o["regime"] != p["model_regime"]:
             raise RlsacError(f"models are trained on regime {p['model_regime']!r} only (folds.model_regime)")
-        models = trained_models(p) + list(n_study_models(p))
+        models = trained_models(p) + list(derived_models(p))
         if o["stage"] == "train" and o["model"] is not None and o["model"] not in models:
             raise RlsacError(f"unknown model {o['model']!r} (known: {', '.join(models)})")
         if o["points"] is not None:
@@ -408,10 +438,13 @@ def train_options(p: dict, params: dict, regime: str, fold: str, model: str, o: 
     """`rlsac train`'s options of fold model ``model``: train.fundamental <- folds.train.<model> <- the fold's files."""
     from rlsac.config import deep_update, section
 
-    recipe, points = n_study_models(p).get(model, (model, None))
-    d = data_dir(regime, fold, points)
+    derived = derived_models(p).get(model, {"recipe": model, "points": None, "seed": None})
+    d = data_dir(regime, fold, derived["points"])
     base = section(params, "train", "fundamental")
-    return deep_update(deep_update(base, copy.deepcopy(p["train"][recipe] or {})), {
+    recipe = deep_update(base, copy.deepcopy(p["train"][derived["recipe"]] or {}))
+    if derived["seed"] is not None:
+        recipe["seed"] = derived["seed"]
+    return deep_update(recipe, {
         "task": "fundamental", "data": str(d / "train.h5"), "val_data": str(d / "val.h5"),
         "out": str(checkpoint(regime, fold, model)), "device": o["device"], "threads": int(o["threads"]),
         "run_name": f"train folds {regime} {fold} {model}",
@@ -425,7 +458,7 @@ def train_models(p: dict, params: dict, regime: str, fold: str, models: list[str
     from rlsac.train import check, train
 
     for model in models:
-        d = data_dir(regime, fold, n_study_models(p).get(model, (model, None))[1])
+        d = data_dir(regime, fold, derived_models(p).get(model, {"points": None})["points"])
         for split in ("train", "val"):
             if not (d / f"{split}.h5").is_file():
                 raise RlsacError(f"{d / f'{split}.h5'}: no such file (run `rlsac folds --stage data` first)")
@@ -568,7 +601,7 @@ def folds(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
                                "mean_gt_inlier_ratio": v["mean_gt_inlier_ratio_sampson_2px"]}
                            for k, v in made.items()}
     elif o["stage"] == "train":
-        models = [o["model"]] if o["model"] else trained_models(p) + list(n_study_models(p))
+        models = [o["model"]] if o["model"] else trained_models(p) + list(derived_models(p))
         result["models"] = train_models(p, params, regime, fold, models, o, track)
     elif o["stage"] == "tune":
         result["tuned"] = tune_fold(p, params, regime, fold, o, track)

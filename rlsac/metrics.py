@@ -45,6 +45,51 @@ def paired_bootstrap_maa(errors_a, errors_b, limit: float, n_boot: int = 2000, s
     return float(diff.mean()), float(np.percentile(boot, tail)), float(np.percentile(boot, 100 - tail))
 
 
+def seed_bootstrap_maa(errors_a, errors_b, limit: float, strata=None, n_boot: int = 2000, seed: int = 0,
+                       level: float = 0.95) -> dict[str, float]:
+    """mAA(a) - mAA(b) across training seeds, on the same instances, with a hierarchical bootstrap interval.
+
+    errors_a: (S_a, M) errors of S_a training seeds of a method on M instances; errors_b: (S_b, M) of another
+    (S_b = 1 for a method that is not trained), the instances in the same order (NaN = failure). strata: (M,)
+    labels (buildings); instances are resampled within each stratum, keeping its size. Each bootstrap draw
+    resamples the seeds of each method with replacement, then the instances (the same draw for both methods: the
+    pairing), and takes the difference of the seed means: the interval covers training noise as well as the
+    choice of test pairs (issue #27).
+
+    Returns {"diff", "lo", "hi"} (the seed means' difference and its interval), {"mean_a", "sd_a", "mean_b",
+    "sd_b"} (seed mean and seed-to-seed standard deviation of each method's mAA; sd 0 for one seed) and
+    "p_improve": the probability that a random seed of a beats a random seed of b on a random stratum (rliable's
+    probability of improvement with the strata as its tasks, ties counting one half).
+    """
+    a, b = (np.atleast_2d(np.asarray(e, dtype=np.float64)) for e in (errors_a, errors_b))
+    if a.shape[1] != b.shape[1] or a.shape[1] == 0 or 0 in (a.shape[0], b.shape[0]):
+        raise ValueError(f"seed bootstrap needs (S, M) errors of one M > 0, got {a.shape} and {b.shape}")
+    m = a.shape[1]
+    strata = np.zeros(m, dtype=np.int64) if strata is None else np.asarray(strata)
+    if strata.shape != (m,):
+        raise ValueError(f"strata must have one label per instance ({m}), got shape {strata.shape}")
+    acc_a = np.stack([accuracy_per_instance(e, limit) for e in a])  # (S_a, M)
+    acc_b = np.stack([accuracy_per_instance(e, limit) for e in b])
+    rng = np.random.default_rng(seed)
+    idx = np.concatenate([rng.choice(np.flatnonzero(strata == k), size=(n_boot, int((strata == k).sum())))
+                          for k in np.unique(strata)], axis=1)  # (n_boot, M): the same instances for a and b
+    per_a, per_b = acc_a[:, idx].mean(axis=2), acc_b[:, idx].mean(axis=2)  # (S, n_boot): each seed's resampled mAA
+    pick_a = rng.integers(0, len(acc_a), size=(n_boot, len(acc_a)))
+    pick_b = rng.integers(0, len(acc_b), size=(n_boot, len(acc_b)))
+    cols = np.arange(n_boot)[:, None]
+    boot = per_a[pick_a, cols].mean(axis=1) - per_b[pick_b, cols].mean(axis=1)
+    tail = 100 * (1 - level) / 2
+    maa_a, maa_b = acc_a.mean(axis=1), acc_b.mean(axis=1)
+    wins = []
+    for k in np.unique(strata):  # P(a > b) per stratum over every pair of seeds, then averaged over strata
+        ka, kb = acc_a[:, strata == k].mean(axis=1), acc_b[:, strata == k].mean(axis=1)
+        wins.append(((ka[:, None] > kb[None, :]) + 0.5 * (ka[:, None] == kb[None, :])).mean())
+    return {"diff": float(maa_a.mean() - maa_b.mean()), "lo": float(np.percentile(boot, tail)),
+            "hi": float(np.percentile(boot, 100 - tail)), "mean_a": float(maa_a.mean()),
+            "sd_a": float(maa_a.std(ddof=1)) if len(maa_a) > 1 else 0.0, "mean_b": float(maa_b.mean()),
+            "sd_b": float(maa_b.std(ddof=1)) if len(maa_b) > 1 else 0.0, "p_improve": float(np.mean(wins))}
+
+
 def median(errors: np.ndarray) -> float:
     errors = np.asarray(errors, dtype=np.float64).ravel()
     if errors.size == 0:

@@ -60,6 +60,9 @@ def test_every_test_building_is_tested_once_and_never_trained_on(params):
     ({"points": [100], "points_methods": ["magsac"], "methods": ["uniform"]}, "points_methods"),
     ({"points": [5]}, "folds.points"),
     ({"points": [100], "variant_regimes": ["easy"]}, "model_regime"),
+    ({"seeds": [1], "seed_models": ["rlsac-nosnn"]}, "folds.seed_models"),
+    ({"seeds": [0, 1], "seed_models": ["rlsac"]}, "the seed of model 'rlsac' itself"),
+    ({"seeds": [1, 1], "seed_models": ["rlsac"]}, "distinct training seeds"),
 ])
 def test_protocol_rejects_inconsistent_folds(change, message):
     with pytest.raises(RlsacError, match=message):
@@ -84,7 +87,8 @@ def test_n_study_rows_read_their_own_data_and_checkpoints():
     assert hard["rlsac-n300"]["checkpoint"] == Path("checkpoints/folds/hard/castle/rlsac-n300.pt")
     assert hard["uniform-n100"] == {**hard["uniform"], "points": 100}
     assert "rlsac-n100" not in easy and "uniform-n100" not in easy
-    assert folds.n_study_models(p) == {"rlsac-n100": ("rlsac", 100), "rlsac-n300": ("rlsac", 300)}
+    assert folds.derived_models(p) == {"rlsac-n100": {"recipe": "rlsac", "points": 100, "seed": None},
+                                       "rlsac-n300": {"recipe": "rlsac", "points": 300, "seed": None}}
     assert folds.data_dir("hard", "castle", 100) == Path("data/folds/hard-n100/castle")
     assert folds.split_points("uniform-n100") == ("uniform", 100)
     assert folds.split_points("rlsac-nosnn") == ("rlsac-nosnn", None) and folds.split_points("rlsac") == ("rlsac", None)
@@ -334,6 +338,39 @@ def test_table3_sets_each_n_against_uniform_on_the_same_points_and_keeps_them_ou
     assert rows["150 (full)"][2] == "rlsac / uniform" and rows["150 (full)"][7].startswith("+1.000")
 
 
+def test_other_training_seeds_train_with_the_models_recipe_and_their_seed():
+    p = folds.protocol({"folds": {"seeds": [3, 7], "seed_models": ["rlsac"]}})
+    assert folds.derived_models(p)["rlsac-s7"] == {"recipe": "rlsac", "points": None, "seed": 7}
+    for regime in ("easy", "hard"):  # every regime, like the model itself
+        row = folds.rows(p, "castle", regime)["rlsac-s3"]
+        assert row["checkpoint"] == Path("checkpoints/folds/hard/castle/rlsac-s3.pt") and row["method"] == "rlsac"
+    params = {"train": {"fundamental": {"seed": 0, "sac": {"total_steps": 5}}}}
+    opts = folds.train_options(p, params, "hard", "castle", "rlsac-s7", {"device": "cpu", "threads": 1})
+    assert opts["seed"] == 7 and opts["sac"]["total_steps"] == 5 and opts["out"].endswith("castle/rlsac-s7.pt")
+    assert folds.train_options(p, params, "hard", "castle", "rlsac", {"device": "cpu", "threads": 1})["seed"] == 0
+    assert folds.split_seed("rlsac-s12") == ("rlsac", 12) and folds.split_seed("rlsac-nosnn") == ("rlsac-nosnn", None)
+
+
+def test_fold_table_across_seeds_resamples_seeds_and_keeps_them_out_of_the_main_rows(tmp_path):
+    """Two seeds of rlsac (one solves every pair, one none) against uniform (half): the seed mean ties the control
+    and the interval spans the seeds' spread; rlsac-s1 is no row of Table 2's main tables or the iterations CSV."""
+    ev = tmp_path / "eval"
+    for fold in ("a", "b"):
+        _write_errors(ev, "hard", fold, "rlsac", 100, [0.5] * 4, [0.5] * 4)
+        _write_errors(ev, "hard", fold, "rlsac-s1", 100, [20.0] * 4, [20.0] * 4)
+        _write_errors(ev, "hard", fold, "uniform", 100, [0.5, 20.0] * 2, [0.5, 20.0] * 2)
+    fold_table.build(ev, tmp_path / "out", tmp_path / "rec")
+    assert set(pd.read_csv(tmp_path / "out" / "table2_folds.csv")["method"]) == {"rlsac", "uniform"}
+    assert set(pd.read_csv(tmp_path / "out" / "folds_iterations.csv")["method"]) == {"rlsac", "uniform"}
+    md = (tmp_path / "out" / "table2_folds.md").read_text()
+    section = md.split("### Across training seeds", 1)[1]
+    line = next(x for x in section.splitlines() if "(2 seeds)" in x and fold_table.NAMES["uniform"] in x)
+    cells = [c.strip() for c in line.split("|")[1:-1]]
+    assert cells[3] == "0.500 ± 0.707" and cells[4] == "0.500"  # R: seed mean and SD, the control's mAA
+    lo, hi = (float(x) for x in cells[5].split("[")[1].rstrip("]").split(","))
+    assert cells[5].startswith("+0.000") and lo <= -0.5 and hi >= 0.5 and cells[6] == "0.50"
+
+
 def test_table_refuses_an_n_row_run_on_other_data(tmp_path):
     ev = tmp_path / "eval"
     _write_errors(ev, "hard", "a", "rlsac", 100, [0.5] * 2, [0.5] * 2)
@@ -374,7 +411,8 @@ def test_folds_command_end_to_end(imported, tmp_path, monkeypatch):
                   "train": {"rlsac": {}, "rlsac-ws": {"sac": {"warm_start_updates": 2}, "selection": "val_mAA"},
                             "rlsac-trainmax": {"sac": {"train_sampling": "max"}}},
                   "iterations": [15], "seed": 0, "fast": ["rlsac"],
-                  "points": [30], "points_models": ["rlsac"], "points_methods": ["uniform"]},
+                  "points": [30], "points_models": ["rlsac"], "points_methods": ["uniform"],
+                  "seeds": [1], "seed_models": ["rlsac"]},
         "essential": {"regime": "hard", "methods": ["ransac", "usac"], "iterations": [15]},
         "tuning": {"iterations": 15, "threshold_px": [1.0, 2.0], "prefilter": [0.9, 1.0], "extend": 0,
                    "guide_temperature": [0.1], "lo_sigma_scale": [0.5], "sets_per_step": [2], "confidence": [0.99]},
@@ -435,6 +473,9 @@ def test_folds_command_end_to_end(imported, tmp_path, monkeypatch):
     assert ws["selection"] == "val_mAA" and ws["conf"]["sac"]["warm_start_updates"] == 2
     assert paper["selection"] == "inlier_ratio" and paper["conf"]["sac"]["warm_start_updates"] == 0
     assert [h["step"] for h in paper["history"]][:2] == [4, 8]
+    s1 = torch.load(tmp_path / "checkpoints/folds/hard/fountain/rlsac-s1.pt", weights_only=False)
+    assert s1["conf"]["seed"] == 1 and paper["conf"]["seed"] == 0  # the paper recipe with another training seed
+    assert not torch.equal(s1["actor"][next(iter(s1["actor"]))], paper["actor"][next(iter(paper["actor"]))])
     n30 = torch.load(tmp_path / "checkpoints/folds/hard/fountain/rlsac-n30.pt", weights_only=False)
     assert n30["conf"]["data"] == "data/folds/hard-n30/fountain/train.h5"  # the full recipe on the N = 30 data
     r = run.invoke(cli, base + ["--stage", "tune"])
@@ -454,7 +495,7 @@ def test_folds_command_end_to_end(imported, tmp_path, monkeypatch):
         conf = json.loads((tmp_path / f"reports/eval/folds/hard/fountain/{m}/i15/config.json").read_text())
         assert tuned["data"] == "data/folds/hard-n30/fountain/val.h5" and conf["data_attrs"]["n_points"] == 30
     for m in ("uniform", "ransac", "rlsac", "rlsac-ws", "rlsac-ws-lo", "rlsac-fast", "ransac-lo", "guided-lo",
-              "rlsac-trainmax", "rlsac-prob", "rlsac-n30", "uniform-n30"):
+              "rlsac-trainmax", "rlsac-prob", "rlsac-n30", "uniform-n30", "rlsac-s1"):
         s = json.loads((tmp_path / f"reports/eval/folds/hard/fountain/{m}/i15/summary.json").read_text())
         assert s["n_instances"] == 8 and s["iterations"] == 15
         assert ("lo" in s) == m.endswith("-lo")
@@ -465,6 +506,7 @@ def test_folds_command_end_to_end(imported, tmp_path, monkeypatch):
     t3 = (tmp_path / "reports/table3_folds.md").read_text()  # Table 3 on the folds, each variant against the full model
     assert "Ours (max sampling in training, max in testing)" in t3 and "rlsac-trainmax" in t3 and "rlsac-prob" in t3
     assert re.search(r"\| 30 +\| rlsac-n30 / uniform-n30 ", t3) and "rlsac-n30" not in md  # (c): Table 3 only
+    assert "### Across training seeds" in md and "(2 seeds)" in md
     assert "Settings chosen on each fold's validation pairs" in md and ("SNN<0.9" in md or "no filter" in md)
     errors = pd.read_csv(tmp_path / "reports/eval/folds/hard/fountain/uniform/i15/errors.csv")
     assert (errors["n_hypotheses"] == 15).all()  # the paper's algorithm: the whole budget, every pair

@@ -45,6 +45,37 @@ def test_paired_bootstrap_rejects_unpaired():
         metrics.paired_bootstrap_maa([0.1, 0.2], [0.1], 0.5)
 
 
+def test_seed_bootstrap_covers_training_noise():
+    """Two seeds of a: one solves every instance, one none; b solves half. The seed mean ties b, but which seeds a
+    draw holds moves the difference by +-0.5: the interval must reach both ends (a pairs-only interval would not)."""
+    inf = np.inf
+    a = np.array([[0.0] * 6, [inf] * 6])
+    b = np.array([0.0, inf] * 3)
+    got = metrics.seed_bootstrap_maa(a, b, 10.0, n_boot=4000)
+    assert got["diff"] == pytest.approx(0.0) and got["mean_a"] == pytest.approx(0.5)
+    assert got["lo"] <= -0.5 and got["hi"] >= 0.5  # a's seed draw (+-0.5) plus b's instance draw
+    one = metrics.seed_bootstrap_maa(a[:1], b, 10.0, n_boot=4000)  # a single seed: the pairs' noise only
+    assert one["diff"] == pytest.approx(0.5) and one["lo"] > 0
+    assert got["sd_a"] == pytest.approx(math.sqrt(0.5)) and got["sd_b"] == 0.0
+    assert got["p_improve"] == pytest.approx(0.5)  # one seed above b, one below
+
+
+def test_seed_bootstrap_resamples_within_strata():
+    """The difference sits in stratum 0 (a solves both its instances, b neither) and is nil in stratum 1: drawing
+    instances within strata keeps two of stratum 0 in every draw, so the interval is the point (+0.5)."""
+    a = np.array([[0.0, 0.0, 0.0, np.inf]])
+    b = np.array([[np.inf, np.inf, 0.0, np.inf]])
+    got = metrics.seed_bootstrap_maa(a, b, 10.0, strata=[0, 0, 1, 1], n_boot=500)
+    assert got["diff"] == pytest.approx(0.5) and got["lo"] == pytest.approx(0.5) and got["hi"] == pytest.approx(0.5)
+    assert got["p_improve"] == pytest.approx(0.75)  # wins stratum 0, ties stratum 1
+    pooled = metrics.seed_bootstrap_maa(a, b, 10.0, n_boot=500)
+    assert pooled["lo"] < 0.5 < pooled["hi"]  # without strata the instances' mix varies
+    with pytest.raises(ValueError, match="one M"):
+        metrics.seed_bootstrap_maa(a, b[:, :3], 10.0)
+    with pytest.raises(ValueError, match="strata"):
+        metrics.seed_bootstrap_maa(a, b, 10.0, strata=[0, 1])
+
+
 def test_median():
     assert metrics.median([3.0, 1.0, 2.0]) == 2.0
     assert metrics.median([1.0, 2.0, 3.0, 4.0]) == 2.5

@@ -209,12 +209,13 @@ def build(eval_root: str | Path = "reports/eval", out_dir: str | Path = "reports
           iterations_stem: str | None = "folds_iterations", head: str = TABLE2_HEAD,
           tuning: str | Path | None = None) -> dict[str, Any]:
     """Write <stem>.{md,csv} and <iterations_stem>.csv from <eval_root>/<sub>; -> {"files", "missing"}."""
-    from rlsac.folds import split_points
+    from rlsac.folds import split_points, split_seed
 
     everything = collect(eval_root, sub)
     check_distinct(everything, sub)
-    # Table 3 (c)'s rows (<row>-n<N>) ran on other data (N points per pair): Table 3 only, never beside Table 2's
-    res = {k: v for k, v in everything.items() if split_points(k[1])[1] is None}
+    # Table 3 (c)'s rows (<row>-n<N>) ran on other data (N points per pair): Table 3 only, never beside Table 2's;
+    # the other training seeds' rows (<model>-s<seed>) enter the across-seed section only
+    res = {k: v for k, v in everything.items() if split_points(k[1])[1] is None and split_seed(k[1])[1] is None}
     regimes_found = {r for r, _, _ in res}
     recs = {k: v for k, v in load_records(records).items() if k[0] in regimes_found}
     out_dir = Path(out_dir)
@@ -271,6 +272,7 @@ def build(eval_root: str | Path = "reports/eval", out_dir: str | Path = "reports
             show = show.rename(columns={"mAA_R": "pooled R", "mAA_t": "pooled t"})
             md.append(f"### {it} iterations\n\n{show.to_markdown(index=False, disable_numparse=True)}\n")
         md.append(_control_section(res, regime, budgets, folds))
+        md.append(_seed_section(everything, regime, budgets))
         if tuning is not None:
             md.append(_tuning_section(Path(tuning), regime, methods, folds))
     if recs:
@@ -330,6 +332,74 @@ def _control_section(res, regime: str, budgets, folds) -> str:
             out.append(f"### RLSAC − {control} ({what}), paired over pairs, 95% interval\n\n"
                        + pd.DataFrame(rows).to_markdown(index=False, disable_numparse=True) + "\n")
     return "\n".join(out)
+
+
+# the comparisons of the across-seed section (issue #27): the controls, then the strongest rows of each arm
+SEED_CONTROLS = ("uniform", "guided", "ransac", "prosac", "magsac", "poselib")
+
+
+def seed_runs(res: dict[tuple[str, str, int], pd.DataFrame], regime: str) -> dict[str, list[str]]:
+    """Models with rows of other training seeds in ``regime`` -> [the model, <model>-s<seed>, ...] (seed order)."""
+    from rlsac.folds import split_seed
+
+    found: dict[str, list[tuple[int, str]]] = {}
+    for r, m, _ in res:
+        base, s = split_seed(m)
+        if r == regime and s is not None and any(k[:2] == (regime, base) for k in res):
+            found.setdefault(base, []).append((s, m))
+    return {b: [b] + [m for _, m in sorted(set(v))] for b, v in sorted(found.items())}
+
+
+def _aligned(frames: list[pd.DataFrame], col: str) -> tuple[np.ndarray, np.ndarray] | None:
+    """(S, M) errors of ``frames`` on the pairs all of them have, in one order, and each pair's fold (M,)."""
+    keyed = [df.assign(k=_key(df)).set_index("k") for df in frames]
+    common = keyed[0].index
+    for df in keyed[1:]:
+        common = common.intersection(df.index)
+    if common.empty:
+        return None
+    return np.stack([df.loc[common, col].to_numpy(np.float64) for df in keyed]), keyed[0].loc[common, "fold"].to_numpy()
+
+
+def _seed_section(res, regime: str, budgets) -> str:
+    """Issue #27: every model trained with several seeds against each control at every budget: the seed mean and
+    seed-to-seed SD of its pooled mAA, the difference of seed means with a 95% interval that resamples seeds and pairs
+    (pairs within their test building), and the probability of improvement (metrics.seed_bootstrap_maa)."""
+    from rlsac.metrics import seed_bootstrap_maa
+
+    rows = []
+    for model, runs in seed_runs(res, regime).items():
+        for it in budgets:
+            frames = [res.get((regime, m, it)) for m in runs]
+            if any(df is None for df in frames):
+                continue
+            for control in SEED_CONTROLS:
+                c = res.get((regime, control, it))
+                if c is None:
+                    continue
+                row = {"iterations": it, "model": f"{NAMES.get(model, model)} ({len(runs)} seeds)",
+                       "control": NAMES.get(control, control)}
+                for col, name in (("err_R", "R"), ("err_t", "t")):
+                    got = _aligned(frames + [c], col)
+                    if got is None:
+                        continue
+                    err, fold = got
+                    s = seed_bootstrap_maa(err[:-1], err[-1:], LIMIT, strata=fold, n_boot=N_BOOT, seed=0)
+                    row[f"model {name} (mean ± SD)"] = f"{s['mean_a']:.3f} ± {s['sd_a']:.3f}"
+                    row[f"control {name}"] = f"{s['mean_b']:.3f}"
+                    row[f"{name}: model − control"] = f"{s['diff']:+.3f} [{s['lo']:+.3f}, {s['hi']:+.3f}]"
+                    row[f"P(improve) {name}"] = f"{s['p_improve']:.2f}"
+                rows.append(row)
+    if not rows:
+        return ""
+    return ("### Across training seeds (issue #27): seed means, paired with each control, seeds and pairs resampled\n\n"
+            "The rows above show each model's first seed (the shipped checkpoint). Here every training seed of a "
+            "model counts: `mean ± SD` over seeds of the pooled mAA@10°; `model − control`: difference of the seed "
+            f"means with a 95% hierarchical bootstrap interval ({N_BOOT} draws: the seeds with replacement, then the "
+            "test pairs within each building, the same pairs for both rows); `P(improve)`: the probability that a "
+            "random seed beats the control on a random test building (ties one half). Each seed's settings were "
+            "tuned on its fold's validation pairs like the first seed's.\n\n"
+            + pd.DataFrame(rows).to_markdown(index=False, disable_numparse=True) + "\n")
 
 
 SHORT = {"guide_temperature": "T", "lo_sigma_scale": "σ", "sets_per_step": "k", "confidence": "conf",
