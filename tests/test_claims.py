@@ -1,0 +1,72 @@
+"""reports/claims.md (issue #27): verdicts from intervals, models taken over all their training seeds."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pandas as pd
+import pytest
+from click.testing import CliRunner
+
+from rlsac.cli import cli
+from rlsac.reports import claims
+
+
+def _write(root: Path, fold: str, row: str, err_R, err_t, sub: str = "folds", regime: str = "hard", it: int = 100):
+    d = root / sub / regime / fold / row / f"i{it}"
+    d.mkdir(parents=True)
+    n = len(err_R)
+    pd.DataFrame({"instance": range(n), "scene": fold, "pair": [f"p{i}" for i in range(n)], "err_R": err_R,
+                  "err_t": err_t}).to_csv(d / "errors.csv", index=False)
+
+
+@pytest.mark.parametrize("kind, lo, hi, expected", [
+    ("better", 0.01, 0.05, "supported"), ("better", -0.01, 0.05, "inconclusive"), ("better", -0.05, -0.01,
+                                                                                    "not supported"),
+    ("worse", -0.05, -0.01, "supported"), ("worse", 0.01, 0.02, "not supported"),
+    ("tie", -0.02, 0.02, "supported"), ("tie", -0.05, 0.02, "inconclusive"), ("tie", 0.01, 0.05, "not supported"),
+    ("tie", 0.005, 0.02, "supported"),  # practically equal: inside the margin although it excludes 0
+])
+def test_verdict_from_the_interval(kind, lo, hi, expected):
+    assert claims.verdict(kind, lo, hi) == expected
+
+
+def test_verdict_rejects_an_unknown_kind():
+    with pytest.raises(ValueError, match="claim kind"):
+        claims.verdict("bigger", 0.0, 1.0)
+
+
+def test_a_claim_that_holds_for_one_seed_is_inconclusive_over_seeds(tmp_path):
+    """rlsac's first seed solves every pair and uniform half of them: on one seed "RLSAC is better" is supported.
+    A second seed that solves none turns the seed mean into a tie with an interval across zero: inconclusive."""
+    ev = tmp_path / "eval"
+    for fold in ("a", "b"):
+        _write(ev, fold, "rlsac", [0.5] * 6, [0.5] * 6)
+        _write(ev, fold, "uniform", [0.5, 20.0] * 3, [0.5, 20.0] * 3)
+    claim = claims.Claim("RLSAC beats uniform", "test", "folds", "hard", 100, "rlsac", "uniform", "better")
+    got = claims.build(ev, tmp_path / "one", (claim,))
+    one = pd.read_csv(tmp_path / "one" / "claims.csv").iloc[0]
+    assert one["verdict"] == "supported" and one["seeds"] == 1 and one["pairs"] == 12
+    assert one["R: model − control [95%]"].startswith("+0.500") and got["missing"] == []
+    for fold in ("a", "b"):
+        _write(ev, fold, "rlsac-s1", [20.0] * 6, [20.0] * 6)
+    claims.build(ev, tmp_path / "two", (claim,))
+    two = pd.read_csv(tmp_path / "two" / "claims.csv").iloc[0]
+    assert two["seeds"] == 2 and two["R: model − control [95%]"].startswith("+0.000")
+    assert two["R: verdict"] == "inconclusive" and two["verdict"] == "inconclusive" and two["R: P(improve)"] == 0.5
+    md = (tmp_path / "two" / "claims.md").read_text()
+    assert "1 claims: 0 supported, 1 inconclusive, 0 not supported; 0 rest on one training seed." in md
+
+
+def test_claims_with_missing_rows_are_listed_and_the_command_writes_the_table(tmp_path, monkeypatch):
+    ev = tmp_path / "reports" / "eval"
+    _write(ev, "a", "rlsac", [0.5] * 4, [0.5] * 4, it=1000)
+    _write(ev, "a", "uniform", [0.5] * 3 + [20.0], [0.5] * 4, it=1000)
+    monkeypatch.chdir(tmp_path)
+    r = CliRunner().invoke(cli, ["table", "--which", "claims", "--no-tracking"])
+    assert r.exit_code == 0, r.output
+    df = pd.read_csv(tmp_path / "reports" / "claims.csv")
+    assert list(df["rows"]) == ["rlsac − uniform"]  # the one claim whose rows exist (hard, 1k)
+    assert df.iloc[0]["R: model − control [95%]"].startswith("+0.250") and df.iloc[0]["t: verdict"] == "supported"
+    md = (tmp_path / "reports" / "claims.md").read_text()
+    assert "Not checked (their rows are not in reports/eval): " in md and "PoseLib is ahead of RLSAC" in md
