@@ -151,3 +151,23 @@ def test_plot_iterations_and_line_steps(tree):
     s = figures.plot({"which": "line", "out_dir": "figs2", "line_data": "l.h5", "line_checkpoint": "",
                       "line_index": 2}, track=False)
     assert "no checkpoint" in s["notes"] and (tree / "figs2" / "line_steps.png").stat().st_size > 1000
+
+
+def test_learning_curves_take_a_models_seeds_together(tmp_path):
+    """Issue #27: rlsac and rlsac-s1 are one model's two seeds: one table (steps x seeds) per fold, which the figure
+    draws as the seed mean with its band; another model stays its own column."""
+    from rlsac.reports import fold_figures
+
+    def ck(vals, step):
+        return {"history": [{"step": s, "charts/val_mAA": v, "charts/val_inlier_ratio": v / 2}
+                            for s, v in zip((100, 200), vals, strict=True)], "step": step, "selection": "inlier_ratio"}
+
+    root = tmp_path / "hard" / "castle"
+    read = {root / "rlsac.pt": ck([0.2, 0.4], 200), root / "rlsac-s1.pt": ck([0.4, 0.2], 100),
+            root / "rlsac-nosnn.pt": ck([0.1, 0.3], 200)}
+    got = fold_figures.seed_curves(read, "charts/val_mAA")
+    assert set(got) == {("rlsac", "hard/castle"), ("rlsac-nosnn", "hard/castle")}
+    t = got[("rlsac", "hard/castle")]
+    assert list(t.columns) == ["rlsac", "rlsac-s1"] and t.mean(axis=1).tolist() == pytest.approx([0.3, 0.3])
+    files, _ = fold_figures.plot_learning_curves(read, tmp_path / "fig")
+    assert [Path(f).name for f in files] == ["learning_curves.png", "learning_curves.pdf"]

@@ -124,27 +124,51 @@ def read_checkpoints(ckpt_root: str | Path) -> dict[Path, dict]:
     return out
 
 
+def seed_curves(read: dict[Path, dict], key: str) -> dict[tuple[str, str], pd.DataFrame]:
+    """(model, regime/fold) -> steps x seeds table of ``key`` from the checkpoints' validation histories; the rows
+    of a model's other training seeds (<model>-s<seed>) are columns of the model's table (issue #27)."""
+    from rlsac.folds import split_seed
+
+    out: dict[tuple[str, str], list[pd.Series]] = {}
+    def order(p: Path) -> tuple[str, str, int]:  # the model itself (its recipe's seed) first, then by seed
+        base, seed = split_seed(p.stem)
+        return str(p.parent), base, -1 if seed is None else seed
+
+    for p in sorted(read, key=order):
+        hist = pd.DataFrame(read[p].get("history") or [])
+        if hist.empty or key not in hist:
+            continue
+        where = (split_seed(p.stem)[0], f"{p.parent.parent.name}/{p.parent.name}")
+        out.setdefault(where, []).append(hist.set_index("step")[key].rename(p.stem))
+    return {k: pd.concat(v, axis=1) for k, v in out.items()}
+
+
 def plot_learning_curves(ckpt_root: str | Path | dict, out_dir: Path) -> tuple[list[str], str]:
-    """The validation curves of every fold checkpoint under ``ckpt_root`` (or of ``read_checkpoints``' dict)."""
+    """The validation curves of every fold checkpoint under ``ckpt_root`` (or of ``read_checkpoints``' dict): one
+    column per model, one colour per fold; a model trained with several seeds (<model>-s<seed>, issue #27) is drawn
+    as the seed mean with its min-max band, each seed's kept actor circled."""
+    from rlsac.folds import split_seed
+
     read = ckpt_root if isinstance(ckpt_root, dict) else read_checkpoints(ckpt_root)
-    ckpts = list(read)
-    models = sorted({p.stem for p in ckpts})
+    kept = {p.stem + "@" + f"{p.parent.parent.name}/{p.parent.name}": ck.get("step") for p, ck in read.items()}
+    selection = {split_seed(p.stem)[0]: ck.get("selection", "val_mAA") for p, ck in read.items()}
+    models = sorted(selection)
     fig, axes = plt.subplots(2, len(models), figsize=(5.5 * len(models), 7), squeeze=False)
+    for r, key in enumerate(("charts/val_mAA", "charts/val_inlier_ratio")):
+        for (model, where), table in seed_curves(read, key).items():
+            ax = axes[r, models.index(model)]
+            label = where + (f" ({table.shape[1]} seeds)" if table.shape[1] > 1 else "")
+            line, = ax.plot(table.index, table.mean(axis=1), marker=".", label=label)
+            if table.shape[1] > 1:
+                ax.fill_between(table.index, table.min(axis=1), table.max(axis=1), alpha=0.2, color=line.get_color(),
+                                lw=0)
+            for run in table.columns:
+                step = kept.get(f"{run}@{where}")
+                if step in table.index:
+                    ax.plot([step], [table.loc[step, run]], "o", mfc="none", ms=10, color=line.get_color())
     for c, model in enumerate(models):
-        for p in (q for q in ckpts if q.stem == model):
-            ck = read[p]
-            hist = pd.DataFrame(ck.get("history") or [])
-            if hist.empty:
-                continue
-            label = f"{p.parent.parent.name}/{p.parent.name}"
-            for r, key in enumerate(("charts/val_mAA", "charts/val_inlier_ratio")):
-                if key not in hist:
-                    continue
-                line, = axes[r, c].plot(hist["step"], hist[key], marker=".", label=label)
-                kept = hist[hist["step"] == ck.get("step")]
-                axes[r, c].plot(kept["step"], kept[key], "o", mfc="none", ms=10, color=line.get_color())
-        axes[0, c].set_title(f"{model} (kept actor circled; selection: {ck.get('selection', 'val_mAA')})")
-        axes[0, c].set_ylabel("validation mAA@10°")
+        axes[0, c].set_title(f"{model}\n(kept actors circled; selection: {selection[model]})", fontsize=9)
+        axes[0, c].set_ylabel("validation mAA@10° (seed mean, min-max band)")
         axes[1, c].set_ylabel("validation mean inlier ratio")
         for r in range(2):
             axes[r, c].set_xlabel("SAC step")
