@@ -297,3 +297,17 @@ def test_oracle_is_at_least_as_good_as_ransac_on_average():
     e_oracle = task.errors(oracle(task, b)["hyp"].numpy(), np.ones(200, bool), None, d)["err_deg"]
     assert np.median(e_oracle) < np.median(e_ransac)
     assert e_oracle.max() < 5.0  # never a wrong line
+
+
+def test_written_file_records_the_noise_model_only_when_not_the_default(tmp_path):
+    """Line files made before the noise option existed (the committed record's data/lines) must stay byte for byte
+    the same: the default (uniform) is not written, another model is."""
+    import h5py
+
+    from rlsac.data.lines import LineDataConf, generate, write
+
+    for noise in ("uniform", "gaussian"):
+        conf = LineDataConf(n_instances=3, noise=noise, seed=1)
+        path = write(tmp_path / f"{noise}.h5", generate(conf), conf)
+        with h5py.File(path, "r") as f:
+            assert ("noise" in f.attrs) == (noise == "gaussian") and f.attrs["band"] == conf.band

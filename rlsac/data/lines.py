@@ -128,7 +128,10 @@ def write(path: str | Path, data: dict[str, np.ndarray], conf: LineDataConf) -> 
             for k, v in data.items():
                 f.create_dataset(k, data=v, compression="gzip" if v.size > 10000 else None)
             for k, v in vars(conf).items():
-                f.attrs[k] = v
+                # the noise model is written only when it is not the default: files made before the option existed
+                # (the committed record's line data, and what was evaluated on them) stay byte for byte the same
+                if k != "noise" or v != LineDataConf.noise:
+                    f.attrs[k] = v
             f.attrs["kind"] = "rlsac-lines"
     return Path(path)
 
