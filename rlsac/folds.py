@@ -408,7 +408,9 @@ def make_data(p: dict, fundamental: dict, regime: str, fold: str, track: bool,
     check_store(track, "fundamental")
     out = {split: prepare(conf, track=track, progress=False, collected=collected[split])
            for split, conf in confs.items()}
-    record = {"regime": regime, "fold": fold, "pool": int(p["pool"][regime]), "n_points": common["n_points"],
+    record = {"regime": regime, "fold": fold, "pool": int(p["pool"][regime]),
+              # N only for a variant regime: the default's record stays byte for byte the committed one
+              **({"n_points": common["n_points"]} if points else {}),
               "train_scenes": train_scenes,
               "test_scenes": test_scenes, "splits": {k: {key: v[key] for key in (
                   "out", "pairs", "pairs_per_scene", "skipped", "skip_reasons", "mean_gt_inlier_ratio_sampson_2px",

@@ -427,6 +427,7 @@ def test_folds_command_end_to_end(imported, tmp_path, monkeypatch):
     rec = json.loads((tmp_path / "reports/folds/data/hard/fountain.json").read_text())
     assert rec["test_scenes"] == "fountain-P11" and rec["train_scenes"] == "entry-P10"
     assert rec["splits"]["train"]["pairs"] + rec["splits"]["val"]["pairs"] == 8
+    assert "n_points" not in rec  # the default regime's record keeps the committed record's bytes (dvc.lock)
     # Table 3 (c): the same fold with 30 points per pair, its own folder
     r = run.invoke(cli, base + ["--stage", "tune", "--only", "uniform-n30"])
     assert r.exit_code == 2 and "data/folds/hard-n30/fountain/val.h5: no such file" in r.output
