@@ -272,7 +272,9 @@ def build(eval_root: str | Path = "reports/eval", out_dir: str | Path = "reports
             show = show.rename(columns={"mAA_R": "pooled R", "mAA_t": "pooled t"})
             md.append(f"### {it} iterations\n\n{show.to_markdown(index=False, disable_numparse=True)}\n")
         md.append(_control_section(res, regime, budgets, folds))
-        md.append(_seed_section(everything, regime, budgets))
+        seeds = _seed_section(everything, regime, budgets)
+        if seeds:  # a table without models of several seeds (Table E) gets no empty section
+            md.append(seeds)
         if tuning is not None:
             md.append(_tuning_section(Path(tuning), regime, methods, folds))
     if recs:
