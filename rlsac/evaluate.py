@@ -155,7 +155,8 @@ def check_options(options: dict[str, Any], checkpoint_later: bool = False) -> di
             raise RlsacError(f"evaluate.lo must be a mapping of LO options, got {o['lo']!r}")
         lo_conf(o["lo"])
     if o["checkpoint"] and not method.checkpoint:  # it would only mislabel the run and its outputs
-        raise RlsacError(f"--checkpoint is used by --method rlsac only, not by {o['method']}")
+        raise RlsacError(f"--checkpoint is used by the trained methods only (rlsac, ngransac and their -lo), "
+                         f"not by {o['method']}")
     if o["checkpoint"] and not Path(o["checkpoint"]).is_file() and not checkpoint_later:
         raise RlsacError(f"{o['checkpoint']}: no such checkpoint file")
     if o["iterations"] is None:
