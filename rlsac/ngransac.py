@@ -152,11 +152,10 @@ def train(conf, track: bool = True) -> dict:
     the summary of ``rlsac.train.train``. The kept network (``conf.out``) is the best validation under
     ``conf.selection`` (RLSAC's rule and signals), else the last; no training state file (no --resume)."""
     from rlsac import checkpoint
-    from rlsac.config import to_dict
     from rlsac.devices import resolve_device
     from rlsac.sac import seed_everything
     from rlsac.tracking import start_run
-    from rlsac.train import SELECTION_KEY, load_data, task_experiment, validation_summary
+    from rlsac.train import SELECTION_KEY, load_data, stored_conf, task_experiment, validation_summary
 
     if conf.resume:
         raise RlsacError("ngransac training has no --resume (it keeps no training state)")
@@ -180,7 +179,7 @@ def train(conf, track: bool = True) -> dict:
         gen = torch.Generator(device=device).manual_seed(conf.seed)
     net = network(task, conf.policy).to(device)
     opt = torch.optim.Adam(net.parameters(), lr=ng.lr)
-    conf_dict, out = to_dict(conf), Path(conf.out)
+    conf_dict, out = stored_conf(conf), Path(conf.out)
     n_pairs = int(data["mask"].shape[0])
     best, history, kept = {"score": -float("inf")}, [], None
 
@@ -192,7 +191,7 @@ def train(conf, track: bool = True) -> dict:
 
     name = conf.run_name or f"train {conf.task} ngransac {out.stem} ({Path(conf.data).stem})"
     tags = {"command": "train", "method": KIND, **conf.tags, "out": str(out)}
-    logged = {k: v for k, v in conf_dict.items() if k not in ("resume", "env", "sac")}
+    logged = {k: v for k, v in conf_dict.items() if k != "resume"}
     with start_run(task_experiment(conf.task), name, logged, tags=tags, enabled=track) as run:
         run.metrics(unusable)
         t0 = time.time()

@@ -74,6 +74,18 @@ class TrainConf:
               "val_every": "[1, inf)", "ckpt_every": "[1, inf)", "selection": SELECTIONS}
 
 
+# the sections of one trained method only: a checkpoint stores its own method's (an RLSAC checkpoint's conf, and so its
+# bytes, are what they were before NG-RANSAC: `rlsac verify --include-train` compares them with the committed ones)
+OWN_SECTIONS = {"rlsac": ("env", "sac"), "ngransac": ("ngransac",)}
+
+
+def stored_conf(conf: TrainConf) -> dict:
+    """The configuration a checkpoint and its MLflow run keep: every field but the other methods' sections (and, for
+    RLSAC, the ``method`` key: its default)."""
+    other = {s for m, secs in OWN_SECTIONS.items() if m != conf.method for s in secs}
+    return {k: v for k, v in to_dict(conf).items() if k not in other and not (k == "method" and conf.method == "rlsac")}
+
+
 def check_params(params: dict) -> None:
     """params.yaml ``train``: per registered task, TrainConf options (every nested section typed, ranged)."""
     from rlsac.config import section
@@ -174,7 +186,7 @@ class _TrainingRun:
                  out: Path, state_path: Path, device) -> None:
         self.conf, self.task, self.agent, self.gen, self.val = conf, task, agent, gen, val
         self.out, self.state_path, self.device = out, state_path, device
-        self.conf_dict = to_dict(conf)
+        self.conf_dict = stored_conf(conf)
         self.start, self.best, self.history = 0, {"score": -1.0}, []
         self.buffer: ReplayBuffer | None = None
         self.kept: dict | None = None  # the checkpoint payload of the kept actor

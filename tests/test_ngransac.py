@@ -5,6 +5,7 @@ checkpoint bytes, the supervised signal, and the CLI (train + evaluate, and the 
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -244,3 +245,33 @@ def test_cli_errors_before_any_work(workdir):
     assert not (workdir / "x.pt").exists()
     res = runner.invoke(cli, ["train", "--task", "line", "--method", "sac", "--data", tr])
     assert_user_error(res, "sac")
+
+
+# ------------------------------------------------------------------------------ format and pipeline
+def test_rlsac_checkpoints_keep_their_conf():
+    """An RLSAC checkpoint stores the conf it stored before NG-RANSAC (no method / ngransac keys: retrained committed
+    checkpoints keep their bytes); an NG-RANSAC one its own sections (no env / sac)."""
+    from rlsac.train import TrainConf, stored_conf
+
+    rl, ng = stored_conf(build(TrainConf, {})), stored_conf(build(TrainConf, {"method": "ngransac"}))
+    assert not {"method", "ngransac"} & set(rl) and {"env", "sac"} <= set(rl)
+    assert {"method", "ngransac", "policy"} <= set(ng) and not {"env", "sac"} & set(ng)
+
+
+def test_fold_models_of_method_ngransac():
+    """A folds.train recipe with method ngransac is a fold model whose rows (itself, its seeds, its -lo) evaluate
+    with the ngransac methods; the RLSAC-only rows (-fast, -prob) refuse it."""
+    from rlsac.config import load_params
+    from rlsac.errors import RlsacError
+    from rlsac.folds import protocol, rows
+
+    params = load_params(Path(__file__).parents[1] / "experiments" / "quick" / "params.yaml")
+    p = protocol(params)
+    r = rows(p, "fountain", "hard")
+    assert (r["ngransac"]["method"], r["ngransac-s1"]["method"], r["ngransac-lo"]["method"]) == (
+        "ngransac", "ngransac", "ngransac-lo")
+    assert r["ngransac-s1"]["checkpoint"].name == "ngransac-s1.pt" and r["rlsac"]["method"] == "rlsac"
+    for key in ("fast", "prob_models"):
+        bad = {**params, "folds": {**params["folds"], key: ["ngransac"]}}
+        with pytest.raises(RlsacError, match="only RLSAC models"):
+            protocol(bad)
