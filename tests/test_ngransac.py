@@ -248,14 +248,21 @@ def test_cli_errors_before_any_work(workdir):
 
 
 # ------------------------------------------------------------------------------ format and pipeline
-def test_rlsac_checkpoints_keep_their_conf():
-    """An RLSAC checkpoint stores the conf it stored before NG-RANSAC (no method / ngransac keys: retrained committed
-    checkpoints keep their bytes); an NG-RANSAC one its own sections (no env / sac)."""
+def test_rlsac_checkpoints_keep_their_conf(tmp_path):
+    """An RLSAC checkpoint (and its training state) stores the conf it stored before NG-RANSAC (no method / ngransac
+    keys: retrained committed checkpoints keep their bytes); an NG-RANSAC one its own sections (no env / sac)."""
     from rlsac.train import TrainConf, stored_conf
 
     rl, ng = stored_conf(build(TrainConf, {})), stored_conf(build(TrainConf, {"method": "ngransac"}))
     assert not {"method", "ngransac"} & set(rl) and {"env", "sac"} <= set(rl)
     assert {"method", "ngransac", "policy"} <= set(ng) and not {"env", "sac"} & set(ng)
+    train({"task": "line", "data": lines(tmp_path / "tr.h5", 1, 8), "out": str(tmp_path / "rl.pt"), "device": "cpu",
+           "threads": 1, "policy": SMALL_NET, "ckpt_every": 4,
+           "sac": {"total_steps": 4, "num_envs": 2, "batch_size": 4, "learning_starts": 2}}, track=False)
+    for path in ("rl.pt", "rl.state.pt"):
+        stored = torch.load(tmp_path / path, weights_only=False)["conf"]
+        given = {k: stored[k] for k in ("data", "out", "device", "threads", "ckpt_every", "policy", "sac")}
+        assert stored == rl | given and list(stored) == list(rl)
 
 
 def test_fold_models_of_method_ngransac():
