@@ -8,7 +8,7 @@ have defaults):
                 opencv_ransac | usac | usac_accurate | magsac | prosac, the *-lo variants); each says which
                 task capability it needs, checked here before any work
     data        h5 file written by ``rlsac synth-lines`` / ``rlsac prepare-cvpr2020``
-    checkpoint  RLSAC checkpoint (.pt), method "rlsac" only
+    checkpoint  trained checkpoint (.pt): methods rlsac(-lo) (RLSAC's), ngransac(-lo) (NG-RANSAC's, rlsac.ngransac)
     iterations  hypotheses per instance (default 150 for lines, 1000 for fundamental)
     steps_per_episode  RLSAC only; default: the checkpoint's value, else 15
     seed, device ("auto" | "cpu" | "cuda"), batch_size, out_dir (default reports/eval/<name>)

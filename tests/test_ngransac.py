@@ -180,15 +180,18 @@ def test_pose_signal_ranks_true_inlier_sets_first():
     loss = ngransac.set_losses(task, batch, idx, "pose")
     assert float(loss[0, 0]) < 0.5 and float(loss[0, 1]) > float(loss[0, 0]), loss
 
-    ftask = get_task("fundamental")
     fb = make_batch(B=2, N=60, outlier_rate=0.3, noise=0.5, seed=1)
-    net = Actor(ftask.feature_dim, build(PolicyConf, {**SMALL_NET, "graph_dims": 4}))
-    for signal in ("inliers", "pose"):
-        net.zero_grad()
-        objective, mean_loss = ngransac.loss(ftask, net, fb, 4, signal, torch.Generator().manual_seed(0))
-        objective.backward()
-        assert torch.isfinite(objective) and -1.0 <= float(mean_loss) <= 1.0
-        assert all(torch.isfinite(p.grad).all() for p in net.parameters() if p.grad is not None)
+    for name in ("fundamental", "essential"):  # the same file for every task: the plug-in point is the Task API
+        two_view = get_task(name)
+        net = Actor(two_view.feature_dim, build(PolicyConf, {**SMALL_NET, "graph_dims": 4}))
+        for signal in ("inliers", "pose"):
+            net.zero_grad()
+            objective, mean_loss = ngransac.loss(two_view, net, fb, 4, signal, torch.Generator().manual_seed(0))
+            objective.backward()
+            assert torch.isfinite(objective) and -1.0 <= float(mean_loss) <= 1.0
+            assert all(torch.isfinite(p.grad).all() for p in net.parameters() if p.grad is not None)
+        res = ngransac.estimate(two_view, net, fb, 20, torch.Generator().manual_seed(0))
+        assert res["hyp"].shape == (2, 3, 3) and res["hypotheses"].tolist() == [20, 20]
 
 
 # ------------------------------------------------------------------------------ CLI
@@ -281,4 +284,8 @@ def test_fold_models_of_method_ngransac():
     for key in ("fast", "prob_models"):
         bad = {**params, "folds": {**params["folds"], key: ["ngransac"]}}
         with pytest.raises(RlsacError, match="only RLSAC models"):
+            protocol(bad)
+    for method in ("ngransac", "ngransac-lo"):  # a trained method is a model, not a baseline row
+        bad = {**params, "folds": {**params["folds"], "methods": ["ransac", method]}}
+        with pytest.raises(RlsacError, match="not a baseline"):
             protocol(bad)
