@@ -96,9 +96,10 @@ def protocol(params: dict[str, Any]) -> dict[str, Any]:
                          f"a mapping regime -> list), got {p['iterations']}")
     from rlsac.methods import METHODS
 
-    bad = [m for m in p["methods"] if m not in METHODS or m in ("rlsac", "rlsac-lo", "oracle")]
+    bad = [m for m in p["methods"] if m not in METHODS or METHODS[m].checkpoint or m == "oracle"]
     if bad:
-        raise RlsacError(f"folds.methods {bad}: not a baseline of `rlsac evaluate` (RLSAC models go in folds.models)")
+        raise RlsacError(f"folds.methods {bad}: not a baseline of `rlsac evaluate` (RLSAC models go in folds.models, "
+                         "NG-RANSAC ones too: a folds.train recipe with method ngransac)")
     bad = [m for m in p["lo_methods"] if m not in METHODS or not METHODS[m].lo or METHODS[m].checkpoint]
     if bad:
         raise RlsacError(f"folds.lo_methods {bad}: not a -lo baseline of `rlsac evaluate` (rlsac-lo: folds.lo_models)")
