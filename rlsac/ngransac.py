@@ -184,7 +184,7 @@ def train(conf, track: bool = True) -> dict:
     opt = torch.optim.Adam(net.parameters(), lr=ng.lr)
     conf_dict, out = stored_conf(conf), Path(conf.out)
     n_pairs = int(data["mask"].shape[0])
-    best, history, kept = {"score": -float("inf")}, [], None
+    best, history, kept = {"score": -1.0}, [], None  # as RLSAC's: every selection signal is >= 0
 
     def validate(step: int) -> dict:
         res = estimate(task, net, val, conf.val_iterations, torch.Generator(device=device).manual_seed(1234))
@@ -222,7 +222,7 @@ def train(conf, track: bool = True) -> dict:
         run.metrics({"time/train_seconds": seconds})
         run.artifact(out, "checkpoint")
     return {"checkpoint": str(out), "method": KIND, "steps": ng.steps, "seconds": round(seconds, 1),
-            "selection": conf.selection, "best_score": best["score"] if "step" in best else None,
+            "selection": conf.selection, "best_score": best["score"],
             "best_step": best.get("step"), "final_val": history[-1] if history else {},
             **{k.replace("/", "_"): v for k, v in unusable.items() if v}}
 
