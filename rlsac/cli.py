@@ -184,7 +184,10 @@ def prepare_cvpr2020(tracking: bool, sets: tuple[str, ...], **options) -> None:
 @click.option("--data", type=click.Path(dir_okay=False), help="Training h5.")
 @click.option("--val-data", type=click.Path(dir_okay=False), help="Validation h5.")
 @click.option("--out", type=click.Path(dir_okay=False), help="Checkpoint path, e.g. checkpoints/NAME.pt.")
-@click.option("--resume", is_flag=True, default=None, help="Resume from --out if it exists.")
+@click.option("--method", type=click.Choice(["rlsac", "ngransac"]),
+              help="rlsac = SAC-Discrete (the paper); ngransac = NG-RANSAC's network and training (rlsac.ngransac, "
+                   "options ngransac.*) [default: params.yaml, else rlsac].")
+@click.option("--resume", is_flag=True, default=None, help="Resume from --out if it exists (rlsac only).")
 @click.option("--seed", type=int)
 @click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), help="auto = cuda if available.")
 @click.option("--params", "params_path", default="params.yaml", show_default=True,
@@ -193,7 +196,7 @@ def prepare_cvpr2020(tracking: bool, sets: tuple[str, ...], **options) -> None:
               help="Override a TrainConf field, e.g. --set sac.actor_lr=1e-4.")
 @tracking_option
 def train(task: str, tracking: bool, params_path: str, sets: tuple[str, ...], **flags) -> None:
-    """Train an RLSAC policy (rlsac.train)."""
+    """Train an RLSAC policy (rlsac.train) or an NG-RANSAC network (--method ngransac)."""
     from rlsac.commands import train as run
     from rlsac.commands import train_options
 
@@ -206,9 +209,11 @@ def train(task: str, tracking: bool, params_path: str, sets: tuple[str, ...], **
               help="oracle = refinement on the true inliers (synthetic lines); uniform / guided = the RLSAC "
                    "environment with uniform sets / sets drawn by SNN ratio (two-view tasks); opencv_ransac, usac, "
                    "usac_accurate, magsac, prosac = OpenCV's estimator of the task (prosac on SNN-ordered matches); "
+                   "ngransac = our RANSAC with sets drawn by a trained NG-RANSAC network (--checkpoint); "
                    "*-lo = with local optimisation (params.yaml evaluate.<task>.lo).")
 @click.option("--data", type=click.Path(dir_okay=False), required=True, help="Test h5.")
-@click.option("--checkpoint", type=click.Path(dir_okay=False), help="RLSAC checkpoint (methods rlsac, rlsac-lo).")
+@click.option("--checkpoint", type=click.Path(dir_okay=False),
+              help="Trained checkpoint (methods rlsac, rlsac-lo: RLSAC's; ngransac, ngransac-lo: NG-RANSAC's).")
 @click.option("--iterations", type=int, help="Hypotheses per instance [default: params.yaml evaluate.<task>].")
 @click.option("--steps-per-episode", type=int, help="RLSAC episode length [default: checkpoint's, else 15].")
 @click.option("--sampling", type=click.Choice(["max", "prob"]), help="RLSAC test-time sampling [default: max].")
