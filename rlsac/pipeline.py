@@ -371,6 +371,12 @@ def _names(items: list[str], width: int = 110) -> str:
     return out
 
 
+def _shown(path: str) -> str:
+    """A path relative to the current directory when it lies under it, else as it is."""
+    rel = os.path.relpath(path)
+    return path if rel.startswith("..") else rel
+
+
 def format_summary(s: dict) -> str:
     """The one-screen summary: counts, then one line per status (names cut to a line), failed stages one per
     line with the error's first line and their log (the first 10)."""
@@ -389,7 +395,7 @@ def format_summary(s: dict) -> str:
             lines.append(f"{k:<8} {_names(by[k])}")
     for a in by["failed"][:10]:
         r = s["results"][a]
-        lines.append(f"failed   {a}: {r['error']}" + (f" (log {os.path.relpath(r['log'])})" if r.get("log") else ""))
+        lines.append(f"failed   {a}: {r['error']}" + (f" (log {_shown(r['log'])})" if r.get("log") else ""))
     if len(by["failed"]) > 10:
         lines.append(f"failed   ... and {len(by['failed']) - 10} more")
     if by["not run"]:

@@ -15,12 +15,11 @@ import time
 from pathlib import Path
 
 import pytest
+import ray
 import yaml
 from click.testing import CliRunner
 
 from rlsac.cli import cli
-
-ray = pytest.importorskip("ray")
 
 PY = "python"  # the stages' interpreter: the pipeline puts this one's bin folder first on PATH
 
@@ -30,8 +29,8 @@ def _write(name: str, text: str, needs: tuple[str, ...] = ()) -> str:
     return f"{PY} -c \"open('{name}','w').write('{text}'{reads})\""
 
 
-TOY = {
-    "a": {"cmd": _write("a.txt", "a"), "outs": ["a.txt"]},
+TOY = {  # a takes a second, so a dependent started too early would find a.txt missing
+    "a": {"cmd": _write("a.txt", "a").replace("-c \"", "-c \"import time; time.sleep(1); "), "outs": ["a.txt"]},
     "b": {"cmd": _write("b.txt", "b", ("a.txt",)), "deps": ["a.txt"], "outs": ["b.txt"]},
     "c": {"cmd": _write("c.txt", "c", ("a.txt",)), "deps": ["a.txt"], "outs": ["c.txt"]},
     "d": {"cmd": _write("d.txt", "d"), "outs": ["d.txt"]},
@@ -233,3 +232,13 @@ def test_stages_log_to_one_mlflow_server(tmp_path, monkeypatch):
     finally:
         _stop(proc)
     shutil.rmtree(tmp_path / "art", ignore_errors=True)
+
+
+def test_help_does_not_import_ray():
+    """`rlsac --help` and `rlsac pipeline --help` stay fast: Ray and DVC are imported when the command runs."""
+    code = ("import sys; from click.testing import CliRunner; from rlsac.cli import cli; "
+            "r = [CliRunner().invoke(cli, a) for a in (['--help'], ['pipeline', '--help'])]; "
+            "assert all(x.exit_code == 0 for x in r); "
+            "print(sorted(m for m in ('ray', 'dvc.repo', 'mlflow') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
