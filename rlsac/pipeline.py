@@ -217,6 +217,12 @@ def _start_ray(o: dict) -> tuple[Any, bool]:
     initialised Ray (a test, a notebook) is used as it is and left running."""
     import logging
 
+    if o["address"] and o["address"] != "auto" and "RAY_AUTH_MODE" not in os.environ and (
+            os.environ.get("RAY_AUTH_TOKEN") or os.environ.get("RAY_AUTH_TOKEN_PATH")
+            or (Path.home() / ".ray" / "auth_token").is_file()):
+        # Ray uses the cluster token (RAY_AUTH_TOKEN, ~/.ray/auth_token) by itself for `auto` only; for an explicit
+        # address it must be asked for, before Ray is imported (its configuration is read then)
+        os.environ["RAY_AUTH_MODE"] = "token"
     import ray
 
     if ray.is_initialized():

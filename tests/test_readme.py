@@ -166,7 +166,7 @@ def check_mlflow(argv: list[str]) -> None:
     cmd.make_context(argv[1], argv[2:])
 
 
-EXPORTS = {"MLFLOW_TRACKING_URI", "OMP_NUM_THREADS", "RAY_AUTH_TOKEN"}
+EXPORTS = {"MLFLOW_TRACKING_URI", "OMP_NUM_THREADS", "RAY_AUTH_TOKEN", "RAY_AUTH_MODE"}
 
 
 def check_ray(argv: list[str]) -> None:
