@@ -236,7 +236,8 @@ def _start_ray(o: dict) -> tuple[Any, bool]:
             level = auth_log.level
             auth_log.setLevel(logging.ERROR)
             try:
-                ray.init(num_cpus=o["workers"] or os.cpu_count() or 1, **kwargs)
+                # address="local": a new cluster even where `ray start` left one running (or its address file)
+                ray.init(address="local", num_cpus=o["workers"] or os.cpu_count() or 1, **kwargs)
             finally:
                 auth_log.setLevel(level)
     except Exception as e:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -71,7 +72,7 @@ def summary(output: str) -> list[str]:
 def local_ray():
     """One local Ray cluster of 2 CPUs for the module: the pipeline uses an initialised Ray as it is."""
     os.environ.setdefault("OMP_NUM_THREADS", "1")
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
     yield
     ray.shutdown()
 
@@ -242,3 +243,35 @@ def test_help_does_not_import_ray():
             "print(sorted(m for m in ('ray', 'dvc.repo', 'mlflow') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
+
+
+def test_joins_a_ray_cluster_by_address(tmp_path):
+    """`--address HOST:PORT` joins a cluster started with `ray start --head` (token authentication on: the
+    module's local cluster made ~/.ray/auth_token) and runs the stages there."""
+    from test_mlflow_server import _free_port
+
+    port = _free_port()
+    ray_exe = str(Path(sys.executable).parent / "ray")
+    # as in a fresh shell: the module's ray.init set RAY_AUTH_MODE=token in this process's environment
+    env = {k: v for k, v in _env().items() if k != "RAY_AUTH_MODE"}
+    log = open(tmp_path / "head.log", "w")
+    head = subprocess.Popen([ray_exe, "start", "--head", "--port", str(port), "--num-cpus", "1",
+                             "--include-dashboard", "false", "--block"], stdout=log, stderr=subprocess.STDOUT,
+                            start_new_session=True, env=env)
+    try:
+        repo = make_repo(tmp_path / "repo", {"a": TOY["a"], "b": TOY["b"]})
+        r = subprocess.run([str(Path(sys.executable).parent / "rlsac"), "pipeline", "--repo", str(repo),
+                            "--address", f"127.0.0.1:{port}", "--no-tracking"], capture_output=True, text=True,
+                           env=env)
+        assert r.returncode == 0, r.stdout + r.stderr[-3000:] + (tmp_path / "head.log").read_text()[-2000:]
+        assert summary(r.stdout)[0].startswith("pipeline: 2 done, 0 skipped, 0 failed, 0 not run of 2 stages"), r.stdout
+        assert "(1 CPUs)" in summary(r.stdout)[0]  # the cluster's size, not this machine's
+        assert (repo / "b.txt").read_text() == "ba"
+    finally:
+        try:
+            os.killpg(head.pid, signal.SIGTERM)
+            head.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            os.killpg(head.pid, signal.SIGKILL)
+            head.wait()
+        log.close()
