@@ -26,8 +26,8 @@ import os
 import sys
 from pathlib import Path
 
-# Per-stage means (seconds) of the README's "Measured stage times for a run from scratch" (group total / count);
-# the seed grid's stages (issue #27) take their base group's mean.
+# Seconds per stage from the README's "Measured stage times for a run from scratch": a group's total over its count,
+# or the middle of its recorded range; the seed grid's stages (issue #27) take their base group's.
 RECORDED = {
     "calibrate_lines": 40, "lines_data@*": 0.7, "import_scenes": 119, "fold_data@*": 29, "fold_data_points@*": 29,
     "train_lines@*": 940, "fold_train@*": 115, "fold_train_seed@*": 115, "fold_train_points@*": 115,
