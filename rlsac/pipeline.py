@@ -331,7 +331,12 @@ def pipeline(options: dict[str, Any], track: bool = True) -> dict:
     with start_run("pipeline", f"pipeline {len(plan['todo'])} stages", params=params, enabled=track) as run:
         ray, started = _start_ray(o) if plan["todo"] else (None, False)
         try:
-            workers = int(ray.cluster_resources().get("CPU", 0)) if ray is not None else 0
+            resources = ray.cluster_resources() if ray is not None else {}
+            workers = int(resources.get("CPU", 0))
+            gpu_stages = [a for a in plan["todo"] if o["gpus_per_train"] > 0 and _is_gpu_stage(a, o["gpu_stages"])]
+            if gpu_stages and resources.get("GPU", 0) < o["gpus_per_train"]:  # the task would wait for ever
+                raise RlsacError(f"--gpus-per-train {o['gpus_per_train']:g}: the Ray cluster has "
+                                 f"{resources.get('GPU', 0):g} GPUs ({gpu_stages[0]} would never start)")
             bar = tqdm(total=len(plan["todo"]), desc="pipeline", unit="stage")
 
             def progress(r: dict) -> None:
