@@ -372,6 +372,33 @@ def verify(tracking: bool, **options) -> None:
         sys.exit(1)
 
 
+@cli.command()
+@click.argument("stages", nargs=-1)
+@click.option("--repo", default=".", show_default=True, type=click.Path(file_okay=False),
+              help="The DVC repository (e.g. experiments/quick for the quick profile).")
+@click.option("--workers", type=click.IntRange(min=1),
+              help="CPUs of the local Ray cluster, stages run at once [default: the number of cores].")
+@click.option("--address", help="Join this Ray cluster (`ray start --head` prints it, or 'auto') instead of "
+                                "starting a local one.")
+@click.option("--gpus-per-train", type=click.FloatRange(min=0), default=0.0, show_default=True,
+              help="GPUs a training stage asks Ray for (0 = none; e.g. 1, or 0.5 to share one).")
+@click.option("--gpu-stages", default="*train*", show_default=True,
+              help="Comma-separated fnmatch patterns of the stages --gpus-per-train applies to.")
+@click.option("--dry-run", is_flag=True, help="Print which stages would run; run nothing.")
+@tracking_option
+def pipeline(tracking: bool, stages: tuple[str, ...], **options) -> None:
+    """Run the DVC pipeline's out-of-date stages (or STAGES: names, foreach groups or patterns, with what they
+    need) as Ray tasks in dependency order, each through `dvc repro -s` (rlsac.pipeline); exit 1 when one
+    fails."""
+    from rlsac.pipeline import format_summary
+    from rlsac.pipeline import pipeline as run
+
+    s = run({**options, "stages": ",".join(stages) or None}, track=tracking)
+    click.echo(format_summary(s))
+    if s["counts"].get("failed"):
+        sys.exit(1)
+
+
 def _echo_result(result) -> None:
     if result is None:
         return
