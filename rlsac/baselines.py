@@ -12,14 +12,16 @@ import torch
 
 from rlsac.errors import RlsacError
 from rlsac.lo import Best, LOConf, active, finish, score_sets, update_best
-from rlsac.sampling import gather_points, uniform_minimal_sets
+from rlsac.sampling import gather_points, uniform_minimal_sets, weighted_minimal_sets
 from rlsac.tasks import Task
 
 
 @torch.no_grad()
 def ransac(task: Task, batch: dict, iterations: int, generator: torch.Generator | None = None,
-           chunk: int = 256, lo: LOConf | None = None) -> dict[str, torch.Tensor]:
-    """Plain RANSAC over a batch of instances; with ``lo`` enabled, LO-RANSAC (``rlsac.lo``).
+           chunk: int = 256, lo: LOConf | None = None, logits: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+    """Plain RANSAC over a batch of instances; with ``lo`` enabled, LO-RANSAC (``rlsac.lo``); with ``logits``
+    (B, N), every minimal set drawn from softmax(logits) over the valid points instead of uniformly (NG-RANSAC's
+    learned sampler, ``rlsac.ngransac``: the same budget, scoring, LO and final refit).
 
     batch: coords (B, N, d), mask (B, N) -> hyp (B, *H) refined, valid (B,), inliers (B, N),
     best_count (B,) inlier count of the best minimal-set hypothesis. With LO on, the best so far is
@@ -31,7 +33,8 @@ def ransac(task: Task, batch: dict, iterations: int, generator: torch.Generator 
     best = Best.empty(B, coords.device)
     for start in range(0, iterations, chunk):
         k = min(chunk, iterations - start)
-        idx = uniform_minimal_sets(mask, task.sample_size, k, generator)  # (B, k, m)
+        idx = (uniform_minimal_sets(mask, task.sample_size, k, generator) if logits is None
+               else weighted_minimal_sets(logits, mask, task.sample_size, k, generator))  # (B, k, m)
         hyps, valid, res, count = score_sets(task, gather_points(coords, idx), coords, mask)  # (B, k, ...)
         best = update_best(task, lo, coords, mask, best, hyps, count.masked_fill(~valid, -1), res, generator)
     out = finish(task, lo, coords, mask, best, generator) if active(lo) else finalize(

@@ -8,6 +8,8 @@ A checkpoint is ``torch.save`` of a dict:
     in_channels  the actor's input channels (the task's data features + the environment's memory)
     step         the training step of this actor; val: its validation metrics; selection: how it was kept
     history      every validation of the run (the learning curve)
+    kind         absent for an RLSAC actor; "ngransac" for NG-RANSAC's sampling network (rlsac.ngransac: the same
+                 keys, ``actor`` its weights, ``in_channels`` the task's data features, no environment memory)
 Training state for ``--resume`` (rlsac.train) is a separate file beside it and never read here.
 """
 
@@ -57,9 +59,20 @@ def read(path: str | Path, device: str | torch.device = "cpu") -> dict[str, Any]
     return load_torch(path, device)
 
 
+def kind_of(ckpt: dict[str, Any]) -> str:
+    """Which trained sampler a checkpoint dict holds, named as its evaluate method: "rlsac" (no ``kind`` key: every
+    RLSAC checkpoint, whose bytes stay as they were) or its ``kind`` ("ngransac")."""
+    kind = ckpt.get("kind", "rlsac") if isinstance(ckpt, dict) else "unknown"
+    return kind if isinstance(kind, str) else "unknown"
+
+
 def load_actor(path: str | Path, device: str | torch.device = "cpu") -> tuple[Actor, dict]:
-    """Load an actor checkpoint -> (actor in eval mode, training conf); RlsacError on a missing or bad file."""
+    """Load an actor checkpoint -> (actor in eval mode, training conf); RlsacError on a missing or bad file, or on
+    a checkpoint of another kind (NG-RANSAC's network)."""
     ckpt = read(path, device)
+    if kind_of(ckpt) != "rlsac":
+        raise RlsacError(f"{path}: a {kind_of(ckpt)} checkpoint, not an rlsac one (evaluate it with --method "
+                         f"{kind_of(ckpt)})")
     try:
         conf = ckpt["conf"]
         actor = Actor(ckpt["in_channels"], build(PolicyConf, conf["policy"])).to(device)

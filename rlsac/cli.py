@@ -184,7 +184,10 @@ def prepare_cvpr2020(tracking: bool, sets: tuple[str, ...], **options) -> None:
 @click.option("--data", type=click.Path(dir_okay=False), help="Training h5.")
 @click.option("--val-data", type=click.Path(dir_okay=False), help="Validation h5.")
 @click.option("--out", type=click.Path(dir_okay=False), help="Checkpoint path, e.g. checkpoints/NAME.pt.")
-@click.option("--resume", is_flag=True, default=None, help="Resume from --out if it exists.")
+@click.option("--method", type=click.Choice(["rlsac", "ngransac"]),
+              help="rlsac = SAC-Discrete (the paper); ngransac = NG-RANSAC's network and training (rlsac.ngransac, "
+                   "options ngransac.*) [default: params.yaml, else rlsac].")
+@click.option("--resume", is_flag=True, default=None, help="Resume from --out if it exists (rlsac only).")
 @click.option("--seed", type=int)
 @click.option("--device", type=click.Choice(["auto", "cpu", "cuda"]), help="auto = cuda if available.")
 @click.option("--params", "params_path", default="params.yaml", show_default=True,
@@ -193,7 +196,7 @@ def prepare_cvpr2020(tracking: bool, sets: tuple[str, ...], **options) -> None:
               help="Override a TrainConf field, e.g. --set sac.actor_lr=1e-4.")
 @tracking_option
 def train(task: str, tracking: bool, params_path: str, sets: tuple[str, ...], **flags) -> None:
-    """Train an RLSAC policy (rlsac.train)."""
+    """Train an RLSAC policy (rlsac.train) or an NG-RANSAC network (--method ngransac)."""
     from rlsac.commands import train as run
     from rlsac.commands import train_options
 
@@ -206,9 +209,11 @@ def train(task: str, tracking: bool, params_path: str, sets: tuple[str, ...], **
               help="oracle = refinement on the true inliers (synthetic lines); uniform / guided = the RLSAC "
                    "environment with uniform sets / sets drawn by SNN ratio (two-view tasks); opencv_ransac, usac, "
                    "usac_accurate, magsac, prosac = OpenCV's estimator of the task (prosac on SNN-ordered matches); "
+                   "ngransac = our RANSAC with sets drawn by a trained NG-RANSAC network (--checkpoint); "
                    "*-lo = with local optimisation (params.yaml evaluate.<task>.lo).")
 @click.option("--data", type=click.Path(dir_okay=False), required=True, help="Test h5.")
-@click.option("--checkpoint", type=click.Path(dir_okay=False), help="RLSAC checkpoint (methods rlsac, rlsac-lo).")
+@click.option("--checkpoint", type=click.Path(dir_okay=False),
+              help="Trained checkpoint (methods rlsac, rlsac-lo: RLSAC's; ngransac, ngransac-lo: NG-RANSAC's).")
 @click.option("--iterations", type=int, help="Hypotheses per instance [default: params.yaml evaluate.<task>].")
 @click.option("--steps-per-episode", type=int, help="RLSAC episode length [default: checkpoint's, else 15].")
 @click.option("--sampling", type=click.Choice(["max", "prob"]), help="RLSAC test-time sampling [default: max].")
@@ -364,6 +369,33 @@ def verify(tracking: bool, **options) -> None:
     s = run(options, track=tracking, report=click.echo)
     click.echo(format_summary(s))
     if s["n_identical"] != s["n_stages"]:
+        sys.exit(1)
+
+
+@cli.command()
+@click.argument("stages", nargs=-1)
+@click.option("--repo", default=".", show_default=True, type=click.Path(file_okay=False),
+              help="The DVC repository (e.g. experiments/quick for the quick profile).")
+@click.option("--workers", type=click.IntRange(min=1),
+              help="CPUs of the local Ray cluster, stages run at once [default: the number of cores].")
+@click.option("--address", help="Join this Ray cluster (`ray start --head` prints it, or 'auto') instead of "
+                                "starting a local one.")
+@click.option("--gpus-per-train", type=click.FloatRange(min=0), default=0.0, show_default=True,
+              help="GPUs a training stage asks Ray for (0 = none; e.g. 1, or 0.5 to share one).")
+@click.option("--gpu-stages", default="*train*", show_default=True,
+              help="Comma-separated fnmatch patterns of the stages --gpus-per-train applies to.")
+@click.option("--dry-run", is_flag=True, help="Print which stages would run; run nothing.")
+@tracking_option
+def pipeline(tracking: bool, stages: tuple[str, ...], **options) -> None:
+    """Run the DVC pipeline's out-of-date stages (or STAGES: names, foreach groups or patterns, with what they
+    need) as Ray tasks in dependency order, each through `dvc repro -s` (rlsac.pipeline); exit 1 when one
+    fails."""
+    from rlsac.pipeline import format_summary
+    from rlsac.pipeline import pipeline as run
+
+    s = run({**options, "stages": ",".join(stages) or None}, track=tracking)
+    click.echo(format_summary(s))
+    if s["counts"].get("failed"):
         sys.exit(1)
 
 

@@ -8,7 +8,7 @@ have defaults):
                 opencv_ransac | usac | usac_accurate | magsac | prosac, the *-lo variants); each says which
                 task capability it needs, checked here before any work
     data        h5 file written by ``rlsac synth-lines`` / ``rlsac prepare-cvpr2020``
-    checkpoint  RLSAC checkpoint (.pt), method "rlsac" only
+    checkpoint  trained checkpoint (.pt): methods rlsac(-lo) (RLSAC's), ngransac(-lo) (NG-RANSAC's, rlsac.ngransac)
     iterations  hypotheses per instance (default 150 for lines, 1000 for fundamental)
     steps_per_episode  RLSAC only; default: the checkpoint's value, else 15
     seed, device ("auto" | "cpu" | "cuda"), batch_size, out_dir (default reports/eval/<name>)
@@ -155,7 +155,8 @@ def check_options(options: dict[str, Any], checkpoint_later: bool = False) -> di
             raise RlsacError(f"evaluate.lo must be a mapping of LO options, got {o['lo']!r}")
         lo_conf(o["lo"])
     if o["checkpoint"] and not method.checkpoint:  # it would only mislabel the run and its outputs
-        raise RlsacError(f"--checkpoint is used by --method rlsac only, not by {o['method']}")
+        raise RlsacError(f"--checkpoint is used by the trained methods only (rlsac, ngransac and their -lo), "
+                         f"not by {o['method']}")
     if o["checkpoint"] and not Path(o["checkpoint"]).is_file() and not checkpoint_later:
         raise RlsacError(f"{o['checkpoint']}: no such checkpoint file")
     if o["iterations"] is None:

@@ -96,9 +96,10 @@ def protocol(params: dict[str, Any]) -> dict[str, Any]:
                          f"a mapping regime -> list), got {p['iterations']}")
     from rlsac.methods import METHODS
 
-    bad = [m for m in p["methods"] if m not in METHODS or m in ("rlsac", "rlsac-lo", "oracle")]
+    bad = [m for m in p["methods"] if m not in METHODS or METHODS[m].checkpoint or m == "oracle"]
     if bad:
-        raise RlsacError(f"folds.methods {bad}: not a baseline of `rlsac evaluate` (RLSAC models go in folds.models)")
+        raise RlsacError(f"folds.methods {bad}: not a baseline of `rlsac evaluate` (RLSAC models go in folds.models, "
+                         "NG-RANSAC ones too: a folds.train recipe with method ngransac)")
     bad = [m for m in p["lo_methods"] if m not in METHODS or not METHODS[m].lo or METHODS[m].checkpoint]
     if bad:
         raise RlsacError(f"folds.lo_methods {bad}: not a -lo baseline of `rlsac evaluate` (rlsac-lo: folds.lo_models)")
@@ -106,11 +107,15 @@ def protocol(params: dict[str, Any]) -> dict[str, Any]:
         raise RlsacError(f"folds.variant_regimes {p['variant_regimes']} must be regimes of {p['regimes']}")
     if not set(p["lo_models"]) <= set(p["models"]):
         raise RlsacError(f"folds.lo_models {p['lo_models']} must be models of folds.models {p['models']}")
-    clash = sorted(set(p["models"]) & set(METHODS))
-    if clash and clash != ["rlsac"]:
-        raise RlsacError(f"folds.models {clash}: a model may not share a method's name")
+    clash = sorted(m for m in set(p["models"]) & set(METHODS) if model_method(p, m) != m)
+    if clash:
+        raise RlsacError(f"folds.models {clash}: a model may not share a method's name (but its own method's)")
     if not set(p["fast"]) <= set(p["models"]):
         raise RlsacError(f"folds.fast {p['fast']} must be models of folds.models {p['models']} (rows <model>-fast)")
+    # k sets per step and test-time sampling are the RLSAC environment's (rlsac.rollout); NG-RANSAC's sampler has none
+    not_rl = sorted(m for m in p["fast"] + p["prob_models"] if model_method(p, m) != "rlsac")
+    if not_rl:
+        raise RlsacError(f"folds.fast / prob_models {not_rl}: only RLSAC models have the -fast and -prob rows")
     if not set(p["points_models"]) <= set(p["models"]) or not set(p["points_methods"]) <= set(p["methods"]):
         raise RlsacError(f"folds.points_models {p['points_models']} / points_methods {p['points_methods']} must be "
                          "models of folds.models / methods of folds.methods")
@@ -135,6 +140,12 @@ def trained_models(p: dict[str, Any]) -> list[str]:
     """The models trained per fold with a recipe of folds.train: Table 2's (folds.models), then Table 3's
     (folds.ablation_models); the N study's and the other training seeds' (``derived_models``) reuse a recipe."""
     return p["models"] + p["ablation_models"]
+
+
+def model_method(p: dict[str, Any], model: str) -> str:
+    """The evaluate method of fold model ``model`` (its recipe's ``method``: rlsac unless it says ngransac)."""
+    recipe = (p.get("train") or {}).get(model) or {}
+    return str(recipe.get("method", "rlsac"))
 
 
 def points_name(row: str, points: int) -> str:
@@ -175,15 +186,16 @@ def rows(p: dict[str, Any], fold: str, regime: str | None = None) -> dict[str, d
     (lo_methods, <model>-lo, <model>-fast) only in ``variant_regimes``."""
     trained, task = p["model_regime"], p.get("task", "fundamental")  # every regime: the models of this one's data
     out = {m: {"method": m, "checkpoint": None} for m in p["methods"]}
-    out.update({m: {"method": "rlsac", "checkpoint": checkpoint(trained, fold, m, task)} for m in p["models"]})
-    out.update({seed_name(m, s): {"method": "rlsac", "checkpoint": checkpoint(trained, fold, seed_name(m, s), task)}
-                for s in p.get("seeds", []) for m in p.get("seed_models", [])})  # issue #27: every regime
+    out.update({m: {"method": model_method(p, m), "checkpoint": checkpoint(trained, fold, m, task)}
+                for m in p["models"]})
+    out.update({seed_name(m, s): {"method": model_method(p, m), "checkpoint": checkpoint(
+        trained, fold, seed_name(m, s), task)} for s in p.get("seeds", []) for m in p.get("seed_models", [])})
     if regime is None or regime in p.get("variant_regimes", p["regimes"]):
         out.update({m: {"method": m, "checkpoint": None} for m in p.get("lo_methods", [])})
-        out.update({f"{m}-lo": {"method": "rlsac-lo", "checkpoint": checkpoint(trained, fold, m, task)}
+        out.update({f"{m}-lo": {"method": f"{model_method(p, m)}-lo", "checkpoint": checkpoint(trained, fold, m, task)}
                     for m in p["lo_models"]})
         out.update({f"{m}-fast": {**out[m], "fast": True} for m in p["fast"]})
-        out.update({m: {"method": "rlsac", "checkpoint": checkpoint(trained, fold, m, task)}
+        out.update({m: {"method": model_method(p, m), "checkpoint": checkpoint(trained, fold, m, task)}
                     for m in p.get("ablation_models", [])})
         out.update({f"{m}-prob": {**out[m], "sampling": "prob"} for m in p.get("prob_models", [])})
         for n in p.get("points", []):  # Table 3 (c): each row on the data with N points, a model trained on it

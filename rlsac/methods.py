@@ -120,6 +120,18 @@ def _rlsac(o, device, lo=None):
     return task, estimate, {"steps_per_episode": env.steps_per_episode}
 
 
+@register_method("ngransac", "NG-RANSAC (ours, from the paper)", checkpoint=True)
+def _ngransac(o, device, lo=None):
+    """NG-RANSAC (rlsac.ngransac): our RANSAC with minimal sets drawn from the network of ``o['checkpoint']``."""
+    from rlsac.checkpoint import task_options
+    from rlsac.ngransac import estimate, load
+    from rlsac.tasks import task_for
+
+    net, ckpt_conf = load(o["checkpoint"], device)
+    task = task_for(o, task_options(dict(ckpt_conf or {})))
+    return task, lambda batch, g: estimate(task, net, batch, o["iterations"], g, lo=lo), {}
+
+
 # ------------------------------------------------------------------------------ OpenCV
 def _opencv(flag: str):
     """OpenCV's robust estimator of the task (its ``opencv_fit``) with method preset ``flag``."""
@@ -193,7 +205,7 @@ def _with_lo(base: str):
 
 
 for _base, _label in (("ransac", "RANSAC"), ("uniform", "Uniform"), ("guided", "Guided"),
-                      ("rlsac", "RLSAC")):  # not in the paper: the same-LO arm (issue #26)
+                      ("rlsac", "RLSAC"), ("ngransac", "NG-RANSAC")):  # not in the paper: the same-LO arm (issue #26)
     register_method(f"{_base}-lo", f"{_label} + LO (not in the paper)", needs=METHODS[_base].needs,
                     checkpoint=METHODS[_base].checkpoint, lo=True)(_with_lo(_base))
 

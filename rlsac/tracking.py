@@ -61,7 +61,7 @@ class Run:
 def _store_lock(uri: str):
     """Serialise first use of a sqlite store across processes.
 
-    Two commands started together on a fresh ``mlflow.db`` (e.g. two ``dvc repro`` lanes) both run
+    Two commands started together on a fresh ``mlflow.db`` (e.g. two stages of ``rlsac pipeline``) both run
     MLflow's schema migrations and one fails with "table ... already exists"; creating the same
     experiment twice races the same way. A lock file next to the database orders them.
     """

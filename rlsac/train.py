@@ -29,6 +29,7 @@ from rlsac.devices import resolve_device
 from rlsac.env import EnvConf
 from rlsac.errors import Interrupted, RlsacError
 from rlsac.io import atomic_path, check_writable, clean_stale_temps, load_torch
+from rlsac.ngransac import NGRansacConf
 from rlsac.policy import PolicyConf
 from rlsac.rollout import in_channels, rlsac_estimate
 from rlsac.sac import ReplayBuffer, SACAgent, SACConf, seed_everything, train_loop
@@ -36,11 +37,14 @@ from rlsac.tasks import TASKS, Task, get_task, task_class
 from rlsac.tracking import check_store, start_run
 
 SELECTIONS = ("inlier_ratio", "val_mAA", "last")
+TRAINED_METHODS = ("rlsac", "ngransac")  # what `rlsac train --method` trains (their evaluate methods' names)
 
 
 @dataclass
 class TrainConf:
     task: str = "line"
+    # "rlsac": SAC-Discrete (env, policy, sac); "ngransac": NG-RANSAC's training (rlsac.ngransac: policy, ngransac)
+    method: str = "rlsac"
     data: str = ""  # training file (lines h5 or prepared two-view h5)
     val_data: str = ""  # validation file; empty = no validation
     out: str = "checkpoints/line.pt"
@@ -62,11 +66,24 @@ class TrainConf:
     env: EnvConf = field(default_factory=EnvConf)
     policy: PolicyConf = field(default_factory=PolicyConf)
     sac: SACConf = field(default_factory=SACConf)
+    ngransac: NGRansacConf = field(default_factory=NGRansacConf)  # method "ngransac" only
 
     # checked by rlsac.config.build for every source (params.yaml, --set); nested sections have their own
-    ranges = {"task": TASKS, "device": ("auto", "cpu", "cuda"), "seed": "[0, 4294967295]",
+    ranges = {"task": TASKS, "method": TRAINED_METHODS, "device": ("auto", "cpu", "cuda"), "seed": "[0, 4294967295]",
               "threads": "[0, inf)", "val_instances": "[1, inf)", "val_iterations": "[1, inf)",
               "val_every": "[1, inf)", "ckpt_every": "[1, inf)", "selection": SELECTIONS}
+
+
+# the sections of one trained method only: a checkpoint stores its own method's (an RLSAC checkpoint's conf, and so its
+# bytes, are what they were before NG-RANSAC: `rlsac verify --include-train` compares them with the committed ones)
+OWN_SECTIONS = {"rlsac": ("env", "sac"), "ngransac": ("ngransac",)}
+
+
+def stored_conf(conf: TrainConf) -> dict:
+    """The configuration a checkpoint and its MLflow run keep: every field but the other methods' sections (and, for
+    RLSAC, the ``method`` key: its default)."""
+    other = {s for m, secs in OWN_SECTIONS.items() if m != conf.method for s in secs}
+    return {k: v for k, v in to_dict(conf).items() if k not in other and not (k == "method" and conf.method == "rlsac")}
 
 
 def check_params(params: dict) -> None:
@@ -98,7 +115,11 @@ def train(options: dict, track: bool = True) -> dict:
     if conf.threads > 0:
         torch.set_num_threads(conf.threads)
     device = resolve_device(conf.device)
-    task, data, val, unusable = _load_data(conf, device)
+    if conf.method == "ngransac":  # its own training (rlsac.ngransac): same data, validation and selection
+        from rlsac import ngransac
+
+        return ngransac.train(conf, track)
+    task, data, val, unusable = load_data(conf, device)
     gen = seed_everything(conf.seed)
     if device.type != "cpu":
         gen = torch.Generator(device=device).manual_seed(conf.seed)
@@ -132,7 +153,7 @@ def train(options: dict, track: bool = True) -> dict:
             **{k.replace("/", "_"): v for k, v in unusable.items() if v}}
 
 
-def _load_data(conf: TrainConf, device) -> tuple[Task, dict, dict | None, dict[str, int]]:
+def load_data(conf: TrainConf, device) -> tuple[Task, dict, dict | None, dict[str, int]]:
     """-> (task, training batch with the network's features, validation batch or None, the instances of each
     file its reader left out as unusable: {"data/n_unusable", "val_data/n_unusable"})."""
     task = _task(conf)
@@ -165,7 +186,7 @@ class _TrainingRun:
                  out: Path, state_path: Path, device) -> None:
         self.conf, self.task, self.agent, self.gen, self.val = conf, task, agent, gen, val
         self.out, self.state_path, self.device = out, state_path, device
-        self.conf_dict = to_dict(conf)
+        self.conf_dict = stored_conf(conf)
         self.start, self.best, self.history = 0, {"score": -1.0}, []
         self.buffer: ReplayBuffer | None = None
         self.kept: dict | None = None  # the checkpoint payload of the kept actor
@@ -275,6 +296,13 @@ def validation_metrics(task, val: dict, agent: SACAgent, conf: TrainConf, device
     res = rlsac_estimate(task, val, agent.actor, conf.val_iterations, conf.env,
                          generator=torch.Generator(device=device).manual_seed(1234))
     agent.actor.train()
+    return validation_summary(task, val, res)
+
+
+def validation_summary(task, val: dict, res: dict) -> dict:
+    """A sampler's result ``res`` (hyp, valid, inliers) on the validation batch -> the task's metrics (ground
+    truth) and the mean inlier ratio of the final hypotheses (no ground truth) as ``charts/val_*``: the
+    selection signals of every trained sampler (RLSAC, NG-RANSAC)."""
     errs = task.errors(res["hyp"].cpu().numpy(), res["valid"].cpu().numpy(), res["inliers"].cpu().numpy(),
                        to_numpy(val))
     summ = {f"charts/val_{k}": v for k, v in task.summarize(errs).items() if k != "n"}

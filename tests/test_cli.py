@@ -17,7 +17,7 @@ from rlsac.errors import RlsacError
 from rlsac.evaluate import evaluate, task_from
 
 COMMANDS = ["synth-lines", "import-scenes", "prepare-cvpr2020", "train", "evaluate", "ablate", "plot",
-            "calibrate-lines"]
+            "calibrate-lines", "pipeline"]
 
 
 def invoke(*args):

@@ -177,25 +177,6 @@ def test_ablation_plan_is_coherent(profile):
     assert all(e["checkpoint"] == str(Path("checkpoints") / f"line_o{src}.pt") for e in gen["variants"].values())
 
 
-def test_repro_script_lanes_cover_every_stage_once():
-    """experiments/repro_paper.sh runs each paper stage in exactly one lane, and only real stages."""
-    import subprocess
-
-    out = subprocess.run(["bash", str(ROOT / "experiments" / "repro_paper.sh"), "--list"], check=True,
-                         capture_output=True, text=True).stdout
-    listed = [line.split() for line in out.splitlines()]
-    with dvc_repo.Repo(str(ROOT)) as repo:
-        names = [s.name for s in repo.index.stages
-                 if Path(os.path.abspath(s.path)).parent == PROFILES["paper"] and s.cmd]
-    lane_of: dict[str, list[str]] = {name: [] for name in names}
-    for lane, target in listed:
-        hits = [n for n in names if n == target or n.split("@")[0] == target]
-        assert hits, f"{lane}: {target} is not a stage"
-        for n in hits:
-            lane_of[n].append(lane)
-    assert {n: lanes for n, lanes in lane_of.items() if len(lanes) != 1} == {}
-
-
 def _resolved_stages(root: Path) -> list:
     with dvc_repo.Repo(str(root)) as repo:
         return [(s.addressing, [str(d.def_path) for d in s.deps if not hasattr(d, "params")],

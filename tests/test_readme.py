@@ -166,6 +166,17 @@ def check_mlflow(argv: list[str]) -> None:
     cmd.make_context(argv[1], argv[2:])
 
 
+EXPORTS = {"MLFLOW_TRACKING_URI", "OMP_NUM_THREADS", "RAY_AUTH_TOKEN", "RAY_AUTH_MODE"}
+
+
+def check_ray(argv: list[str]) -> None:
+    from ray.scripts.scripts import cli as ray_cli
+
+    cmd = ray_cli.get_command(click.Context(ray_cli), argv[1])
+    assert cmd is not None, f"ray has no command {argv[1]}"
+    cmd.make_context(argv[1], argv[2:])
+
+
 def check_other(argv: list[str], line: str) -> None:
     prog = argv[0]
     if prog == "python3":
@@ -181,7 +192,11 @@ def check_other(argv: list[str], line: str) -> None:
             constraints = (ROOT / argv[argv.index("-c") + 1]).read_text().split()
             assert all(pin in constraints for pin in pins), f"{line}: constraints file disagrees with {pins}"
     elif prog == "python":
-        assert argv[1:3] == ["-m", "pytest"], line
+        assert argv[1:3] == ["-m", "pytest"] or (argv[1].startswith("benchmarks/") and (ROOT / argv[1]).is_file()), line
+    elif prog == "ray":
+        check_ray(argv)
+    elif prog == "export":
+        assert len(argv) == 2 and argv[1].split("=")[0] in EXPORTS, line
     elif prog == "bash":
         assert (ROOT / argv[1]).is_file(), line
     elif prog == "mlflow":

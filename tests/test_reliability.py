@@ -403,7 +403,7 @@ CASES = [
     ("eval-data-degenerate", evaluate(data="{lines_degenerate}"), "degenerate data"),
     ("eval-ckpt-text", rlsac_eval("{text}"), "not an rlsac checkpoint (UnpicklingError"),
     ("eval-ckpt-h5", rlsac_eval("{lines}"), "not an rlsac checkpoint"),
-    ("eval-ckpt-unused", evaluate("--checkpoint", "{text}"), "--checkpoint is used by --method rlsac only"),
+    ("eval-ckpt-unused", evaluate("--checkpoint", "{text}"), "--checkpoint is used by the trained methods only"),
     ("eval-iterations-0", evaluate("--iterations", "0"), "iterations must be positive"),
     ("eval-batch-0", evaluate("--batch-size", "0"), "batch_size must be positive"),
     ("eval-steps-0", evaluate("--steps-per-episode", "0"), "steps_per_episode must be positive"),

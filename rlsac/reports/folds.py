@@ -39,12 +39,13 @@ MODEL_NAMES = {"rlsac": "RLSAC (paper recipe and algorithm)",
                "rlsac-lo": "RLSAC + LO (not in the paper)",
                "rlsac-fast": "RLSAC-fast: k sets per step, confidence stop, tuned (not in the paper)"}
 ROW_ORDER = ("uniform", "ransac", "opencv_ransac", "usac-nolo", "magsac-nolo", "prosac-nolo", "guided", "rlsac",
-             "rlsac-nosnn", "rlsac-fast", "ransac-lo", "uniform-lo", "guided-lo", "rlsac-lo", "usac", "usac_accurate",
-             "magsac", "prosac", "degensac", "poselib")
+             "rlsac-nosnn", "rlsac-fast", "ngransac", "ransac-lo", "uniform-lo", "guided-lo", "rlsac-lo", "ngransac-lo",
+             "usac", "usac_accurate", "magsac", "prosac", "degensac", "poselib")
 # the like-for-like arms of issue #26: which machinery follows the sampler (a row not named is "no LO")
 ARMS = {"ransac-lo": "same LO", "uniform-lo": "same LO", "guided-lo": "same LO", "rlsac-lo": "same LO",
-        "usac": "OpenCV LO+polish", "usac_accurate": "OpenCV LO+polish", "magsac": "OpenCV LO+polish",
-        "prosac": "OpenCV LO+polish", "degensac": "library LO+polish", "poselib": "library LO+polish"}
+        "ngransac-lo": "same LO", "usac": "OpenCV LO+polish", "usac_accurate": "OpenCV LO+polish",
+        "magsac": "OpenCV LO+polish", "prosac": "OpenCV LO+polish", "degensac": "library LO+polish",
+        "poselib": "library LO+polish"}
 # rows whose library reports no hypothesis count: the table gives their stopping rule's bound (†)
 OPENCV_ROWS = ("opencv_ransac", "usac", "usac_accurate", "magsac", "prosac", "usac-nolo", "magsac-nolo", "prosac-nolo",
                "degensac")

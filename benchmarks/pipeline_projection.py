@@ -1,0 +1,190 @@
+"""Projected wall time of the DVC pipeline on N workers, from stage times (issue #30, item 4).
+
+    python benchmarks/pipeline_projection.py                          # the paper profile, recorded group means
+    python benchmarks/pipeline_projection.py --times pipeline.json    # an `rlsac pipeline` run's MLflow artifact
+    python benchmarks/pipeline_projection.py --times times.json --workers 1,2,4
+
+Reads the pipeline's DAG from DVC (``--repo``, nothing is hashed or run) and a time per stage: ``--times`` is
+either the ``pipeline.json`` artifact an ``rlsac pipeline`` run logs to MLflow (its dependencies and each stage's
+seconds) or a JSON object ``{stage address or fnmatch pattern: seconds}`` (an exact address wins over a pattern,
+then the first matching pattern). Without ``--times``: ``RECORDED``, the per-stage means of the stage times the
+README records for a run from scratch (group totals over 2 cores, ``OMP_NUM_THREADS=1``).
+
+Prints the total stage time (the wall time on one worker), the critical path (the wall time on unlimited
+workers) and, for each N of ``--workers``, the wall time of list scheduling on the DAG: whenever a worker is
+free it starts the ready stage with the longest path to the end (ties by address). Scheduling overhead, DVC's
+own work between stages and contention between stages on a shared machine are not modelled.
+"""
+
+from __future__ import annotations
+
+import argparse
+import fnmatch
+import heapq
+import json
+import os
+import sys
+from pathlib import Path
+
+# Seconds per stage from the README's "Measured stage times for a run from scratch": a group's total over its count,
+# or the middle of its recorded range; the seed grid's stages (issue #27) take their base group's.
+RECORDED = {
+    "calibrate_lines": 40, "lines_data@*": 0.7, "import_scenes": 119, "fold_data@*": 29, "fold_data_points@*": 29,
+    "train_lines@*": 940, "fold_train@*": 115, "fold_train_seed@*": 115, "fold_train_points@*": 115,
+    "fold_train_ablation@*": 60, "essential_train@*": 70, "eval_lines_ours@*": 14,
+    "eval_lines_generalisation@*": 14, "eval_lines_ransac@*": 3, "eval_lines_oracle@*": 3,
+    "fold_tune*": 36.5, "fold_eval*": 29, "essential_tune*": 67, "essential_eval*": 22, "tables": 30, "figures": 25,
+}
+
+
+def load_dag(repo: str | os.PathLike) -> dict[str, list[str]]:
+    """{stage address: the addresses it depends on} of every stage with a command (DVC's graph; nothing hashed)."""
+    from dvc.repo import Repo
+
+    from rlsac.pipeline import _address
+
+    r = Repo(str(repo))
+    try:
+        graph, root = r.index.graph, Path(r.root_dir)
+        runnable = [s for s in graph.nodes if getattr(s, "cmd", None)]
+        keep = set(runnable)
+        return {_address(s, root): sorted(_address(d, root) for d in graph.successors(s) if d in keep)
+                for s in runnable}
+    finally:
+        r.close()
+
+
+def stage_times(deps: dict[str, list[str]], table: dict[str, float]) -> dict[str, float]:
+    """Each stage's seconds from ``table`` (exact address, else the first matching fnmatch pattern)."""
+    out, missing = {}, []
+    for a in deps:
+        if a in table:
+            out[a] = float(table[a])
+            continue
+        hit = next((p for p in table if fnmatch.fnmatchcase(a, p)), None)
+        if hit is None:
+            missing.append(a)
+        else:
+            out[a] = float(table[hit])
+    if missing:
+        raise SystemExit(f"error: no time for {len(missing)} stage(s), e.g. {missing[0]}")
+    return out
+
+
+def _order(deps: dict[str, list[str]]) -> list[str]:
+    """Dependencies first."""
+    seen, out = set(), []
+
+    def visit(a: str, stack: tuple = ()) -> None:
+        if a in seen:
+            return
+        if a in stack:
+            raise SystemExit(f"error: a cycle through {a}")
+        for d in deps[a]:
+            visit(d, (*stack, a))
+        seen.add(a)
+        out.append(a)
+
+    for a in sorted(deps):
+        visit(a)
+    return out
+
+
+def tails(deps: dict[str, list[str]], times: dict[str, float]) -> dict[str, float]:
+    """Each stage's longest path to the end of the pipeline, itself included."""
+    dependents: dict[str, list[str]] = {a: [] for a in deps}
+    for a, ds in deps.items():
+        for d in ds:
+            dependents[d].append(a)
+    tail: dict[str, float] = {}
+    for a in reversed(_order(deps)):
+        tail[a] = times[a] + max((tail[b] for b in dependents[a]), default=0.0)
+    return tail
+
+
+def critical_path(deps: dict[str, list[str]], times: dict[str, float]) -> tuple[float, list[str]]:
+    """(seconds, stages) of the longest chain of dependent stages."""
+    tail = tails(deps, times)
+    if not tail:
+        return 0.0, []
+    dependents: dict[str, list[str]] = {a: [] for a in deps}
+    for a, ds in deps.items():
+        for d in ds:
+            dependents[d].append(a)
+    a = max(sorted(tail), key=lambda s: tail[s])
+    path = [a]
+    while dependents[a]:
+        a = max(sorted(dependents[a]), key=lambda s: tail[s])
+        path.append(a)
+    return tail[path[0]], path
+
+
+def list_schedule(deps: dict[str, list[str]], times: dict[str, float], workers: int) -> float:
+    """Wall time of list scheduling on ``workers`` workers, longest-path-first."""
+    tail = tails(deps, times)
+    waiting = {a: set(ds) for a, ds in deps.items()}
+    dependents: dict[str, list[str]] = {a: [] for a in deps}
+    for a, ds in deps.items():
+        for d in ds:
+            dependents[d].append(a)
+    ready = [(-tail[a], a) for a, ds in waiting.items() if not ds]
+    heapq.heapify(ready)
+    running: list[tuple[float, str]] = []  # (end time, stage)
+    now = 0.0
+    while ready or running:
+        while ready and len(running) < workers:
+            _, a = heapq.heappop(ready)
+            heapq.heappush(running, (now + times[a], a))
+        now, a = heapq.heappop(running)
+        for b in dependents[a]:
+            waiting[b].discard(a)
+            if not waiting[b]:
+                heapq.heappush(ready, (-tail[b], b))
+    return now
+
+
+def projection(deps: dict[str, list[str]], times: dict[str, float], workers: list[int]) -> dict:
+    cp, path = critical_path(deps, times)
+    return {"n_stages": len(deps), "total_s": sum(times.values()), "critical_path_s": cp, "critical_path": path,
+            "wall_s": {n: list_schedule(deps, times, n) for n in workers}}
+
+
+def _hours(s: float) -> str:
+    return f"{s:.0f} s ({s / 3600:.2f} h)"
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repo", default=".", help="The DVC repository whose DAG is used [default: .].")
+    ap.add_argument("--times", help="pipeline.json of an rlsac pipeline run, or {stage or pattern: seconds} "
+                                    "[default: RECORDED, the README's recorded stage times].")
+    ap.add_argument("--workers", default="1,2,8,32", help="Comma-separated worker counts [default: 1,2,8,32].")
+    ap.add_argument("--json", action="store_true", help="Print the result as JSON.")
+    args = ap.parse_args(argv)
+    workers = [int(n) for n in args.workers.split(",")]
+    if any(n < 1 for n in workers):
+        raise SystemExit("error: --workers: every count must be at least 1")
+    table = RECORDED
+    deps = None
+    if args.times:
+        data = json.loads(Path(args.times).read_text())
+        if "results" in data and "deps" in data:  # an rlsac pipeline artifact: the stages it ran
+            table = {a: r["seconds"] for a, r in data["results"].items() if r.get("seconds") is not None}
+            deps = {a: [d for d in ds if d in table] for a, ds in data["deps"].items() if a in table}
+        else:
+            table = data
+    if deps is None:
+        deps = load_dag(args.repo)
+    p = projection(deps, stage_times(deps, table), workers)
+    if args.json:
+        json.dump(p, sys.stdout, indent=1)
+        print()
+        return
+    print(f"{p['n_stages']} stages; total stage time {_hours(p['total_s'])}; "
+          f"critical path {_hours(p['critical_path_s'])}: {' -> '.join(p['critical_path'])}")
+    for n, s in p["wall_s"].items():
+        print(f"{n:>3} workers: wall {_hours(s)}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,263 @@
+"""NG-RANSAC (Brachmann & Rother, ICCV 2019), written from the paper: a per-point network predicts sampling
+weights, RANSAC draws its minimal sets from them, and the network learns from the expected task loss.
+
+* Network: the RLSAC actor's EdgeConv backbone (``rlsac.policy.Actor``, shape ``TrainConf.policy``) on the task's
+  data features only (``task.features``: coordinates, SNN ratio and, as task options, the descriptors), no
+  environment memory: one logit per point, p = softmax over the valid points.
+* Test time (``estimate``): our batched ``rlsac.baselines.ransac`` with every minimal set drawn from p without
+  replacement (``rlsac.sampling.weighted_minimal_sets``): the same budget, scoring, LO arm and final refit as
+  ``ransac``, which is its uniform control.
+* Training (``loss``): per pair K minimal sets drawn from p, each scored by its loss l_k: ``inliers`` (self-
+  supervised, - the inlier ratio of the set's hypothesis at the task's threshold) or ``pose`` (supervised, the
+  task's ground-truth error, clipped at its mAA limit and divided by it); the gradient of the expected loss,
+  mean_k (l_k - b) grad log p(set_k), with the baseline b = mean_k l_k (the paper's variance reduction).
+* ``train``: Adam, ``rlsac train --method ngransac``; validation and model selection as RLSAC's (``rlsac.train``:
+  the fold's validation pairs only, the same selection signals); the checkpoint format is ``rlsac.checkpoint``'s
+  with kind "ngransac".
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from rlsac.errors import RlsacError
+
+SIGNALS = ("inliers", "pose")
+KIND = "ngransac"  # rlsac.checkpoint kind of its checkpoints
+
+
+@dataclass
+class NGRansacConf:
+    """``TrainConf.ngransac``: the training of ``rlsac train --method ngransac`` (its network: ``TrainConf.policy``)."""
+
+    steps: int = 200  # Adam updates
+    batch_size: int = 8  # training pairs per update, drawn at random (seeded)
+    samples: int = 16  # K minimal sets per pair and update (the baseline is their mean loss)
+    # Adam's learning rate: the paper fine-tunes a network initialised on inlier labels (a small rate); ours starts
+    # from its random initialisation, whose logits are nearly equal (a probe on one fold's validation pairs, 150
+    # updates: 1e-4 barely moved them, 3e-3 was unstable)
+    lr: float = 1e-3
+    # "inliers": self-supervised, - inlier ratio of each set's hypothesis; "pose": supervised, the task's error
+    # against the ground truth (task.errors; clipped at the task's mAA limit, divided by it)
+    signal: str = "inliers"
+
+    ranges = {"steps": "[1, inf)", "batch_size": "[1, inf)", "samples": "[2, inf)", "lr": "(0, inf)",
+              "signal": SIGNALS}
+
+
+def network(task, policy_conf):
+    """The per-point sampling network of ``task``: the RLSAC actor's backbone on the task's data features.
+    (B, N, task.feature_dim) features, (B, N) mask -> (B, N) logits, -inf on masked points."""
+    from rlsac.policy import Actor
+
+    return Actor(task.feature_dim, policy_conf)
+
+
+def logits_of(net, task, batch: dict) -> torch.Tensor:
+    """The network's per-point logits of a batch -> (B, N); its features computed unless the batch has them."""
+    feats = batch["features_net"] if "features_net" in batch else task.features(batch)
+    if feats.dim() != 3 or feats.shape[:2] != batch["mask"].shape or feats.shape[-1] != task.feature_dim:
+        raise RlsacError(f"ngransac: features {tuple(feats.shape)} must be (B, N, {task.feature_dim}) for mask "
+                         f"{tuple(batch['mask'].shape)}")
+    return net(feats, batch["mask"])
+
+
+@torch.no_grad()
+def estimate(task, net, batch: dict, iterations: int, generator: torch.Generator | None = None, lo=None) -> dict:
+    """NG-RANSAC on a batch: ``iterations`` minimal sets drawn from the network's probabilities, scored, refit (and
+    locally optimised with ``lo``) by ``rlsac.baselines.ransac``. batch: coords (B, N, d), mask (B, N), what
+    ``task.features`` needs -> ransac's output (hyp, valid, inliers, best_count, hypotheses)."""
+    from rlsac.baselines import ransac
+
+    was_training = net.training
+    net.eval()
+    try:
+        return ransac(task, batch, iterations, generator, lo=lo, logits=logits_of(net, task, batch))
+    finally:
+        net.train(was_training)
+
+
+def set_losses(task, batch: dict, idx: torch.Tensor, signal: str) -> torch.Tensor:
+    """The loss of each sampled minimal set's hypothesis (no gradient).
+
+    batch: coords (B, N, d), mask (B, N) (+ the ground truth ``task.errors`` reads for "pose"), idx (B, K, m)
+    -> (B, K): "inliers": - inlier count / valid points (a degenerate set: 0); "pose": the task's error (the
+    largest of its error components, e.g. max(err_R, err_t)) clipped at ``task.maa_limit_deg`` and divided by it,
+    in [0, 1] (a degenerate set: 1)."""
+    from rlsac.lo import score_sets
+    from rlsac.sampling import gather_points
+
+    if signal not in SIGNALS:
+        raise RlsacError(f"ngransac signal must be one of {', '.join(SIGNALS)}, got {signal!r}")
+    coords, mask = batch["coords"], batch["mask"]
+    B, K = idx.shape[:2]
+    with torch.no_grad():
+        hyps, valid, res, count = score_sets(task, gather_points(coords, idx), coords, mask)  # (B, K, ...)
+        if signal == "inliers":
+            ratio = count.to(coords.dtype) / mask.sum(-1, keepdim=True).clamp_min(1).to(coords.dtype)
+            return -ratio.masked_fill(~valid, 0.0)
+        inl = (res <= task.threshold) & mask[:, None] & valid[..., None]
+        errs = task.errors(hyps.flatten(0, 1).cpu().numpy(), valid.flatten().cpu().numpy(),
+                           inl.flatten(0, 1).cpu().numpy(), repeat_rows(batch, K))
+        err = np.max(np.stack([np.asarray(e, np.float64) for e in errs.values()]), axis=0)
+        limit = float(getattr(task, "maa_limit_deg", 1.0))
+        loss = np.minimum(np.nan_to_num(err, nan=limit), limit) / limit
+        return torch.as_tensor(loss, dtype=coords.dtype, device=coords.device).view(B, K)
+
+
+def repeat_rows(batch: dict, k: int) -> dict:
+    """Every row of a batch dict k times in a row (torch and numpy arrays; other values kept): row b*k + j is b."""
+    B = batch["mask"].shape[0]
+    out = {}
+    for key, v in batch.items():
+        if torch.is_tensor(v) and v.dim() > 0 and v.shape[0] == B:
+            out[key] = v.repeat_interleave(k, 0)
+        elif isinstance(v, np.ndarray) and v.ndim > 0 and v.shape[0] == B:
+            out[key] = np.repeat(v, k, axis=0)
+        else:
+            out[key] = v
+    return out
+
+
+def loss(task, net, batch: dict, samples: int, signal: str, generator: torch.Generator | None = None
+         ) -> tuple[torch.Tensor, torch.Tensor]:
+    """NG-RANSAC's surrogate objective on a batch and the sampled sets' mean task loss.
+
+    batch: coords (B, N, d), mask (B, N), the task's features -> (objective (), mean loss ()): K = ``samples``
+    minimal sets per pair drawn from the network's p; objective = mean_{b,k} (l_bk - mean_k l_bk) log p(set_bk),
+    whose gradient is the paper's estimate of the gradient of the expected loss E_{set ~ p}[l(set)]."""
+    from rlsac.sampling import set_log_prob, weighted_minimal_sets
+
+    mask = batch["mask"]
+    if int(mask.sum(-1).min()) < task.sample_size:
+        raise RlsacError(f"ngransac: a pair has fewer than {task.sample_size} valid points")
+    logits = logits_of(net, task, batch)  # (B, N)
+    idx = weighted_minimal_sets(logits, mask, task.sample_size, samples, generator)  # (B, K, m)
+    losses = set_losses(task, batch, idx, signal)  # (B, K)
+    advantage = losses - losses.mean(-1, keepdim=True)  # the baseline: the pair's mean loss over its K sets
+    return (advantage * set_log_prob(logits, mask, idx)).mean(), losses.mean()
+
+
+def payload(net, conf: dict, in_channels: int, step: int, val: dict, selection: str, history: list) -> dict:
+    """The checkpoint dict of an NG-RANSAC network: ``rlsac.checkpoint.actor_payload``'s with kind "ngransac"."""
+    from rlsac.checkpoint import actor_payload
+
+    return {"kind": KIND, **actor_payload(net, conf, in_channels, step, val, selection, history)}
+
+
+def train(conf, track: bool = True) -> dict:
+    """``rlsac train --method ngransac``: ``conf`` a checked ``rlsac.train.TrainConf`` (method "ngransac") ->
+    the summary of ``rlsac.train.train``. The kept network (``conf.out``) is the best validation under
+    ``conf.selection`` (RLSAC's rule and signals), else the last; no training state file (no --resume)."""
+    from rlsac import checkpoint
+    from rlsac.devices import resolve_device
+    from rlsac.sac import seed_everything
+    from rlsac.tracking import start_run
+    from rlsac.train import SELECTION_KEY, load_data, stored_conf, task_experiment, validation_summary
+
+    if conf.resume:
+        raise RlsacError("ngransac training has no --resume (it keeps no training state)")
+    ng = conf.ngransac
+    if conf.threads > 0:
+        torch.set_num_threads(conf.threads)
+    device = resolve_device(conf.device)
+    task, data, val, unusable = load_data(conf, device)
+    data["features_net"] = data.pop("features")
+    if ng.signal == "pose":  # a file without the ground truth the signal reads fails here, not at the first update
+        from rlsac.sampling import uniform_minimal_sets
+
+        first = _rows(data, torch.tensor([0]))
+        try:
+            set_losses(task, first, uniform_minimal_sets(first["mask"], task.sample_size, 1), "pose")
+        except (KeyError, IndexError, ValueError, TypeError) as e:
+            raise RlsacError(f"{conf.data}: no ground truth for the pose signal ({e.__class__.__name__}: {e})"
+                             ) from None
+    gen = seed_everything(conf.seed)
+    if device.type != "cpu":
+        gen = torch.Generator(device=device).manual_seed(conf.seed)
+    net = network(task, conf.policy).to(device)
+    opt = torch.optim.Adam(net.parameters(), lr=ng.lr)
+    conf_dict, out = stored_conf(conf), Path(conf.out)
+    n_pairs = int(data["mask"].shape[0])
+    best, history, kept = {"score": -1.0}, [], None  # as RLSAC's: every selection signal is >= 0
+
+    def validate(step: int) -> dict:
+        res = estimate(task, net, val, conf.val_iterations, torch.Generator(device=device).manual_seed(1234))
+        summ = validation_summary(task, val, res)
+        history.append({"step": step, **summ})
+        return summ
+
+    name = conf.run_name or f"train {conf.task} ngransac {out.stem} ({Path(conf.data).stem})"
+    tags = {"command": "train", "method": KIND, **conf.tags, "out": str(out)}
+    logged = {k: v for k, v in conf_dict.items() if k != "resume"}
+    with start_run(task_experiment(conf.task), name, logged, tags=tags, enabled=track) as run:
+        run.metrics(unusable)
+        t0 = time.time()
+        for step in range(1, ng.steps + 1):
+            rows = torch.randint(0, n_pairs, (min(ng.batch_size, n_pairs),), generator=gen, device=gen.device)
+            objective, mean_loss = loss(task, net, _rows(data, rows.cpu()), ng.samples, ng.signal, gen)
+            opt.zero_grad(set_to_none=True)
+            objective.backward()
+            opt.step()
+            run.metrics({"losses/ngransac_objective": objective.item(), "charts/train_loss": mean_loss.item()},
+                        step=step)
+            if val is not None and (step % conf.val_every == 0 or step == ng.steps):
+                summ = validate(step)
+                run.metrics(summ, step=step)
+                score = summ[SELECTION_KEY.get(conf.selection, "charts/val_mAA")]
+                if conf.selection != "last" and score > best["score"]:
+                    best.update(score=score, step=step, **summ)
+                    kept = payload(net, conf_dict, task.feature_dim, step, summ, conf.selection, history)
+        if kept is None:  # no validation, or selection "last": the final network
+            kept = payload(net, conf_dict, task.feature_dim, ng.steps, history[-1] if history else {},
+                           conf.selection, history)
+        kept["history"] = list(history)
+        checkpoint.write(out, kept)
+        seconds = time.time() - t0
+        run.metrics({"time/train_seconds": seconds})
+        run.artifact(out, "checkpoint")
+    return {"checkpoint": str(out), "method": KIND, "steps": ng.steps, "seconds": round(seconds, 1),
+            "selection": conf.selection, "best_score": best["score"],
+            "best_step": best.get("step"), "final_val": history[-1] if history else {},
+            **{k.replace("/", "_"): v for k, v in unusable.items() if v}}
+
+
+def _rows(batch: dict, rows: torch.Tensor) -> dict:
+    """Rows ``rows`` (1-d long, on the CPU) of a batch: tensors indexed on their device, numpy arrays with numpy."""
+    out = {}
+    for key, v in batch.items():
+        if torch.is_tensor(v):
+            out[key] = v[rows.to(v.device)]
+        elif isinstance(v, np.ndarray) and v.ndim > 0:
+            out[key] = v[rows.numpy()]
+        elif isinstance(v, list):
+            out[key] = [v[i] for i in rows.tolist()]
+        else:
+            out[key] = v
+    return out
+
+
+def load(path, device="cpu"):
+    """An NG-RANSAC checkpoint -> (network in eval mode, training conf); RlsacError on a missing or bad file or on
+    a checkpoint of another kind (an RLSAC actor)."""
+    from rlsac.checkpoint import kind_of, read
+    from rlsac.config import build
+    from rlsac.policy import Actor, PolicyConf
+
+    ckpt = read(path, device)
+    kind = kind_of(ckpt)
+    if kind != KIND:
+        raise RlsacError(f"{path}: a {kind} checkpoint, not an ngransac one (evaluate it with --method {kind})")
+    try:
+        conf = ckpt["conf"]
+        net = Actor(ckpt["in_channels"], build(PolicyConf, conf["policy"])).to(device)
+        net.load_state_dict(ckpt["actor"])
+    except (KeyError, RuntimeError, EOFError, ValueError, TypeError) as e:
+        raise RlsacError(f"{path}: not an ngransac checkpoint ({e.__class__.__name__}: {str(e)[:80]})") from None
+    net.eval()
+    return net, conf

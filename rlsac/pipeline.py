@@ -1,0 +1,415 @@
+"""``rlsac pipeline``: the DVC pipeline's out-of-date stages as Ray tasks, in dependency order (issue #30).
+
+The plan comes from DVC itself (``Repo.index.graph``, ``Stage.changed``): a stage runs when it changed or when a
+stage it depends on runs; frozen stages and stages without a command never run. Each stage is one Ray task
+(``num_cpus=1``; ``num_gpus`` for the stages matching ``gpu_stages`` when ``gpus_per_train`` > 0) that runs
+``dvc --wait-for-lock repro -s <stage>`` in the repository, so ``dvc.lock`` stays the record: DVC releases its
+repository lock while a stage's command runs and ``--wait-for-lock`` queues the short lock-file updates. A stage
+DVC finds up to date is reported skipped. A failed stage (or a lost worker) stops its dependents; every other
+stage still runs; running the command again resumes (what finished is up to date).
+
+A task's process group is watched by a small guard process: if the Ray worker dies (killed, node lost, driver
+interrupted), the guard sends the stage SIGTERM (an ``rlsac`` command ends its MLflow run KILLED) and, 10 s later,
+SIGKILL, so no orphaned stage keeps writing outputs. Logs: ``logs/pipeline/<stage>.log`` under the repository.
+
+Ray is imported only here, when the command runs (``rlsac --help`` stays fast).
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+from rlsac.errors import RlsacError
+
+DEFAULTS: dict[str, Any] = {
+    "repo": ".",  # the DVC repository (its root)
+    "stages": None,  # comma-separated addresses, foreach names or fnmatch patterns; None = every stage
+    "workers": None,  # local Ray cluster size; None = os.cpu_count()
+    "address": None,  # join this Ray cluster instead of starting one
+    "gpus_per_train": 0.0,  # num_gpus of a stage matching gpu_stages
+    "gpu_stages": "*train*",  # fnmatch pattern(s), comma-separated, on the stage address
+    "dry_run": False,  # print the plan, run nothing
+}
+LOG_DIR = Path("logs") / "pipeline"
+# environment the driver passes to every stage (a worker on another node has its own environment otherwise)
+FORWARD_ENV = ("MLFLOW_TRACKING_URI", "OMP_NUM_THREADS", "MLFLOW_LOGGING_LEVEL")
+STATUSES = ("done", "skipped", "failed", "not run")
+_ERROR_LINE = re.compile(r"^(error\b|ERROR\b|[A-Za-z_][\w.]*(Error|Exception|Interrupt)\b)")
+_SKIPPED = re.compile(r"Stage '.*' didn't change, skipping")
+KILL_GRACE_S = 10.0
+LOCK_TRIES = 10  # a stage's outputs locked by another dvc process: seconds to wait before giving up
+
+
+# ----------------------------------------------------------------------------------------------------- plan
+
+
+def _address(stage, root: Path) -> str:
+    """The stage's address from the repository root (``dvc stage list``): ``name``, ``sub/dvc.yaml:name``, or a
+    .dvc file."""
+    name, dvcfile = getattr(stage, "name", None), Path(os.path.relpath(stage.dvcfile.path, root)).as_posix()
+    return dvcfile if name is None else name if dvcfile == "dvc.yaml" else f"{dvcfile}:{name}"
+
+
+def load_plan(repo_dir: str | os.PathLike, names: str | None = None) -> dict:
+    """-> {"root", "order" (every runnable stage, dependencies first), "deps" {address: [addresses it needs]},
+    "todo" (addresses to run, in order), "selected" (addresses considered)}. Raises RlsacError on a path that
+    is not a DVC repository, an unreadable pipeline or a name that matches no stage."""
+    import networkx as nx
+
+    try:
+        from dvc.repo import Repo
+
+        repo = Repo(str(repo_dir))
+    except Exception as e:  # not a DVC repo, an unparsable dvc.yaml: one line, not DVC's traceback
+        raise RlsacError(f"{repo_dir}: cannot read the DVC pipeline ({e.__class__.__name__}: "
+                         f"{' '.join(str(e).split())[:200]})") from None
+    try:
+        root = Path(repo.root_dir)
+        try:
+            graph = repo.index.graph  # edges go from a stage to the stages it depends on
+        except Exception as e:
+            raise RlsacError(f"{repo_dir}: cannot read the DVC pipeline ({e.__class__.__name__}: "
+                             f"{' '.join(str(e).split())[:200]})") from None
+        addr = {s: _address(s, root) for s in graph.nodes}
+        by_addr = {a: s for s, a in addr.items()}
+        if names:
+            chosen = set()
+            for name in filter(None, (n.strip() for n in names.split(","))):
+                hits = [a for a in by_addr if a == name or fnmatch.fnmatchcase(a, name)
+                        or fnmatch.fnmatchcase(a, name + "@*")]  # `train_lines` = every train_lines@...
+                if not hits:
+                    raise RlsacError(f"no stage matches '{name}' (`dvc stage list` shows the names)")
+                chosen.update(hits)
+            # what the named stages need comes along (as `dvc repro <stage>`)
+            nodes = set()
+            for a in chosen:
+                nodes |= {by_addr[a], *nx.descendants(graph, by_addr[a])}
+        else:
+            nodes = set(graph.nodes)
+        sub = graph.subgraph(nodes)
+        # dependencies first; ties by address so the plan is stable
+        ordered = list(nx.lexicographical_topological_sort(sub.reverse(copy=True), key=lambda s: addr[s]))
+        runnable = [s for s in ordered if getattr(s, "cmd", None) and not s.frozen]
+        run_set = set(runnable)
+        deps = {addr[s]: sorted(addr[d] for d in graph.successors(s) if d in run_set) for s in runnable}
+        todo: list[str] = []
+        from dvc.lock import LockError
+
+        for attempt in range(LOCK_TRIES):
+            try:
+                with repo.lock:
+                    todo = []
+                    for s in runnable:  # an upstream stage that runs makes everything downstream of it run
+                        if any(d in todo for d in deps[addr[s]]) or s.changed():
+                            todo.append(addr[s])
+                break
+            except LockError as e:  # another dvc process holds the repository or a stage's outputs (or has
+                # just been killed and is not yet reaped: DVC drops its entries once the process is gone)
+                if attempt == LOCK_TRIES - 1:
+                    raise RlsacError(f"{repo_dir}: {' '.join(str(e).split())[:300]}") from None
+                time.sleep(1.0)
+    finally:
+        repo.close()
+    return {"root": root, "order": [addr[s] for s in runnable], "deps": deps, "todo": todo,
+            "selected": sorted(addr[s] for s in ordered)}
+
+
+# ------------------------------------------------------------------------------------------- one stage (task)
+
+
+_GUARD = """
+import os, signal, sys, time
+import psutil
+pgid, worker, grace = int(sys.argv[1]), int(sys.argv[2]), float(sys.argv[3])
+if os.fork():  # detach: Ray kills a dead worker's direct children, which would take this guard with them
+    os._exit(0)
+os.setsid()
+
+def alive(pid):
+    try:
+        return psutil.Process(pid).status() != psutil.STATUS_ZOMBIE
+    except psutil.NoSuchProcess:
+        return False
+
+def group():
+    try:
+        os.killpg(pgid, 0)
+        return True
+    except ProcessLookupError:
+        return False
+
+while alive(worker):
+    if not group():  # the stage ended: nothing to guard
+        sys.exit(0)
+    time.sleep(0.5)
+for sig in (signal.SIGTERM, signal.SIGKILL):
+    try:
+        os.killpg(pgid, sig)
+    except ProcessLookupError:
+        sys.exit(0)
+    end = time.monotonic() + (grace if sig == signal.SIGTERM else 0)
+    while group() and time.monotonic() < end:
+        time.sleep(0.2)
+"""
+
+
+def first_error_line(text: str) -> str:
+    """The first line that reads as an error (``error: ...`` of an rlsac command, the ``XxxError: ...`` line that
+    ends a traceback, DVC's ``ERROR: ...``), else the last non-empty line."""
+    lines = [ln.rstrip() for ln in text.splitlines() if ln.strip()]
+    for ln in lines:
+        if _ERROR_LINE.match(ln):
+            return ln.strip()
+    return lines[-1].strip() if lines else "(no output)"
+
+
+def run_stage(root: str, address: str, env: dict[str, str], log: str) -> dict:
+    """Run ``dvc --wait-for-lock repro -s <address>`` in ``root`` (a Ray task's body; plain Python too).
+    -> {stage, status (done / skipped / failed), seconds, rc, error, log, node}."""
+    import socket
+
+    full_env = {**os.environ, **env}
+    bindir = str(Path(sys.executable).parent)  # the stage's `rlsac` / `dvc`: this interpreter's
+    full_env["PATH"] = bindir + os.pathsep + full_env.get("PATH", "")
+    Path(log).parent.mkdir(parents=True, exist_ok=True)
+    t0 = time.time()
+    with open(log, "wb") as f:
+        proc = subprocess.Popen([sys.executable, "-m", "dvc", "--wait-for-lock", "repro", "-s", address],
+                                cwd=root, env=full_env, stdout=f, stderr=subprocess.STDOUT,
+                                stdin=subprocess.DEVNULL, start_new_session=True)
+        # the guard ends the stage's process group if this worker dies, and itself once the group is gone
+        subprocess.run([sys.executable, "-c", _GUARD, str(proc.pid), str(os.getpid()), str(KILL_GRACE_S)],
+                       stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        rc = proc.wait()
+    seconds = time.time() - t0
+    text = Path(log).read_text(errors="replace")
+    status = "failed" if rc else "skipped" if _SKIPPED.search(text) else "done"
+    error = None
+    if rc:
+        error = first_error_line(text) if rc > 0 else f"killed by {signal.Signals(-rc).name}: {first_error_line(text)}"
+    return {"stage": address, "status": status, "seconds": seconds, "rc": rc, "error": error, "log": log,
+            "node": socket.gethostname()}
+
+
+# ------------------------------------------------------------------------------------------------- scheduling
+
+
+def _check_options(o: dict) -> None:
+    if o["workers"] is not None and o["workers"] < 1:
+        raise RlsacError(f"--workers {o['workers']}: must be at least 1")
+    if o["workers"] is not None and o["address"]:
+        raise RlsacError("--workers sizes a local Ray cluster; with --address the cluster's own resources count")
+    if o["gpus_per_train"] < 0:
+        raise RlsacError(f"--gpus-per-train {o['gpus_per_train']}: must be at least 0")
+
+
+def _start_ray(o: dict) -> tuple[Any, bool]:
+    """-> (ray, started): joins ``address``, or starts a local cluster of ``workers`` CPUs; an already
+    initialised Ray (a test, a notebook) is used as it is and left running."""
+    import logging
+
+    if o["address"] and o["address"] != "auto" and "RAY_AUTH_MODE" not in os.environ and (
+            os.environ.get("RAY_AUTH_TOKEN") or os.environ.get("RAY_AUTH_TOKEN_PATH")
+            or (Path.home() / ".ray" / "auth_token").is_file()):
+        # Ray uses the cluster token (RAY_AUTH_TOKEN, ~/.ray/auth_token) by itself for `auto` only; for an explicit
+        # address it must be asked for, before Ray is imported (its configuration is read then)
+        os.environ["RAY_AUTH_MODE"] = "token"
+    import ray
+
+    if ray.is_initialized():
+        return ray, False
+    kwargs = {"include_dashboard": False, "logging_level": logging.WARNING, "log_to_driver": False}
+    try:
+        if o["address"]:
+            ray.init(address=o["address"], **kwargs)
+        else:  # a local cluster: token authentication stays on, its notice is noise on this screen
+            auth_log = logging.getLogger("ray._private.authentication.authentication_token_setup")
+            level = auth_log.level
+            auth_log.setLevel(logging.ERROR)
+            try:
+                # address="local": a new cluster even where `ray start` left one running (or its address file)
+                ray.init(address="local", num_cpus=o["workers"] or os.cpu_count() or 1, **kwargs)
+            finally:
+                auth_log.setLevel(level)
+    except Exception as e:
+        raise RlsacError(f"cannot start Ray{' at ' + o['address'] if o['address'] else ''} "
+                         f"({e.__class__.__name__}: {' '.join(str(e).split())[:200]})") from None
+    return ray, True
+
+
+def _is_gpu_stage(address: str, patterns: str) -> bool:
+    return any(fnmatch.fnmatchcase(address, p.strip()) for p in patterns.split(",") if p.strip())
+
+
+def _descendants(address: str, dependents: dict[str, list[str]]) -> set[str]:
+    out, stack = set(), [address]
+    while stack:
+        for d in dependents.get(stack.pop(), []):
+            if d not in out:
+                out.add(d)
+                stack.append(d)
+    return out
+
+
+def schedule(plan: dict, o: dict, ray, progress: Callable[[dict], None] | None = None) -> dict[str, dict]:
+    """Run ``plan["todo"]`` as Ray tasks, each once its dependencies are done, as many at once as the cluster
+    has room for. -> {address: result}; a stage that never ran: {"status": "not run", "after": <failed stage>}."""
+    todo = plan["todo"]
+    root = str(plan["root"])
+    env = {k: os.environ[k] for k in FORWARD_ENV if k in os.environ}
+    env.setdefault("OMP_NUM_THREADS", "1")
+    task = ray.remote(run_stage)
+    waiting = {a: {d for d in plan["deps"][a] if d in todo} for a in todo}
+    dependents: dict[str, list[str]] = {a: [] for a in todo}
+    for a, ds in waiting.items():
+        for d in ds:
+            dependents[d].append(a)
+    results: dict[str, dict] = {}
+    running: dict[Any, str] = {}
+    while waiting or running:
+        for a in [a for a in todo if a in waiting and not waiting[a]]:
+            del waiting[a]
+            opts = {"num_cpus": 1, "max_retries": 0}
+            if o["gpus_per_train"] > 0 and _is_gpu_stage(a, o["gpu_stages"]):
+                opts["num_gpus"] = o["gpus_per_train"]
+            log = str(plan["root"] / LOG_DIR / (re.sub(r"[^\w.@-]", "_", a) + ".log"))
+            running[task.options(**opts).remote(root, a, env, log)] = a
+        if not running:  # nothing runnable is left: the rest waits on a failed stage (already marked)
+            break
+        ready, _ = ray.wait(list(running), num_returns=1)
+        for ref in ready:
+            a = running.pop(ref)
+            try:
+                r = ray.get(ref)
+            except Exception as e:  # the worker died (killed, out of memory, node lost): the stage failed
+                r = {"stage": a, "status": "failed", "seconds": None, "rc": None, "log": None, "node": None,
+                     "error": f"{e.__class__.__name__}: {first_error_line(str(e))}"}
+            results[a] = r
+            if r["status"] == "failed":
+                for d in _descendants(a, dependents):
+                    if d in waiting:
+                        del waiting[d]
+                        results[d] = {"stage": d, "status": "not run", "after": a}
+            else:
+                for d in dependents[a]:
+                    waiting.get(d, set()).discard(a)
+            if progress is not None:
+                progress(r)
+    return {a: results[a] for a in todo if a in results}
+
+
+# --------------------------------------------------------------------------------------------------- command
+
+
+def pipeline(options: dict[str, Any], track: bool = True) -> dict:
+    """Check the options and the pipeline, then run the out-of-date stages. -> {"root", "results" {address:
+    result}, "counts" {status: n}, "n_selected", "wall_s", "workers", "run_id", "dry_run"}."""
+    from rlsac.progress import tqdm
+    from rlsac.tracking import check_store, start_run
+
+    o = {**DEFAULTS, **{k: v for k, v in options.items() if v is not None}}
+    _check_options(o)
+    plan = load_plan(o["repo"], o["stages"])
+    skipped = [a for a in plan["order"] if a not in plan["todo"]]
+    base = {"root": str(plan["root"]), "n_selected": len(plan["order"]), "todo": plan["todo"], "run_id": None}
+    if o["dry_run"]:
+        return {**base, "dry_run": True, "results": {a: {"stage": a, "status": "skipped"} for a in skipped},
+                "counts": {"skipped": len(skipped)}, "wall_s": 0.0, "workers": None}
+    check_store(track, "pipeline")
+    params = {k: o[k] for k in ("stages", "workers", "address", "gpus_per_train", "gpu_stages")}
+    params.update(repo=str(plan["root"]), n_todo=len(plan["todo"]))
+    t0 = time.time()
+    with start_run("pipeline", f"pipeline {len(plan['todo'])} stages", params=params, enabled=track) as run:
+        ray, started = _start_ray(o) if plan["todo"] else (None, False)
+        try:
+            resources = ray.cluster_resources() if ray is not None else {}
+            workers = int(resources.get("CPU", 0))
+            gpu_stages = [a for a in plan["todo"] if o["gpus_per_train"] > 0 and _is_gpu_stage(a, o["gpu_stages"])]
+            if gpu_stages and resources.get("GPU", 0) < o["gpus_per_train"]:  # the task would wait for ever
+                raise RlsacError(f"--gpus-per-train {o['gpus_per_train']:g}: the Ray cluster has "
+                                 f"{resources.get('GPU', 0):g} GPUs ({gpu_stages[0]} would never start)")
+            bar = tqdm(total=len(plan["todo"]), desc="pipeline", unit="stage")
+
+            def progress(r: dict) -> None:
+                bar.set_postfix_str(f"{r['status']} {r['stage']}", refresh=False)
+                bar.update(1)
+
+            try:
+                results = schedule(plan, o, ray, progress) if plan["todo"] else {}
+            finally:
+                bar.close()
+        finally:
+            if started:
+                ray.shutdown()
+        wall = time.time() - t0
+        for a in skipped:
+            results[a] = {"stage": a, "status": "skipped", "seconds": None}
+        results = {a: results[a] for a in plan["order"] if a in results}
+        counts = {s: sum(r["status"] == s for r in results.values()) for s in STATUSES}
+        run.metrics({f"n_{k.replace(' ', '_')}": v for k, v in counts.items()})
+        run.metrics({"wall_s": wall, "workers": workers})
+        # stage wall times go to MLflow only, never into committed files
+        run.metrics({"stage_s/" + re.sub(r"[^\w.\- /]", "_", a): r["seconds"]
+                     for a, r in results.items() if r.get("seconds") is not None and r["status"] != "skipped"})
+        if track:
+            import tempfile
+
+            with tempfile.TemporaryDirectory() as tmp:
+                path = Path(tmp) / "pipeline.json"
+                path.write_text(json.dumps({"deps": plan["deps"], "results": results}, indent=1) + "\n")
+                run.artifact(path)
+    return {**base, "dry_run": False, "results": results, "counts": counts, "wall_s": wall, "workers": workers,
+            "run_id": run.run_id}
+
+
+def _names(items: list[str], width: int = 110) -> str:
+    """Comma-separated names cut to about one line: ``a, b, c, ... and 40 more``."""
+    out, n = "", 0
+    for i, a in enumerate(items):
+        piece = (", " if out else "") + a
+        if len(out) + len(piece) > width and i < len(items) - 1:
+            return out + f", ... and {len(items) - n} more"
+        out += piece
+        n += 1
+    return out
+
+
+def _shown(path: str) -> str:
+    """A path relative to the current directory when it lies under it, else as it is."""
+    rel = os.path.relpath(path)
+    return path if rel.startswith("..") else rel
+
+
+def format_summary(s: dict) -> str:
+    """The one-screen summary: counts, then one line per status (names cut to a line), failed stages one per
+    line with the error's first line and their log (the first 10)."""
+    by = {k: [a for a, r in s["results"].items() if r["status"] == k] for k in STATUSES}
+    if s["dry_run"]:
+        lines = [f"pipeline (dry run): {len(s['todo'])} to run, {len(by['skipped'])} up to date "
+                 f"of {s['n_selected']} stages"]
+        if s["todo"]:
+            lines.append(f"to run   {_names(s['todo'])}")
+        return "\n".join(lines)
+    head = ", ".join(f"{len(by[k])} {k}" for k in STATUSES)
+    lines = [f"pipeline: {head} of {s['n_selected']} stages in {s['wall_s']:.1f} s"
+             + (f" ({s['workers']} CPUs)" if s["workers"] else "")]
+    for k in ("done", "skipped"):
+        if by[k]:
+            lines.append(f"{k:<8} {_names(by[k])}")
+    for a in by["failed"][:10]:
+        r = s["results"][a]
+        lines.append(f"failed   {a}: {r['error']}" + (f" (log {_shown(r['log'])})" if r.get("log") else ""))
+    if len(by["failed"]) > 10:
+        lines.append(f"failed   ... and {len(by['failed']) - 10} more")
+    if by["not run"]:
+        lines.append(f"not run  {_names(by['not run'])}")
+    return "\n".join(lines)

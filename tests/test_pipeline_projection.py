@@ -1,0 +1,49 @@
+"""benchmarks/pipeline_projection.py (issue #30, item 4) on a toy DAG whose answers are known by hand."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+spec = importlib.util.spec_from_file_location("pipeline_projection", ROOT / "benchmarks" / "pipeline_projection.py")
+proj = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(proj)
+
+# a (3 s) -> b (2 s), a -> c (1 s), d (5 s) on its own, e (1 s) after b and c
+DEPS = {"a": [], "b": ["a"], "c": ["a"], "d": [], "e": ["b", "c"]}
+TIMES = {"a": 3.0, "b": 2.0, "c": 1.0, "d": 5.0, "e": 1.0}
+
+
+def test_total_critical_path_and_list_schedule():
+    p = proj.projection(DEPS, TIMES, [1, 2, 3, 8])
+    assert p["total_s"] == 12.0
+    assert p["critical_path_s"] == 6.0 and p["critical_path"] == ["a", "b", "e"]
+    # 2 workers, longest path to the end first: a, d at 0; b at 3 (a done); c at 5 (b, d done); e at 6 -> 7.
+    # 3 workers: a, d at 0; b, c at 3; e at 5 (b done) -> 6 = the critical path
+    assert p["wall_s"] == {1: 12.0, 2: 7.0, 3: 6.0, 8: 6.0}
+
+
+def test_times_by_pattern_and_from_a_pipeline_artifact(tmp_path, capsys):
+    assert proj.stage_times({"x@1": [], "x@2": [], "y": []}, {"x@2": 5, "x@*": 2, "*": 1}) == \
+        {"x@1": 2.0, "x@2": 5.0, "y": 1.0}
+    with pytest.raises(SystemExit, match="no time for 1 stage"):
+        proj.stage_times({"z": []}, {"x@*": 2})
+    artifact = tmp_path / "pipeline.json"  # what `rlsac pipeline` logs: skipped stages have no time
+    artifact.write_text(json.dumps({"deps": DEPS, "results": {
+        **{a: {"status": "done", "seconds": t} for a, t in TIMES.items()}, "f": {"status": "skipped",
+                                                                             "seconds": None}}}))
+    proj.main(["--times", str(artifact), "--workers", "2", "--json"])
+    out = json.loads(capsys.readouterr().out)
+    assert out["n_stages"] == 5 and out["wall_s"] == {"2": 7.0} and out["critical_path_s"] == 6.0
+
+
+def test_longest_path_first():
+    """The ready stage with the longest path to the end starts first, at the start and when a stage finishes."""
+    at_start = {"x": [], "y": [], "z": [], "w": ["z"]}  # 2 workers: z, x at 0; y, w at 1 -> 4 (x, y first: 5)
+    assert proj.list_schedule(at_start, {"x": 1, "y": 1, "z": 1, "w": 3}, 2) == 4.0
+    later = {"a": [], "p": ["a"], "p2": ["a"], "q": ["a"], "r": ["q"]}  # q, p at 1; r, p2 at 2 -> 5 (p, p2 first: 6)
+    assert proj.list_schedule(later, {"a": 1, "p": 1, "p2": 1, "q": 1, "r": 3}, 2) == 5.0

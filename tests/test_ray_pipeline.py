@@ -1,0 +1,278 @@
+"""``rlsac pipeline`` (issue #30): a toy DVC pipeline in a temporary git + DVC repository, run as Ray tasks on a
+local 2-CPU Ray cluster (one ``ray.init`` for the module, shut down at the end).
+
+The toy pipeline: ``a`` -> ``b``, ``a`` -> ``c``, and ``d`` on its own; each command is a tiny ``python -c`` write.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import ray
+import yaml
+from click.testing import CliRunner
+
+from rlsac.cli import cli
+
+PY = "python"  # the stages' interpreter: the pipeline puts this one's bin folder first on PATH
+
+
+def _write(name: str, text: str, needs: tuple[str, ...] = ()) -> str:
+    reads = "".join(f"+open('{n}').read()" for n in needs)
+    return f"{PY} -c \"open('{name}','w').write('{text}'{reads})\""
+
+
+TOY = {  # a takes a second, so a dependent started too early would find a.txt missing
+    "a": {"cmd": _write("a.txt", "a").replace("-c \"", "-c \"import time; time.sleep(1); "), "outs": ["a.txt"]},
+    "b": {"cmd": _write("b.txt", "b", ("a.txt",)), "deps": ["a.txt"], "outs": ["b.txt"]},
+    "c": {"cmd": _write("c.txt", "c", ("a.txt",)), "deps": ["a.txt"], "outs": ["c.txt"]},
+    "d": {"cmd": _write("d.txt", "d"), "outs": ["d.txt"]},
+}
+
+
+def _env() -> dict:
+    bindir = str(Path(sys.executable).parent)
+    return {**os.environ, "PATH": bindir + os.pathsep + os.environ.get("PATH", ""), "OMP_NUM_THREADS": "1"}
+
+
+def make_repo(path: Path, stages: dict) -> Path:
+    path.mkdir(parents=True)
+    subprocess.run(["git", "init", "-q"], cwd=path, check=True)
+    subprocess.run([sys.executable, "-m", "dvc", "init", "-q"], cwd=path, check=True, env=_env())
+    (path / "dvc.yaml").write_text(yaml.safe_dump({"stages": stages}, sort_keys=False))
+    return path
+
+
+def dvc(path: Path, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "dvc", *args], cwd=path, env=_env(), capture_output=True,
+                          text=True)
+
+
+def run_pipeline(*args: str):
+    return CliRunner().invoke(cli, ["pipeline", *args], catch_exceptions=False)
+
+
+def summary(output: str) -> list[str]:
+    """The summary's lines (Ray may print its own report of a dead worker before it)."""
+    lines = output.splitlines()
+    starts = [i for i, ln in enumerate(lines) if ln.startswith("pipeline")]
+    assert starts, output
+    return lines[starts[-1]:]
+
+
+@pytest.fixture(scope="module", autouse=True)
+def local_ray():
+    """One local Ray cluster of 2 CPUs for the module: the pipeline uses an initialised Ray as it is."""
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
+    yield
+    ray.shutdown()
+
+
+def test_two_workers_match_sequential_dvc_repro(tmp_path):
+    par = make_repo(tmp_path / "par", TOY)
+    seq = make_repo(tmp_path / "seq", TOY)
+    assert dvc(seq, "repro").returncode == 0
+
+    r = run_pipeline("--repo", str(par), "--workers", "2", "--no-tracking")
+    assert r.exit_code == 0, r.output
+    assert summary(r.output)[0].startswith("pipeline: 4 done, 0 skipped, 0 failed, 0 not run of 4 stages"), r.output
+    for name in ("a.txt", "b.txt", "c.txt", "d.txt"):
+        assert (par / name).read_bytes() == (seq / name).read_bytes(), name
+    # the same record; a stage new to dvc.lock is appended when it finishes, so compare entries, not line order
+    assert yaml.safe_load((par / "dvc.lock").read_text()) == yaml.safe_load((seq / "dvc.lock").read_text())
+    assert json.loads(dvc(par, "status", "--json").stdout) == {}
+
+    again = run_pipeline("--repo", str(par), "--no-tracking")  # nothing out of date: nothing runs
+    assert again.exit_code == 0, again.output
+    assert summary(again.output)[0].startswith("pipeline: 0 done, 4 skipped"), again.output
+
+    # a changed upstream output re-runs it and everything downstream of it, not its independent sibling
+    (par / "dvc.yaml").write_text((par / "dvc.yaml").read_text().replace("'a'", "'A'"))
+    plan = run_pipeline("--repo", str(par), "--dry-run", "--no-tracking")
+    assert plan.exit_code == 0 and "to run   a, b, c" in plan.output, plan.output
+    named = run_pipeline("b", "--repo", str(par), "--no-tracking")  # b and what it needs: a, not c
+    assert named.exit_code == 0, named.output
+    assert "done     a, b" in named.output and (par / "b.txt").read_text() == "bA"
+    assert (par / "c.txt").read_text() == "ca"
+
+
+def test_failed_stage_stops_dependents_only(tmp_path):
+    stages = {**TOY,
+              "c": {"cmd": f"{PY} -c \"import sys; print('working'); sys.exit('error: c broke here')\"",
+                    "deps": ["a.txt"], "outs": ["c.txt"]},
+              "e": {"cmd": _write("e.txt", "e", ("c.txt",)), "deps": ["c.txt"], "outs": ["e.txt"]}}
+    repo = make_repo(tmp_path / "repo", stages)
+    r = run_pipeline("--repo", str(repo), "--workers", "2", "--no-tracking")
+    assert r.exit_code == 1, r.output
+    lines = summary(r.output)
+    assert lines[0].startswith("pipeline: 3 done, 0 skipped, 1 failed, 1 not run of 5 stages"), r.output
+    assert "done     a, b, d" in lines
+    assert any(ln.startswith("failed   c: error: c broke here (log ") for ln in lines), r.output
+    assert "not run  e" in lines
+    assert (repo / "b.txt").exists() and (repo / "d.txt").exists() and not (repo / "e.txt").exists()
+
+
+KILLER = """
+import os, signal, sys, time
+flag, pidfile = sys.argv[1], sys.argv[2]
+if os.path.exists(flag):  # the second run: the stage works
+    open('k.txt', 'w').write('k')
+    sys.exit(0)
+open(flag, 'w').close()
+pids, pid = [os.getpid()], os.getppid()
+while pid > 1:  # up to the Ray worker that runs this stage (its title starts with ray::): the shell, dvc
+    cmdline = open(f'/proc/{pid}/cmdline', 'rb').read().split(b'\\0')[0].decode()
+    if cmdline.startswith('ray::'):
+        open(pidfile, 'w').write(' '.join(map(str, pids)))
+        os.kill(pid, signal.SIGKILL)
+        break
+    pids.append(pid)
+    pid = int(open(f'/proc/{pid}/stat').read().rsplit(')', 1)[1].split()[1])
+time.sleep(120)  # mid-stage: the guard of the dead worker ends this process
+open('k.txt', 'w').write('too late')
+"""
+
+
+def _exists(pid: int) -> bool:
+    """As DVC's lock check sees it: a zombie not yet reaped still holds its lock entries."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+def test_killed_worker_is_reported_and_a_second_run_completes(tmp_path):
+    script = tmp_path / "killer.py"
+    script.write_text(KILLER)
+    flag, pidfile = tmp_path / "killed.flag", tmp_path / "stage.pid"
+    stages = {"k": {"cmd": f"{PY} {script} {flag} {pidfile}", "outs": ["k.txt"]}, "d": TOY["d"]}
+    repo = make_repo(tmp_path / "repo", stages)
+
+    r = run_pipeline("--repo", str(repo), "--no-tracking")
+    assert r.exit_code == 1, r.output
+    assert "1 done, 0 skipped, 1 failed" in summary(r.output)[0], r.output
+    failed = [ln for ln in summary(r.output) if ln.startswith("failed   k: ")]
+    assert failed and "worker" in failed[0].lower(), r.output
+    # the orphaned stage and its dvc process do not outlive their worker (the guard ends them)
+    pids = [int(p) for p in pidfile.read_text().split()]
+    assert len(pids) >= 2  # the stage's command and dvc at least
+    deadline = time.monotonic() + 60
+    while any(map(_exists, pids)) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not any(map(_exists, pids))
+    assert not (repo / "k.txt").exists()
+
+    again = run_pipeline("--repo", str(repo), "--no-tracking")
+    assert again.exit_code == 0, again.output
+    assert summary(again.output)[0].startswith("pipeline: 1 done, 1 skipped, 0 failed, 0 not run"), again.output
+    assert (repo / "k.txt").read_text() == "k"
+    assert json.loads(dvc(repo, "status", "--json").stdout) == {}
+
+
+def test_bad_input_is_one_error_line_before_any_work(tmp_path):
+    repo = make_repo(tmp_path / "repo", TOY)
+    for args, message in ((["nosuch"], "no stage matches 'nosuch'"), (["--workers", "0"], "--workers"),
+                          (["--repo", str(tmp_path)], "cannot read the DVC pipeline"),
+                          (["--gpus-per-train", "1", "--gpu-stages", "b"], "the Ray cluster has 0 GPUs (b would")):
+        r = CliRunner().invoke(cli, ["pipeline", "--repo", str(repo), *args, "--no-tracking"])
+        assert r.exit_code == 2, (args, r.output)
+        assert r.output.startswith("error: ") and message in r.output and len(r.output.splitlines()) == 1, r.output
+    assert not (repo / "a.txt").exists() and not (repo / "dvc.lock").exists()
+
+
+# ------------------------------------------------------------------------------------- one MLflow server
+
+
+def test_stages_log_to_one_mlflow_server(tmp_path, monkeypatch):
+    from test_mlflow_server import _free_port, _mlflow_exe, _post, _stop, _wait_up
+
+    exe = _mlflow_exe()
+    assert exe is not None
+    port = _free_port()
+    base = f"http://127.0.0.1:{port}"
+    log = tmp_path / "server.log"
+    with open(log, "w") as out:
+        proc = subprocess.Popen(
+            [exe, "server", "--backend-store-uri", f"sqlite:///{tmp_path / 'server.db'}",
+             "--artifacts-destination", str(tmp_path / "art"), "--host", "127.0.0.1", "--port", str(port),
+             "--workers", "1"], stdout=out, stderr=subprocess.STDOUT, cwd=tmp_path, start_new_session=True)
+    try:
+        _wait_up(base, proc, log)
+        seeds = range(4)
+        stages = {f"s{i}": {"cmd": f"rlsac synth-lines --n-instances 8 --seed {i} --out s{i}.h5",
+                            "outs": [f"s{i}.h5"]} for i in seeds}
+        repo = make_repo(tmp_path / "repo", stages)
+        monkeypatch.setenv("MLFLOW_TRACKING_URI", base)  # the driver passes it on to every stage
+        r = run_pipeline("--repo", str(repo))
+        assert r.exit_code == 0, r.output
+        assert summary(r.output)[0].startswith("pipeline: 4 done"), r.output
+
+        exps = {x["name"]: x["experiment_id"]
+                for x in _post(base, "/api/2.0/mlflow/experiments/search", {"max_results": 100})["experiments"]}
+        runs = _post(base, "/api/2.0/mlflow/runs/search",
+                     {"experiment_ids": list(exps.values()), "max_results": 100})["runs"]
+        status = {r["info"]["run_name"]: r["info"]["status"] for r in runs}
+        assert len(runs) == len(seeds) + 1, status  # every stage's run and the pipeline's
+        assert set(status.values()) == {"FINISHED"}, status
+        seeds_logged = sorted(int(p["value"]) for r in runs for p in r["data"].get("params", [])
+                              if p["key"] == "seed")
+        assert seeds_logged == list(seeds)
+        pipe = [r for r in runs if r["info"]["experiment_id"] == exps["pipeline"]]
+        metrics = {m["key"]: m["value"] for m in pipe[0]["data"]["metrics"]}
+        assert metrics["n_done"] == len(seeds) and metrics["n_failed"] == 0
+        assert {f"stage_s/s{i}" for i in seeds} <= set(metrics)
+    finally:
+        _stop(proc)
+    shutil.rmtree(tmp_path / "art", ignore_errors=True)
+
+
+def test_help_does_not_import_ray():
+    """`rlsac --help` and `rlsac pipeline --help` stay fast: Ray and DVC are imported when the command runs."""
+    code = ("import sys; from click.testing import CliRunner; from rlsac.cli import cli; "
+            "r = [CliRunner().invoke(cli, a) for a in (['--help'], ['pipeline', '--help'])]; "
+            "assert all(x.exit_code == 0 for x in r); "
+            "print(sorted(m for m in ('ray', 'dvc.repo', 'mlflow') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
+
+
+def test_joins_a_ray_cluster_by_address(tmp_path):
+    """`--address HOST:PORT` joins a cluster started with `ray start --head` (token authentication on: the
+    module's local cluster made ~/.ray/auth_token) and runs the stages there."""
+    from test_mlflow_server import _free_port
+
+    port = _free_port()
+    ray_exe = str(Path(sys.executable).parent / "ray")
+    # as in a fresh shell: the module's ray.init set RAY_AUTH_MODE=token in this process's environment
+    env = {k: v for k, v in _env().items() if k != "RAY_AUTH_MODE"}
+    log = open(tmp_path / "head.log", "w")
+    head = subprocess.Popen([ray_exe, "start", "--head", "--port", str(port), "--num-cpus", "1",
+                             "--include-dashboard", "false", "--block"], stdout=log, stderr=subprocess.STDOUT,
+                            start_new_session=True, env=env)
+    try:
+        repo = make_repo(tmp_path / "repo", {"a": TOY["a"], "b": TOY["b"]})
+        r = subprocess.run([str(Path(sys.executable).parent / "rlsac"), "pipeline", "--repo", str(repo),
+                            "--address", f"127.0.0.1:{port}", "--no-tracking"], capture_output=True, text=True,
+                           env=env)
+        assert r.returncode == 0, r.stdout + r.stderr[-3000:] + (tmp_path / "head.log").read_text()[-2000:]
+        assert summary(r.stdout)[0].startswith("pipeline: 2 done, 0 skipped, 0 failed, 0 not run of 2 stages"), r.stdout
+        assert "(1 CPUs)" in summary(r.stdout)[0]  # the cluster's size, not this machine's
+        assert (repo / "b.txt").read_text() == "ba"
+    finally:
+        try:
+            os.killpg(head.pid, signal.SIGTERM)
+            head.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            os.killpg(head.pid, signal.SIGKILL)
+            head.wait()
+        log.close()
