@@ -70,3 +70,17 @@ def test_claims_with_missing_rows_are_listed_and_the_command_writes_the_table(tm
     assert df.iloc[0]["R: model − control [95%]"].startswith("+0.250") and df.iloc[0]["t: verdict"] == "supported"
     md = (tmp_path / "reports" / "claims.md").read_text()
     assert "Not checked (their rows are not in reports/eval): " in md and "PoseLib is ahead of RLSAC" in md
+
+
+def test_results_without_any_claims_rows_still_write_the_table(tmp_path):
+    """A profile whose rows or budgets no claim uses (the quick one: 10 and 50 iterations) gets a claims table that
+    lists every claim as not checked: the tables stage declares the files, so they must exist."""
+    ev = tmp_path / "eval"
+    _write(ev, "a", "rlsac", [0.5] * 4, [0.5] * 4, it=10)
+    got = claims.build(ev, tmp_path)
+    assert sorted(Path(f).name for f in got["files"]) == ["claims.csv", "claims.md"]
+    assert len(got["missing"]) == len(claims.CLAIMS)
+    md = (tmp_path / "claims.md").read_text()
+    assert md.count("; ") >= len(claims.CLAIMS) - 1 and "0 claims: 0 supported" in md
+    assert pd.read_csv(tmp_path / "claims.csv").empty
+    assert claims.build(tmp_path / "nothing", tmp_path / "out")["files"] == []  # no results at all: nothing

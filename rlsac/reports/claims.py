@@ -137,10 +137,11 @@ def build(eval_root: str | Path = "reports/eval", out_dir: str | Path = "reports
     for c in claims:
         row = check(c, results[c.sub])
         (rows.append(row) if row is not None else missing.append(c.text))
-    if not rows:
+    if not any(results.values()):
         print(f"claims: no results under {eval_root}; nothing written")
         return {"files": [], "missing": missing}
-    df = pd.DataFrame(rows)
+    # results but no claim's rows (a profile with other budgets or rows, e.g. the quick one): the files say so
+    df = pd.DataFrame(rows, columns=None if rows else ["claim", "where", "rows", "kind", "seeds", "pairs", "verdict"])
     cols = ["claim", "where", "rows", "kind", "seeds", "pairs"] + [
         c for name in ("R", "t") for c in (f"{name}: model − control [95%]", f"{name}: P(improve)",
                                            f"{name}: verdict") if c in df.columns] + ["verdict"]
