@@ -159,7 +159,12 @@ def calibration_table(ours: dict[float, tuple[float, float]],
 
 def calibration_markdown(table: pd.DataFrame, conf: dict[str, Any], iterations: int, seeds: list[int],
                          command: str, all_within: float | None = None) -> str:
-    settings = "\n".join(f"| {k} | {v} |" for k, v in conf.items() if k not in ("outlier_rate", "seed"))
+    from rlsac.data.lines import LineDataConf
+
+    # the noise model only when it is not the default, as in the line files: the committed report keeps its bytes
+    default_noise = LineDataConf.__dataclass_fields__["noise"].default
+    settings = "\n".join(f"| {k} | {v} |" for k, v in conf.items()
+                          if k not in ("outlier_rate", "seed") and not (k == "noise" and v == default_noise))
     mean_abs = table[["mAA_diff", "median_diff"]].abs().mean()
     worst = table.loc[table["mAA_diff"].abs().idxmax()]
     seed_text = f"{seeds[0]}" if len(seeds) == 1 else f"{seeds[0]}..{seeds[-1]} ({len(seeds)} seeds)"
