@@ -66,19 +66,19 @@ def kind_of(ckpt: dict[str, Any]) -> str:
     return kind if isinstance(kind, str) else "unknown"
 
 
-def load_actor(path: str | Path, device: str | torch.device = "cpu") -> tuple[Actor, dict]:
-    """Load an actor checkpoint -> (actor in eval mode, training conf); RlsacError on a missing or bad file, or on
-    a checkpoint of another kind (NG-RANSAC's network)."""
+def load_actor(path: str | Path, device: str | torch.device = "cpu", kind: str = "rlsac") -> tuple[Actor, dict]:
+    """Load an actor-shaped network of ``kind`` ("rlsac", or "ngransac": NG-RANSAC's network) -> (network in eval
+    mode, training conf); RlsacError on a missing or bad file, or on a checkpoint of another kind."""
     ckpt = read(path, device)
-    if kind_of(ckpt) != "rlsac":
-        raise RlsacError(f"{path}: a {kind_of(ckpt)} checkpoint, not an rlsac one (evaluate it with --method "
+    if kind_of(ckpt) != kind:
+        raise RlsacError(f"{path}: a {kind_of(ckpt)} checkpoint, not an {kind} one (evaluate it with --method "
                          f"{kind_of(ckpt)})")
     try:
         conf = ckpt["conf"]
         actor = Actor(ckpt["in_channels"], build(PolicyConf, conf["policy"])).to(device)
         actor.load_state_dict(ckpt["actor"])
     except (KeyError, RuntimeError, EOFError, ValueError, TypeError) as e:
-        raise RlsacError(f"{path}: not an rlsac checkpoint ({e.__class__.__name__}: {str(e)[:80]})") from None
+        raise RlsacError(f"{path}: not an {kind} checkpoint ({e.__class__.__name__}: {str(e)[:80]})") from None
     actor.eval()
     return actor, conf
 

@@ -245,19 +245,6 @@ def _rows(batch: dict, rows: torch.Tensor) -> dict:
 def load(path, device="cpu"):
     """An NG-RANSAC checkpoint -> (network in eval mode, training conf); RlsacError on a missing or bad file or on
     a checkpoint of another kind (an RLSAC actor)."""
-    from rlsac.checkpoint import kind_of, read
-    from rlsac.config import build
-    from rlsac.policy import Actor, PolicyConf
+    from rlsac.checkpoint import load_actor
 
-    ckpt = read(path, device)
-    kind = kind_of(ckpt)
-    if kind != KIND:
-        raise RlsacError(f"{path}: a {kind} checkpoint, not an ngransac one (evaluate it with --method {kind})")
-    try:
-        conf = ckpt["conf"]
-        net = Actor(ckpt["in_channels"], build(PolicyConf, conf["policy"])).to(device)
-        net.load_state_dict(ckpt["actor"])
-    except (KeyError, RuntimeError, EOFError, ValueError, TypeError) as e:
-        raise RlsacError(f"{path}: not an ngransac checkpoint ({e.__class__.__name__}: {str(e)[:80]})") from None
-    net.eval()
-    return net, conf
+    return load_actor(path, device, kind=KIND)
