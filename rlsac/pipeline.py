@@ -65,20 +65,15 @@ def load_plan(repo_dir: str | os.PathLike, names: str | None = None) -> dict:
     is not a DVC repository, an unreadable pipeline or a name that matches no stage."""
     import networkx as nx
 
-    try:
-        from dvc.repo import Repo
+    from rlsac.verify import open_repo, pipeline_error
 
-        repo = Repo(str(repo_dir))
-    except Exception as e:  # not a DVC repo, an unparsable dvc.yaml: one line, not DVC's traceback
-        raise RlsacError(f"{repo_dir}: cannot read the DVC pipeline ({e.__class__.__name__}: "
-                         f"{' '.join(str(e).split())[:200]})") from None
+    repo = open_repo(repo_dir)
     try:
         root = Path(repo.root_dir)
         try:
             graph = repo.index.graph  # edges go from a stage to the stages it depends on
         except Exception as e:
-            raise RlsacError(f"{repo_dir}: cannot read the DVC pipeline ({e.__class__.__name__}: "
-                             f"{' '.join(str(e).split())[:200]})") from None
+            raise pipeline_error(repo_dir, e) from None
         addr = {s: _address(s, root) for s in graph.nodes}
         by_addr = {a: s for s, a in addr.items()}
         if names:

@@ -91,17 +91,29 @@ def format_summary(s: dict) -> str:
 # ------------------------------------------------------------------ stages
 
 
+def pipeline_error(repo_dir: str | os.PathLike, e: Exception) -> RlsacError:
+    """DVC's failure to read a pipeline as one line, not its traceback."""
+    return RlsacError(f"{repo_dir}: cannot read the DVC pipeline ({e.__class__.__name__}: "
+                      f"{' '.join(str(e).split())[:200]})")
+
+
+def open_repo(repo_dir: str | os.PathLike):
+    """DVC's Repo at ``repo_dir`` (the caller closes it); RlsacError on a path that is not a DVC repository or an
+    unparsable dvc.yaml."""
+    from dvc.repo import Repo
+
+    try:
+        return Repo(str(repo_dir))
+    except Exception as e:
+        raise pipeline_error(repo_dir, e) from None
+
+
 def load_stages(repo_dir: str | os.PathLike) -> tuple[Path, list[dict]]:
     """The pipeline's stages as plain dicts (address, cmds, wdir, deps, outs, committed, train, why), paths
     relative to the DVC root; DVC's Repo is closed before returning."""
     from dvc.dependency.param import ParamsDependency
-    from dvc.repo import Repo
 
-    try:
-        repo = Repo(str(repo_dir))
-    except Exception as e:  # not a DVC repo, an unparsable dvc.yaml: one line, not DVC's traceback
-        raise RlsacError(f"{repo_dir}: cannot read the DVC pipeline ({e.__class__.__name__}: "
-                         f"{' '.join(str(e).split())[:200]})") from None
+    repo = open_repo(repo_dir)
     try:
         root = Path(repo.root_dir)
         rel = lambda p: Path(os.path.relpath(p, root)).as_posix()  # noqa: E731
