@@ -30,7 +30,9 @@ from pathlib import Path
 # or the middle of its recorded range; the seed grid's stages (issue #27) take their base group's.
 RECORDED = {
     "calibrate_lines": 40, "lines_data@*": 0.7, "import_scenes": 119, "fold_data@*": 29, "fold_data_points@*": 29,
-    "train_lines@*": 940, "fold_train@*": 115, "fold_train_seed@*": 115, "fold_train_points@*": 115,
+    "train_lines@*": 940, "train_lines_seed@*": 940, "eval_lines_ours_seed@*": 14,
+    "eval_lines_generalisation_seed@*": 14, "essential_train_seed@*": 70, "fold_train@*": 115,
+    "fold_train_seed@*": 115, "fold_train_points@*": 115,
     "fold_train_ablation@*": 60, "essential_train@*": 70, "eval_lines_ours@*": 14,
     "eval_lines_generalisation@*": 14, "eval_lines_ransac@*": 3, "eval_lines_oracle@*": 3,
     "fold_tune*": 36.5, "fold_eval*": 29, "essential_tune*": 67, "essential_eval*": 22, "tables": 30, "figures": 25,

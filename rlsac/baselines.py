@@ -204,8 +204,7 @@ def peer_estimate(task: Task, batch: dict, method: str, iterations: int, thresho
 
     batch: coords (B, N, d), mask (B, N) -> hyp np (B, *H), valid np bool (B,), inliers np bool (B, N), hypotheses
     np int (B,) (the count the library reports, else its stopping rule's bound). ``seed`` permutes the points and
-    seeds PoseLib (``fit_rows``): PoseLib's results are reproducible, DEGENSAC's are not (it seeds itself from the
-    clock, ``FundamentalTask.degensac_fit``).
+    seeds the library's RNG per row (``fit_rows``), so the same seed gives the same results.
     """
     if method not in PEERS:
         raise RlsacError(f"unknown peer method {method!r} (known: {', '.join(PEERS)})")

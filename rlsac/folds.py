@@ -288,7 +288,7 @@ def budgets(given: Any, regimes: list[str], where: str) -> dict[str, list[int]]:
 
 
 ESSENTIAL = {"regime": "hard", "methods": ["uniform", "ransac", "opencv_ransac", "usac", "magsac"],
-             "iterations": [100, 1000]}
+             "iterations": [100, 1000], "seeds": []}  # seeds: RLSAC's other training seeds (rows rlsac-s<seed>)
 
 
 def check_essential(params: dict[str, Any]) -> dict[str, Any]:
@@ -297,8 +297,9 @@ def check_essential(params: dict[str, Any]) -> dict[str, Any]:
     from rlsac.config import check_mapping, check_range, section
     from rlsac.methods import METHODS
 
-    given = check_mapping(section(params, "essential"), {"regime": "", "methods": [], "iterations": []}, "essential",
-                          {"methods": list[str], "iterations": list[int]}, {"iterations": "[1, inf)"})
+    given = check_mapping(section(params, "essential"), {"regime": "", "methods": [], "iterations": [], "seeds": []},
+                          "essential", {"methods": list[str], "iterations": list[int], "seeds": list[int]},
+                          {"iterations": "[1, inf)", "seeds": "[1, 4294967295]"})
     check_range("essential.methods", given.get("methods") or [], METHODS)
     if "regime" in given:
         check_range("essential.regime", given["regime"], tuple(protocol(params)["regimes"]))
@@ -307,8 +308,8 @@ def check_essential(params: dict[str, Any]) -> dict[str, Any]:
 
 def for_task(p: dict[str, Any], params: dict[str, Any], task: str) -> dict[str, Any]:
     """The benchmark of ``task`` on the fold data: the fundamental matrix's rows are params ``folds``'s; the
-    essential matrix's (Table E) params ``essential``'s methods and its one RLSAC model per fold (``rlsac``,
-    trained by the essential_train stage), in its one regime."""
+    essential matrix's (Table E) params ``essential``'s methods and its RLSAC model per fold (``rlsac``, trained by
+    the essential_train stage, and ``rlsac-s<seed>`` for each of ``essential.seeds``), in its one regime."""
     if task == "fundamental":
         return {**p, "task": task}
     if task != "essential":
@@ -316,7 +317,8 @@ def for_task(p: dict[str, Any], params: dict[str, Any], task: str) -> dict[str, 
     e = check_essential(params)
     return {**p, "task": task, "methods": list(e["methods"]), "models": ["rlsac"], "lo_models": [], "fast": [],
             "lo_methods": [], "variant_regimes": [e["regime"]], "ablation_models": [], "prob_models": [],
-            "points": [], "points_models": [], "points_methods": [], "seeds": [], "seed_models": [],
+            "points": [], "points_models": [], "points_methods": [], "seeds": list(e["seeds"]),
+            "seed_models": ["rlsac"],
             "regimes": [e["regime"]], "model_regime": e["regime"], "iterations": {e["regime"]: list(e["iterations"])}}
 
 
@@ -342,8 +344,9 @@ def data_dir(regime: str, fold: str, points: int | None = None) -> Path:
 
 
 def checkpoint(regime: str, fold: str, model: str, task: str = "fundamental") -> Path:
-    if task == "essential":  # one model per fold (essential_train)
-        return Path("checkpoints") / "essential" / regime / f"{fold}.pt"
+    if task == "essential":  # one model per fold (essential_train), and one per other training seed
+        seed = split_seed(model)[1]
+        return Path("checkpoints") / "essential" / regime / (f"{fold}.pt" if seed is None else f"{fold}-s{seed}.pt")
     return Path("checkpoints") / "folds" / regime / fold / f"{model}.pt"
 
 

@@ -84,3 +84,33 @@ def test_results_without_any_claims_rows_still_write_the_table(tmp_path):
     assert md.count("; ") >= len(claims.CLAIMS) - 1 and "0 claims: 0 supported" in md
     assert pd.read_csv(tmp_path / "claims.csv").empty
     assert claims.build(tmp_path / "nothing", tmp_path / "out")["files"] == []  # no results at all: nothing
+
+
+def test_line_claims_take_both_rows_over_their_seeds(tmp_path):
+    """A Table 1 claim reads <eval_root>/lines/<row>/o<rate>/errors.csv, each row over its training seeds: Ours-0.5
+    (3 seeds) against Ours (2 seeds) at 0.3, with the lines' tie margin; a rate without results is not checked."""
+    ev = tmp_path / "eval"
+
+    def put(d: str, errs) -> None:
+        out = ev / "lines" / d / "o0.3"
+        out.mkdir(parents=True)
+        pd.DataFrame({"instance": range(len(errs)), "err_deg": errs}).to_csv(out / "errors.csv", index=False)
+
+    good, bad = [0.02] * 20, [0.02] * 19 + [1.0]  # mAA 1.0 and 0.95
+    for d, errs in (("ours-0.5", good), ("ours-0.5-s1", good), ("ours-0.5-s2", bad), ("ours", good),
+                    ("ours-s1", good)):
+        put(d, errs)
+    tie = claims.Claim("Ours-0.5 ties Ours", "test", "lines", "0.3", 150, "ours-0.5", "ours", "tie", ("angle",),
+                       claims.LINE_TIE_MARGIN)
+    elsewhere = claims.Claim("at 0.7", "test", "lines", "0.7", 150, "ours-0.5", "ours", "tie", ("angle",), 0.01)
+    got = claims.build(ev, tmp_path / "out", (tie, elsewhere))
+    assert got["missing"] == ["at 0.7"]
+    row = pd.read_csv(tmp_path / "out" / "claims.csv").iloc[0]
+    assert row["seeds"] == "3 vs 2" and row["pairs"] == 20
+    assert row["angle: model − control [95%]"].startswith("-0.017 [")  # seed means 0.983 - 1.0
+    assert row["angle: verdict"] == "inconclusive"  # the interval reaches -0.05, beyond the 0.01 margin
+    md = (tmp_path / "out" / "claims.md").read_text()
+    assert "## Lines (Table 1)" in md and "## Fold benchmarks" not in md and "0 rest on one training seed" in md
+    wide = claims.Claim("Ours-0.5 ties Ours", "test", "lines", "0.3", 150, "ours-0.5", "ours", "tie", ("angle",), 0.1)
+    claims.build(ev, tmp_path / "wide", (wide,))  # the claim's own margin decides: inside ±0.1
+    assert pd.read_csv(tmp_path / "wide" / "claims.csv").iloc[0]["verdict"] == "supported"

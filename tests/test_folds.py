@@ -351,6 +351,20 @@ def test_other_training_seeds_train_with_the_models_recipe_and_their_seed():
     assert folds.split_seed("rlsac-s12") == ("rlsac", 12) and folds.split_seed("rlsac-nosnn") == ("rlsac-nosnn", None)
 
 
+def test_table_e_rows_of_other_training_seeds_read_their_own_checkpoints():
+    """Issue #27 on Table E: essential.seeds adds rows rlsac-s<seed>, each with the essential_train_seed stage's
+    checkpoint; seed 0 is the model itself, so the list starts at 1."""
+    p = folds.protocol({})
+    e = folds.for_task(p, {"essential": {"seeds": [2]}}, "essential")
+    rows = folds.rows(e, "castle", "hard")
+    assert rows["rlsac"]["checkpoint"] == Path("checkpoints/essential/hard/castle.pt")
+    assert rows["rlsac-s2"]["checkpoint"] == Path("checkpoints/essential/hard/castle-s2.pt")
+    assert rows["rlsac-s2"]["method"] == "rlsac" and rows["rlsac-s2"]["knobs"] == ["refit_output"]
+    assert "rlsac-s2" not in folds.rows(folds.for_task(p, {}, "essential"), "castle", "hard")
+    with pytest.raises(RlsacError, match="essential.seeds"):
+        folds.for_task(p, {"essential": {"seeds": [0]}}, "essential")
+
+
 def test_fold_table_across_seeds_resamples_seeds_and_keeps_them_out_of_the_main_rows(tmp_path):
     """Two seeds of rlsac (one solves every pair, one none) against uniform (half): the seed mean ties the control
     and the interval spans the seeds' spread; rlsac-s1 is no row of Table 2's main tables or the iterations CSV."""

@@ -4,6 +4,8 @@ estimator for."""
 
 from __future__ import annotations
 
+import time
+
 import cv2
 import numpy as np
 import pytest
@@ -97,3 +99,26 @@ def test_peers_refuse_what_they_cannot_do():
     for name, tasks in (("degensac", {"fundamental"}), ("poselib", {"fundamental", "essential"})):
         assert {t for t, cls in TASKS.items() if METHODS[name].unsupported(cls, TASKS) is None} == tasks
     assert set(PEERS) == {"degensac", "poselib"}
+
+
+def test_degensac_is_seeded():
+    """pydegensac seeds itself from the clock (in seconds) unless given a seed: with 70% outliers and 10 iterations its
+    result depends on the draw, so calls with one seed in three different seconds must agree, and different seeds
+    must not all agree."""
+    rng = np.random.default_rng(5)
+    pts, _ = _two_view(2)
+    pts[: int(0.7 * N), 2:] = rng.uniform(0, 640, (int(0.7 * N), 2))
+    task = get_task("fundamental")
+
+    def run(seed: int) -> bytes:
+        out = peer_estimate(task, _batch(pts), "degensac", 10, threshold=1.0, seed=seed)
+        return out["hyp"].tobytes() + out["inliers"].tobytes()
+
+    same = []
+    for _ in range(3):
+        same.append(run(4))
+        time.sleep(1.05)
+    assert len(set(same)) == 1
+    assert len({run(s) for s in range(8)}) > 1
+    with pytest.raises(ValueError, match="seed >= 0"):
+        task.degensac_fit(pts, 1.0, 0.999, 10, -1)

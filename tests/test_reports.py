@@ -83,6 +83,35 @@ def test_table1_paired_comparison_from_errors(tree):
     assert "Paired comparison" in (tree / "out" / "table1_lines.md").read_text()
 
 
+def _line_errors(root: Path, d: str, rate: float, errs) -> None:
+    out = root / "lines" / d / f"o{rate:g}"
+    out.mkdir(parents=True, exist_ok=True)
+    pd.DataFrame({"instance": range(len(errs)), "err_deg": errs}).to_csv(out / "errors.csv", index=False)
+
+
+def test_table1_across_seed_section(tree):
+    """Issue #27: Ours over its training seeds (ours, ours-s1, ours-s2) against RANSAC: the seed mean and SD of mAA
+    and the difference of seed means with an interval that resamples seeds; a rate where a seed lacks results is
+    left out, and one seed alone gives no section."""
+    ev = tree / "ev"
+    _line_errors(ev, "ransac", 0.3, [0.02] * 5 + [1.0] * 5)  # mAA 0.5
+    _line_errors(ev, "ours", 0.3, [0.02] * 10)  # 1.0
+    assert "Across training seeds" not in (tables.table1("ev", "out").attrs.get("caption") or "")
+    assert "Across training seeds" not in (tree / "out" / "table1_lines.md").read_text()
+    _line_errors(ev, "ours-s1", 0.3, [1.0] * 10)  # 0.0
+    _line_errors(ev, "ours-s2", 0.3, [0.02] * 10)  # 1.0
+    _line_errors(ev, "ours-s1", 0.7, [0.02] * 10)  # no seed 0 / RANSAC at 0.7: no row there
+    assert tables.line_seed_runs(ev / "lines") == {"ours": ["ours", "ours-s1", "ours-s2"]}
+    tables.table1("ev", "out")
+    md = (tree / "out" / "table1_lines.md").read_text()
+    rows = [line for line in md.splitlines() if line.startswith("| 0.")]
+    assert len(rows) == 1
+    cells = [c.strip() for c in rows[0].strip("|").split("|")]
+    # seed mAAs 1, 0, 1: mean 0.667, SD 0.577; minus RANSAC's 0.5; 2 of 3 seeds beat it
+    assert cells[:5] == ["0.3", "Ours − RANSAC", "3 vs 1", "0.667 ± 0.577", "0.500"]
+    assert cells[5].startswith("+0.167 [") and cells[6] == "0.67"
+
+
 def test_table2_and_table3(tree):
     df = tables.table2("ev", "out")
     assert cell(df, "mAA_R", method="MAGSAC++", source="ours") == pytest.approx(0.6611)

@@ -1,16 +1,19 @@
-"""reports/claims.md: every claim the README and reports/folds.md make about RLSAC on the fold benchmarks, each
-checked against the results with an interval that covers training seeds where the model has several (issue #27).
+"""reports/claims.md: every claim the README and reports/folds.md make about RLSAC on the fold benchmarks and on
+Table 1's lines, each checked against the results with an interval that covers training seeds where the model has
+several (issue #27).
 
 The sentences are ours (``CLAIMS``); every number and verdict is computed here from reports/eval:
     <eval_root>/<folds|essential>/<regime>/<fold>/<row>/i<iterations>/errors.csv
-A model with rows of other training seeds (<model>-s<seed>, params.yaml folds.seeds) is taken over all its seeds
-(rlsac.metrics.seed_bootstrap_maa: seeds, then pairs within their test building); a model with one seed gets the
-same bootstrap over pairs only, and the table says so (its verdict cannot speak for training noise).
+    <eval_root>/lines/<row>/o<rate>/errors.csv                           (sub "lines": the regime is the rate)
+A model with rows of other training seeds (<model>-s<seed>, params.yaml folds.seeds / lines.seeds) is taken over all
+its seeds (rlsac.metrics.seed_bootstrap_maa: seeds, then pairs within their test building, or the line instances);
+a model with one seed gets the same bootstrap over pairs only, and the table says so (its verdict cannot speak for
+training noise).
 
-Verdicts, per metric (mAA@10° of R and of t), from the 95% interval of model − control:
+Verdicts, per metric (mAA@10° of R and of t; mAA@0.5° of the line angle), from the 95% interval of model − control:
     better   supported: above 0; not supported: below 0; else inconclusive
     worse    supported: below 0; not supported: above 0; else inconclusive
-    tie      supported: inside ±TIE_MARGIN (practically equal, even where it excludes 0); not supported:
+    tie      supported: inside ±margin (practically equal, even where it excludes 0); not supported:
              excludes 0 and reaches beyond the margin; else inconclusive
 A claim is supported when each of its metrics is, not supported when one is not, inconclusive otherwise.
 """
@@ -27,6 +30,9 @@ from rlsac.io import atomic_path, write_text
 
 # a tie: the whole interval within ±0.03 mAA (18 of the 606 fold test pairs; the paper's Table 3 steps are 0.02-0.06)
 TIE_MARGIN = 0.03
+# on lines: ±0.01 mAA@0.5° (10 of the 1000 test instances per rate; our RANSAC-to-oracle gap is 0.001-0.09)
+LINE_TIE_MARGIN = 0.01
+LINE_ITERATIONS = 150  # Table 1's budget (params.yaml lines.iterations): the line claims speak of it
 KINDS = ("better", "worse", "tie")
 
 
@@ -40,7 +46,8 @@ class Claim:
     model: str  # the row the claim is about (its other training seeds are found by name)
     control: str  # the row it is set against
     kind: str  # better | worse | tie (of model against control)
-    metrics: tuple[str, ...] = ("R", "t")
+    metrics: tuple[str, ...] = ("R", "t")  # lines: ("angle",)
+    margin: float = TIE_MARGIN  # a tie's half-width
 
 
 CLAIMS: tuple[Claim, ...] = (
@@ -75,10 +82,18 @@ CLAIMS: tuple[Claim, ...] = (
           1000, "rlsac", "uniform", "better", ("R",)),
     Claim("Table E: RLSAC is below OpenCV's PROSAC (essential matrix, 1k)", "README", "essential", "hard", 1000,
           "rlsac", "prosac", "worse"),
+    # Table 1 (lines, mAA@0.5°, 150 hypotheses): the README's reading of Ours − RANSAC per outlier rate, and Ours-0.5
+    *(Claim(f"Table 1: Ours {word} our RANSAC at outlier rate {rate}", "README", "lines", rate, LINE_ITERATIONS,
+            "ours", "ransac", kind, ("angle",), LINE_TIE_MARGIN)
+      for rate, word, kind in (("0.1", "is below", "worse"), ("0.2", "is below", "worse"), ("0.3", "ties", "tie"),
+                               ("0.4", "ties", "tie"), ("0.5", "ties", "tie"), ("0.6", "is above", "better"),
+                               ("0.7", "is above", "better"))),
+    *(Claim(f"Table 1: Ours-0.5 (trained at 0.5) ties the model trained at rate {rate}", "README", "lines", rate,
+            LINE_ITERATIONS, "ours-0.5", "ours", "tie", ("angle",), LINE_TIE_MARGIN) for rate in ("0.1", "0.3", "0.7")),
 )
 
 
-def verdict(kind: str, lo: float, hi: float) -> str:
+def verdict(kind: str, lo: float, hi: float, margin: float = TIE_MARGIN) -> str:
     """One metric's verdict from the 95% interval [lo, hi] of model − control (see the module's docstring)."""
     if kind not in KINDS:
         raise ValueError(f"claim kind must be one of {KINDS}, got {kind!r}")
@@ -86,7 +101,7 @@ def verdict(kind: str, lo: float, hi: float) -> str:
         return "supported" if lo > 0 else "not supported" if hi < 0 else "inconclusive"
     if kind == "worse":
         return "supported" if hi < 0 else "not supported" if lo > 0 else "inconclusive"
-    if lo > -TIE_MARGIN and hi < TIE_MARGIN:
+    if lo > -margin and hi < margin:
         return "supported"
     return "not supported" if lo > 0 or hi < 0 else "inconclusive"
 
@@ -95,6 +110,21 @@ def combine(verdicts: list[str]) -> str:
     if verdicts and all(v == "supported" for v in verdicts):
         return "supported"
     return "not supported" if "not supported" in verdicts else "inconclusive"
+
+
+def _row(claim: Claim, seeds: int | str, stats: dict[str, dict], pairs: int) -> dict[str, Any]:
+    """A row of claims.md from each metric's metrics.seed_bootstrap_maa result."""
+    row: dict[str, Any] = {"claim": claim.text, "where": claim.where, "kind": claim.kind, "seeds": seeds,
+                           "rows": f"{claim.model} − {claim.control}", "pairs": pairs}
+    verdicts = []
+    for name, s in stats.items():
+        v = verdict(claim.kind, s["lo"], s["hi"], claim.margin)
+        verdicts.append(v)
+        row[f"{name}: model − control [95%]"] = f"{s['diff']:+.3f} [{s['lo']:+.3f}, {s['hi']:+.3f}]"
+        row[f"{name}: P(improve)"] = f"{s['p_improve']:.2f}"
+        row[f"{name}: verdict"] = v
+    row["verdict"] = combine(verdicts)
+    return row
 
 
 def check(claim: Claim, res: dict[tuple[str, str, int], pd.DataFrame]) -> dict[str, Any] | None:
@@ -108,65 +138,85 @@ def check(claim: Claim, res: dict[tuple[str, str, int], pd.DataFrame]) -> dict[s
     control = res.get((claim.regime, claim.control, claim.iterations))
     if control is None or any(f is None for f in frames):
         return None
-    row: dict[str, Any] = {"claim": claim.text, "where": claim.where, "kind": claim.kind,
-                           "seeds": len(runs), "rows": f"{claim.model} − {claim.control}"}
-    verdicts = []
+    stats = {}
     for name in claim.metrics:
         got = _aligned(frames + [control], f"err_{name}")
         if got is None:
             return None
         err, fold = got
-        s = seed_bootstrap_maa(err[:-1], err[-1:], LIMIT, strata=fold, n_boot=N_BOOT, seed=0)
-        v = verdict(claim.kind, s["lo"], s["hi"])
-        verdicts.append(v)
-        row[f"{name}: model − control [95%]"] = f"{s['diff']:+.3f} [{s['lo']:+.3f}, {s['hi']:+.3f}]"
-        row[f"{name}: P(improve)"] = f"{s['p_improve']:.2f}"
-        row[f"{name}: verdict"] = v
-        row["pairs"] = err.shape[1]
-    row["verdict"] = combine(verdicts)
-    return row
+        stats[name] = seed_bootstrap_maa(err[:-1], err[-1:], LIMIT, strata=fold, n_boot=N_BOOT, seed=0)
+    return _row(claim, len(runs), stats, err.shape[1])
+
+
+def check_lines(claim: Claim, root: Path) -> dict[str, Any] | None:
+    """A Table 1 claim against <eval_root>/lines: model and control over their training seeds (either may have
+    several) at the claim's rate -> a row of claims.md, or None when a result is missing."""
+    from rlsac.metrics import seed_bootstrap_maa
+    from rlsac.reports.tables import LINE_LIMIT_DEG, PAIRED_BOOT, line_errors, line_seed_runs
+
+    runs = line_seed_runs(root)
+    a = line_errors(root, runs.get(claim.model, [claim.model]), float(claim.regime))
+    b = line_errors(root, runs.get(claim.control, [claim.control]), float(claim.regime))
+    if a is None or b is None or a.shape[1] != b.shape[1]:
+        return None
+    stats = {name: seed_bootstrap_maa(a, b, LINE_LIMIT_DEG, n_boot=PAIRED_BOOT, seed=0) for name in claim.metrics}
+    seeds = len(a) if len(b) == 1 else f"{len(a)} vs {len(b)}"
+    return _row(claim, seeds, stats, a.shape[1])
 
 
 def build(eval_root: str | Path = "reports/eval", out_dir: str | Path = "reports",
           claims: tuple[Claim, ...] = CLAIMS) -> dict[str, Any]:
-    """Write <out_dir>/claims.{md,csv} from the fold results; -> {"files", "missing"} (claims whose rows are absent)."""
+    """Write <out_dir>/claims.{md,csv} from the fold and line results; -> {"files", "missing"} (claims whose rows
+    are absent)."""
     from rlsac.reports.folds import N_BOOT, collect
+    from rlsac.reports.tables import PAIRED_BOOT
 
-    results = {sub: collect(eval_root, sub) for sub in sorted({c.sub for c in claims})}
+    line_root = Path(eval_root) / "lines"
+    results = {sub: collect(eval_root, sub) for sub in sorted({c.sub for c in claims} - {"lines"})}
+    have_lines = any(line_root.glob("*/o*/errors.csv"))
     rows, missing = [], []
     for c in claims:
-        row = check(c, results[c.sub])
+        row = check_lines(c, line_root) if c.sub == "lines" else check(c, results[c.sub])
         (rows.append(row) if row is not None else missing.append(c.text))
-    if not any(results.values()):
+    if not any(results.values()) and not have_lines:
         print(f"claims: no results under {eval_root}; nothing written")
         return {"files": [], "missing": missing}
     # results but no claim's rows (a profile with other budgets or rows, e.g. the quick one): the files say so
     df = pd.DataFrame(rows, columns=None if rows else ["claim", "where", "rows", "kind", "seeds", "pairs", "verdict"])
-    cols = ["claim", "where", "rows", "kind", "seeds", "pairs"] + [
-        c for name in ("R", "t") for c in (f"{name}: model − control [95%]", f"{name}: P(improve)",
-                                           f"{name}: verdict") if c in df.columns] + ["verdict"]
-    df = df[cols].fillna("–")  # a metric the claim does not speak of
+    metric_cols = {name: [c for c in (f"{name}: model − control [95%]", f"{name}: P(improve)", f"{name}: verdict")
+                          if c in df.columns] for name in ("R", "t", "angle")}
+    base = ["claim", "where", "rows", "kind", "seeds", "pairs"]
+    df = df[base + [c for cs in metric_cols.values() for c in cs] + ["verdict"]].fillna("–")  # a metric not spoken of
     counts = df["verdict"].value_counts()
-    one_seed = int((df["seeds"] == 1).sum())
+    one_seed = int((df["seeds"].astype(str).str.split().str[0] == "1").sum())
     head = ("# Claims about RLSAC, each checked against the results (issue #27)\n\n"
             "Generated by `rlsac table --which claims` from reports/eval (no number here is typed by hand). Each claim "
-            "sets one row against another on the same test pairs, mAA@10° of R and t, pooled over the folds. "
-            "`seeds`: the model's training seeds taken (its rows <model>-s<seed>); the 95% interval resamples the "
-            f"seeds, then the pairs within each test building ({N_BOOT} draws); with one seed it resamples pairs only "
-            "and cannot speak for training noise. `P(improve)`: the probability that a random seed of the model beats "
-            "the control on a random test building. Verdicts: *better* / *worse* are supported when the interval "
-            f"excludes 0 on that side; *tie* is supported when the interval lies inside ±{TIE_MARGIN} mAA (and not "
-            "supported when it excludes 0 and reaches beyond); a claim is *not supported* when an interval "
-            "contradicts it, *inconclusive* otherwise.\n\n"
+            "sets one row against another on the same test instances. `seeds`: the model's training seeds taken (its "
+            "rows <model>-s<seed>; `a vs b` where the control is trained too); the 95% interval resamples the seeds, "
+            "then the instances (the same draw for both rows); with one seed it resamples instances only and cannot "
+            "speak for training noise. `P(improve)`: the probability that a random seed of the model beats a random "
+            "seed of the control (on a random test building for the folds). Verdicts: *better* / *worse* are "
+            "supported when the interval excludes 0 on that side; *tie* is supported when the interval lies inside "
+            "the tie margin (and not supported when it excludes 0 and reaches beyond); a claim is *not supported* "
+            "when an interval contradicts it, *inconclusive* otherwise.\n\n"
             f"{len(df)} claims: " + ", ".join(f"{counts.get(v, 0)} {v}" for v in ("supported", "inconclusive",
                                                                                     "not supported"))
             + f"; {one_seed} rest on one training seed.\n\n")
-    body = df.to_markdown(index=False, disable_numparse=True) + "\n"
+    is_line = df["claim"].isin([c.text for c in claims if c.sub == "lines"])
+    sections = (("Fold benchmarks (Table 2, Table 3, Table E): mAA@10° of R and t pooled over the folds, the pairs "
+                 f"resampled within each test building ({N_BOOT} draws), tie margin ±{TIE_MARGIN} mAA.",
+                 ~is_line, metric_cols["R"] + metric_cols["t"]),
+                (f"Lines (Table 1): mAA@0.5° of the line angle at {LINE_ITERATIONS} hypotheses, 1000 test instances "
+                 f"per rate ({PAIRED_BOOT} draws), tie margin ±{LINE_TIE_MARGIN} mAA.", is_line, metric_cols["angle"]))
+    body = ""
+    for text, sel, cols in sections:
+        if sel.any():
+            body += f"## {text.split(':')[0]}\n\n{text}\n\n" + df.loc[sel, base + cols + ["verdict"]].to_markdown(
+                index=False, disable_numparse=True) + "\n\n"
     if missing:
-        body += "\nNot checked (their rows are not in reports/eval): " + "; ".join(missing) + ".\n"
+        body += "Not checked (their rows are not in reports/eval): " + "; ".join(missing) + ".\n"
     out_dir = Path(out_dir)
-    write_text(out_dir / "claims.md", head + body)
+    write_text(out_dir / "claims.md", head + body.rstrip("\n") + "\n")
     with atomic_path(out_dir / "claims.csv") as tmp:
         df.to_csv(tmp, index=False)
     return {"files": [str(out_dir / "claims.md"), str(out_dir / "claims.csv")], "missing": missing}
-

@@ -28,9 +28,12 @@ STYLE = {"uniform": ("tab:blue", "x"), "guided": ("tab:cyan", "<"), "prosac": ("
          "rlsac": ("tab:red", "*"), "rlsac-fast": ("salmon", "X"), "rlsac-nosnn": ("black", "1"),
          "usac-nolo": ("tab:orange", "3"), "magsac-nolo": ("tab:green", "4"), "prosac-nolo": ("olive", "+"),
          "ransac-lo": ("violet", "h"), "uniform-lo": ("royalblue", "8"), "guided-lo": ("darkcyan", "d"),
-         "rlsac-lo": ("crimson", "p")}
-# the paired-difference panels (Figure 4 on the folds): RLSAC against the controls and the strongest peers of each arm
-DIFF_ROWS = ("uniform", "guided", "ransac", "usac-nolo", "magsac-nolo", "prosac-nolo", "prosac", "magsac")
+         "rlsac-lo": ("crimson", "p"), "degensac": ("teal", "P"), "poselib": ("tab:pink", "H"),
+         "ngransac": ("darkgoldenrod", "d"), "ngransac-lo": ("goldenrod", "d")}
+# the paired-difference panels (Figure 4 on the folds): RLSAC against the controls, the strongest rows of each arm and
+# the peers of issue #29
+DIFF_ROWS = ("uniform", "guided", "ransac", "usac-nolo", "magsac-nolo", "prosac-nolo", "prosac", "magsac", "degensac",
+             "poselib", "ngransac")
 
 
 def _save(fig, out_dir: Path, name: str) -> list[str]:

@@ -338,7 +338,7 @@ def _control_section(res, regime: str, budgets, folds) -> str:
 
 
 # the comparisons of the across-seed section (issue #27): the controls, then the strongest rows of each arm
-SEED_CONTROLS = ("uniform", "guided", "ransac", "prosac", "magsac", "poselib")
+SEED_CONTROLS = ("uniform", "guided", "ransac", "prosac", "magsac", "degensac", "poselib")
 
 
 def seed_runs(res: dict[tuple[str, str, int], pd.DataFrame], regime: str) -> dict[str, list[str]]:

@@ -18,6 +18,7 @@ import math
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pandas as pd
 
 from rlsac.errors import RlsacError
@@ -228,6 +229,9 @@ def table1(eval_root: str | Path = "reports/eval", out_dir: str | Path = "report
         notes = ("Paired comparison with our RANSAC on the same test instances: mAA@0.5° difference and its 95% "
                  f"interval (percentile bootstrap over instances, {PAIRED_BOOT} resamples, seed 0).\n\n"
                  + paired.to_markdown(index=False, disable_numparse=True) + "\n")
+    seeds = _line_seed_section(root, rates)
+    if seeds:
+        notes += "\n" + seeds
     gap = _gap_closed(df, rates) if lo_rows else None
     if gap is not None:
         notes += ("\nNot in the paper (issue #14): share of the RANSAC → Oracle mAA gap that each method closes, "
@@ -239,6 +243,61 @@ def table1(eval_root: str | Path = "reports/eval", out_dir: str | Path = "report
     df.attrs["files"] = _write(text, df, Path(out_dir), "table1_lines", "Table 1: 2D line fitting", caption, notes)
     _report_missing("table 1", missing)
     return df
+
+
+def line_seed_runs(root: Path) -> dict[str, list[str]]:
+    """Table 1's models with results of other training seeds under ``root`` (<eval_root>/lines): {"ours": ["ours",
+    "ours-s1", ...], "ours-0.5": [...]} (the row's own directory is its seed 0; seeds in numeric order)."""
+    out: dict[str, list[str]] = {}
+    for d in ("ours", "ours-0.5"):
+        seeds = sorted(int(p.name[len(d) + 2:]) for p in root.glob(f"{d}-s*")
+                       if p.is_dir() and p.name[len(d) + 2:].isdigit())
+        if seeds:
+            out[d] = [d] + [f"{d}-s{k}" for k in seeds]
+    return out
+
+
+def line_errors(root: Path, runs: list[str], rate: float):
+    """(S, M) errors of ``runs`` at ``rate``, None unless every run has them on one test set."""
+    errs = [read_errors(root / d / f"o{rate:g}" / "errors.csv") for d in runs]
+    if any(e is None for e in errs) or len({e.size for e in errs}) != 1:
+        return None
+    return np.stack(errs)
+
+
+def _line_seed_section(root: Path, rates) -> str:
+    """Issue #27: Ours and Ours-0.5 over their training seeds at every rate where each seed has results: the seed
+    mean ± SD of mAA@0.5°, and the difference of seed means to RANSAC (and Ours-0.5 to Ours) with a 95% interval
+    that resamples seeds, then instances (metrics.seed_bootstrap_maa), with the probability of improvement."""
+    from rlsac.metrics import seed_bootstrap_maa
+
+    runs = line_seed_runs(root)
+    rows = []
+    for d, base in (("ours", "ransac"), ("ours-0.5", "ransac"), ("ours-0.5", "ours")):
+        if d not in runs:
+            continue
+        for r in rates:
+            a = line_errors(root, runs[d], r)
+            b = line_errors(root, runs.get(base, [base]), r)
+            if a is None or b is None or a.shape[1] != b.shape[1] or len(a) < 2:
+                continue
+            st = seed_bootstrap_maa(a, b, LINE_LIMIT_DEG, n_boot=PAIRED_BOOT, seed=0)
+            rows.append({"o": f"{r:g}", "comparison": f"{LINE_METHODS[d]} − {LINE_METHODS[base]}",
+                         "seeds": f"{len(a)} vs {len(b)}",
+                         "model mAA (mean ± SD)": f"{st['mean_a']:.3f} ± {st['sd_a']:.3f}",
+                         "control mAA": f"{st['mean_b']:.3f}" + (f" ± {st['sd_b']:.3f}" if len(b) > 1 else ""),
+                         "difference [95%]": f"{st['diff']:+.3f} [{st['lo']:+.3f}, {st['hi']:+.3f}]",
+                         "P(improve)": f"{st['p_improve']:.2f}"})
+    if not rows:
+        return ""
+    return ("Across training seeds (issue #27): the rows above are each model's first seed (the shipped checkpoint); "
+            "here every training seed counts (`<model>-s<seed>`, params.yaml `lines.seeds` at `lines.seed_rates`; "
+            "Ours-0.5 is the 0.5 model of each seed). mean ± SD over seeds of mAA@0.5°; the difference of seed means "
+            f"with a 95% hierarchical bootstrap interval ({PAIRED_BOOT} draws: seeds with replacement, then the test "
+            "instances, the same for both rows); P(improve): the share of seed pairs in which the model beats the "
+            "control (ties one half). Each seed's checkpoint was kept by `train.line.selection` on the validation "
+            "file, as the first seed's.\n\n"
+            + pd.DataFrame(rows).to_markdown(index=False, disable_numparse=True) + "\n")
 
 
 def _gap_closed(df: pd.DataFrame, rates) -> pd.DataFrame | None:

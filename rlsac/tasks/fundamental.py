@@ -157,12 +157,15 @@ class FundamentalTask:
     @staticmethod
     def degensac_fit(pts: np.ndarray, threshold: float, confidence: float, iterations: int, seed: int):
         """pydegensac.findFundamentalMatrix (DEGENSAC: LO-RANSAC with a check for a dominant plane) on pts (n, 4)
-        pixels, Sampson error at ``threshold`` px -> (F, inliers) or None. Not reproducible: pydegensac seeds its own
-        RNG from the clock (gettimeofday) and takes no seed, so two runs on the same pairs may differ."""
+        pixels, Sampson error at ``threshold`` px -> (F, inliers) or None. ``seed`` (>= 0) seeds pydegensac's RNG:
+        its default (-1) seeds it from the clock, so two runs on the same pairs could differ."""
         import pydegensac
 
+        if seed < 0:
+            raise ValueError(f"DEGENSAC needs a seed >= 0 (a negative one seeds it from the clock), got {seed}")
         F, inl = pydegensac.findFundamentalMatrix(np.ascontiguousarray(pts[:, :2]), np.ascontiguousarray(pts[:, 2:4]),
-                                                  float(threshold), float(confidence), int(iterations))
+                                                  float(threshold), float(confidence), int(iterations),
+                                                  seed=int(seed))
         out = opencv_model(F, inl)
         return None if out is None else (*out, None)
 
