@@ -44,17 +44,25 @@ def check_lines_data(params: dict[str, Any]) -> None:
 
 
 def check_lines(params: dict[str, Any]) -> None:
-    """params.yaml ``lines``, the line experiment's protocol: rates in [0, 1), iterations, and per split
-    ``n_<split>`` instances and ``seed_<split>`` (``lines_protocol_data``)."""
-    for key, value in section(params, "lines").items():
-        if key == "rates":
-            config.check_value("lines.rates", value, list[float], "[0, 1)")
+    """params.yaml ``lines``, the line experiment's protocol: rates in [0, 1), iterations, per split ``n_<split>``
+    instances and ``seed_<split>`` (``lines_protocol_data``), and the seed grid (issue #27): the other training
+    ``seeds`` (from 1: seed 0 is each rate's model) of the models at ``seed_rates`` (rates of ``rates``)."""
+    lines = section(params, "lines")
+    for key, value in lines.items():
+        if key in ("rates", "seed_rates"):
+            config.check_value(f"lines.{key}", value, list[float], "[0, 1)")
+        elif key == "seeds":
+            config.check_value("lines.seeds", value, list[int], "[1, 4294967295]")
         elif key in ("iterations",) or key.startswith("n_"):
             config.check_value(f"lines.{key}", value, int, "[1, inf)")
         elif key.startswith("seed_"):
             config.check_value(f"lines.{key}", value, int, config.SEED_RANGE)
         else:
-            raise RlsacError(f"unknown params key lines.{key}; known: rates, iterations, n_<split>, seed_<split>")
+            raise RlsacError(f"unknown params key lines.{key}; known: rates, iterations, n_<split>, seed_<split>, "
+                             "seeds, seed_rates")
+    extra = sorted(set(lines.get("seed_rates", [])) - set(lines.get("rates", lines.get("seed_rates", []))))
+    if extra:
+        raise RlsacError(f"lines.seed_rates {extra} are not in lines.rates")
 
 
 def check_calibration(params: dict[str, Any]) -> None:

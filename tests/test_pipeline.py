@@ -15,7 +15,7 @@ from dvc import repo as dvc_repo
 
 from rlsac import ablate
 from rlsac.cli import cli
-from rlsac.config import build
+from rlsac.config import build, check_params
 from rlsac.train import TrainConf
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -90,6 +90,7 @@ def test_profiles_have_the_same_keys():
     for p in (paper, quick):
         for task, opts in p["train"].items():
             build(TrainConf, {**(opts or {}), "task": task}, f"train.{task}")  # unknown keys raise
+        check_params(p)  # every section as every rlsac command checks it when it reads the file
 
 
 def test_commands_are_rlsac_calls(pipeline):
