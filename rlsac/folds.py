@@ -350,6 +350,16 @@ def checkpoint(regime: str, fold: str, model: str, task: str = "fundamental") ->
     return Path("checkpoints") / "folds" / regime / fold / f"{model}.pt"
 
 
+def checkpoint_model(path: str | Path) -> str:
+    """The fold model a ``checkpoint`` path belongs to (its inverse): ``<model>`` of checkpoints/folds/<regime>/<fold>/
+    <model>.pt, ``rlsac`` / ``rlsac-s<seed>`` of Table E's checkpoints/essential/<regime>/<fold>[-s<seed>].pt."""
+    path = Path(path)
+    if path.parent.parent.name == "essential":
+        seed = split_seed(path.stem)[1]
+        return "rlsac" if seed is None else seed_name("rlsac", seed)
+    return path.stem
+
+
 def eval_dir(regime: str, fold: str, method: str, iterations: int, task: str = "fundamental") -> Path:
     return Path("reports") / "eval" / SUB[task] / regime / fold / method / f"i{int(iterations)}"
 

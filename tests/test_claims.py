@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pandas as pd
@@ -91,10 +92,11 @@ def test_line_claims_take_both_rows_over_their_seeds(tmp_path):
     (3 seeds) against Ours (2 seeds) at 0.3, with the lines' tie margin; a rate without results is not checked."""
     ev = tmp_path / "eval"
 
-    def put(d: str, errs) -> None:
+    def put(d: str, errs, iterations: int = 150) -> None:
         out = ev / "lines" / d / "o0.3"
-        out.mkdir(parents=True)
+        out.mkdir(parents=True, exist_ok=True)
         pd.DataFrame({"instance": range(len(errs)), "err_deg": errs}).to_csv(out / "errors.csv", index=False)
+        (out / "summary.json").write_text(json.dumps({"iterations": iterations}))
 
     good, bad = [0.02] * 20, [0.02] * 19 + [1.0]  # mAA 1.0 and 0.95
     for d, errs in (("ours-0.5", good), ("ours-0.5-s1", good), ("ours-0.5-s2", bad), ("ours", good),
@@ -114,3 +116,5 @@ def test_line_claims_take_both_rows_over_their_seeds(tmp_path):
     wide = claims.Claim("Ours-0.5 ties Ours", "test", "lines", "0.3", 150, "ours-0.5", "ours", "tie", ("angle",), 0.1)
     claims.build(ev, tmp_path / "wide", (wide,))  # the claim's own margin decides: inside ±0.1
     assert pd.read_csv(tmp_path / "wide" / "claims.csv").iloc[0]["verdict"] == "supported"
+    put("ours-s1", good, iterations=30)  # a seed evaluated at another budget: the claim (150) is not checked
+    assert claims.build(ev, tmp_path / "other", (wide,))["missing"] == ["Ours-0.5 ties Ours"]

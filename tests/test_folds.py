@@ -401,6 +401,27 @@ def test_table_refuses_an_n_row_run_on_other_data(tmp_path):
     assert fold_table.build(ev, tmp_path / "out", tmp_path / "rec")["files"]
 
 
+@pytest.mark.parametrize("row, ckpt, ok", [
+    ("rlsac-s1", "checkpoints/essential/hard/fountain-s1.pt", True),  # Table E: the checkpoint's name is the fold's
+    ("rlsac", "checkpoints/essential/hard/fountain.pt", True),
+    ("rlsac", "checkpoints/essential/hard/fountain-s1.pt", False),  # another seed's model in the first seed's row
+    ("rlsac", "checkpoints/folds/hard/fountain/rlsac-s1.pt", False),
+    ("rlsac-lo", "checkpoints/folds/hard/fountain/rlsac.pt", True),
+    ("rlsac-s2", "checkpoints/folds/hard/fountain/rlsac-s2.pt", True),
+])
+def test_a_models_cell_must_hold_the_checkpoint_its_folder_names(tmp_path, row, ckpt, ok):
+    cell = tmp_path / row / "i100"
+    cell.mkdir(parents=True)
+    method = "rlsac-lo" if row.endswith("-lo") else "rlsac"
+    (cell / "config.json").write_text(json.dumps({"method": method, "iterations": 100, "checkpoint": ckpt}))
+    assert folds.checkpoint_model(folds.checkpoint("hard", "fountain", "rlsac-s3", "essential")) == "rlsac-s3"
+    if ok:
+        fold_table._check_cell(cell, row, 100)
+    else:
+        with pytest.raises(RlsacError, match="its folder names"):
+            fold_table._check_cell(cell, row, 100)
+
+
 def test_fold_table_without_results_writes_nothing(tmp_path):
     got = fold_table.build(tmp_path / "none", tmp_path / "out", tmp_path / "rec")
     assert got["files"] == [] and not (tmp_path / "out").exists()

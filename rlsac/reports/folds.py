@@ -98,7 +98,7 @@ def _check_cell(path: Path, name: str, iterations: int) -> None:
         conf = json.loads(f.read_text())
     except (OSError, ValueError):
         raise RlsacError(f"{f}: unreadable") from None
-    from rlsac.folds import split_points
+    from rlsac.folds import checkpoint_model, split_points
 
     base, points = split_points(name)  # Table 3 (c)'s <row>-n<N>: the row of that name on the data with N points
     if points is not None:
@@ -107,12 +107,14 @@ def _check_cell(path: Path, name: str, iterations: int) -> None:
                              f"folder {name!r} names")
         spec = METHODS.get(conf.get("method"))
         name = name if spec is not None and spec.checkpoint else base  # a model's checkpoint is named <model>-n<N>
-    method, ckpt = conf.get("method"), Path(conf.get("checkpoint") or "").stem
+    method, ckpt = conf.get("method"), (checkpoint_model(conf["checkpoint"]) if conf.get("checkpoint") else "")
     spec = METHODS.get(method)
     prob = conf.get("sampling") == "prob"  # Table 3 (b)'s <model>-prob rows: probabilistic test-time sampling
-    is_model = spec is not None and spec.checkpoint and name in (
-        (f"{ckpt}-prob",) if prob else (ckpt, f"{ckpt}-lo", f"{ckpt}-fast", method))
-    if conf.get("iterations") != iterations or not (method == name or is_model):
+    if spec is not None and spec.checkpoint:  # a model's row: the checkpoint's model names it, not the method alone
+        ok = name in ((f"{ckpt}-prob",) if prob else (ckpt, f"{ckpt}-lo", f"{ckpt}-fast"))
+    else:
+        ok = method == name
+    if conf.get("iterations") != iterations or not ok:
         raise RlsacError(f"{f}: holds method {method!r} ({ckpt or 'no checkpoint'}) at {conf.get('iterations')} "
                          f"iterations, not the {name!r} at {iterations} its folder names")
 
