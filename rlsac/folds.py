@@ -350,14 +350,17 @@ def checkpoint(regime: str, fold: str, model: str, task: str = "fundamental") ->
     return Path("checkpoints") / "folds" / regime / fold / f"{model}.pt"
 
 
-def checkpoint_model(path: str | Path) -> str:
+def checkpoint_model(path: str | Path) -> str | None:
     """The fold model a ``checkpoint`` path belongs to (its inverse): ``<model>`` of checkpoints/folds/<regime>/<fold>/
-    <model>.pt, ``rlsac`` / ``rlsac-s<seed>`` of Table E's checkpoints/essential/<regime>/<fold>[-s<seed>].pt."""
+    <model>.pt, ``rlsac`` / ``rlsac-s<seed>`` of Table E's checkpoints/essential/<regime>/<fold>[-s<seed>].pt; None
+    for a path outside that layout (a checkpoint of one's own)."""
     path = Path(path)
-    if path.parent.parent.name == "essential":
+    if len(path.parts) >= 4 and path.parts[-4:-2] == ("checkpoints", "essential"):
         seed = split_seed(path.stem)[1]
         return "rlsac" if seed is None else seed_name("rlsac", seed)
-    return path.stem
+    if len(path.parts) >= 5 and path.parts[-5:-3] == ("checkpoints", "folds"):
+        return path.stem
+    return None
 
 
 def eval_dir(regime: str, fold: str, method: str, iterations: int, task: str = "fundamental") -> Path:

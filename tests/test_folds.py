@@ -408,6 +408,8 @@ def test_table_refuses_an_n_row_run_on_other_data(tmp_path):
     ("rlsac", "checkpoints/folds/hard/fountain/rlsac-s1.pt", False),
     ("rlsac-lo", "checkpoints/folds/hard/fountain/rlsac.pt", True),
     ("rlsac-s2", "checkpoints/folds/hard/fountain/rlsac-s2.pt", True),
+    ("rlsac", "scratch/mine.pt", True),  # a checkpoint outside the pipeline's layout: told by its method only
+    ("rlsac-s1", "/abs/repo/checkpoints/essential/hard/fountain-s1.pt", True),
 ])
 def test_a_models_cell_must_hold_the_checkpoint_its_folder_names(tmp_path, row, ckpt, ok):
     cell = tmp_path / row / "i100"
@@ -415,6 +417,8 @@ def test_a_models_cell_must_hold_the_checkpoint_its_folder_names(tmp_path, row, 
     method = "rlsac-lo" if row.endswith("-lo") else "rlsac"
     (cell / "config.json").write_text(json.dumps({"method": method, "iterations": 100, "checkpoint": ckpt}))
     assert folds.checkpoint_model(folds.checkpoint("hard", "fountain", "rlsac-s3", "essential")) == "rlsac-s3"
+    assert folds.checkpoint_model(folds.checkpoint("hard", "fountain", "rlsac-nosnn")) == "rlsac-nosnn"
+    assert folds.checkpoint_model("scratch/ess.pt") is None
     if ok:
         fold_table._check_cell(cell, row, 100)
     else:

@@ -110,6 +110,12 @@ def test_table1_across_seed_section(tree):
     # seed mAAs 1, 0, 1: mean 0.667, SD 0.577; minus RANSAC's 0.5; 2 of 3 seeds beat it
     assert cells[:5] == ["0.3", "Ours − RANSAC", "3 vs 1", "0.667 ± 0.577", "0.500"]
     assert cells[5].startswith("+0.167 [") and cells[6] == "0.67"
+    for d in ("ours", "ours-s1", "ours-s2"):  # Ours-0.5 at its own rate: the same models as Ours, not compared
+        _line_errors(ev, d.replace("ours", "ours-0.5"), 0.3, pd.read_csv(ev / "lines" / d / "o0.3" / "errors.csv")[
+            "err_deg"].tolist())
+    tables.table1("ev", "out")
+    rows = [line for line in (tree / "out" / "table1_lines.md").read_text().splitlines() if line.startswith("| 0.")]
+    assert [r.split("|")[2].strip() for r in rows] == ["Ours − RANSAC", "Ours-0.5 − RANSAC"]
 
 
 def test_table2_and_table3(tree):

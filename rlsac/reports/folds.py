@@ -107,13 +107,16 @@ def _check_cell(path: Path, name: str, iterations: int) -> None:
                              f"folder {name!r} names")
         spec = METHODS.get(conf.get("method"))
         name = name if spec is not None and spec.checkpoint else base  # a model's checkpoint is named <model>-n<N>
-    method, ckpt = conf.get("method"), (checkpoint_model(conf["checkpoint"]) if conf.get("checkpoint") else "")
+    method, path = conf.get("method"), conf.get("checkpoint") or ""
+    model = checkpoint_model(path) if path else None
+    ckpt = model or Path(path).stem
     spec = METHODS.get(method)
     prob = conf.get("sampling") == "prob"  # Table 3 (b)'s <model>-prob rows: probabilistic test-time sampling
-    if spec is not None and spec.checkpoint:  # a model's row: the checkpoint's model names it, not the method alone
-        ok = name in ((f"{ckpt}-prob",) if prob else (ckpt, f"{ckpt}-lo", f"{ckpt}-fast"))
-    else:
-        ok = method == name
+    names = (f"{ckpt}-prob",) if prob else (ckpt, f"{ckpt}-lo", f"{ckpt}-fast")
+    if spec is not None and spec.checkpoint and model is not None:  # the pipeline's checkpoint names the row
+        ok = name in names
+    else:  # a checkpoint of one's own (any name) can only be told by its method
+        ok = method == name or (spec is not None and spec.checkpoint and name in names)
     if conf.get("iterations") != iterations or not ok:
         raise RlsacError(f"{f}: holds method {method!r} ({ckpt or 'no checkpoint'}) at {conf.get('iterations')} "
                          f"iterations, not the {name!r} at {iterations} its folder names")
