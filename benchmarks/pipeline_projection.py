@@ -27,11 +27,13 @@ import sys
 from pathlib import Path
 
 # Seconds per stage from the README's "Measured stage times for a run from scratch": a group's total over its count,
-# or the middle of its recorded range; the seed grid's stages (issue #27) take their base group's.
+# or the middle of its recorded range; the fold seed grid's stages (issue #27) take their base group's, the line and
+# Table E seed stages their own means (an `rlsac pipeline --workers 2` run, DVC's own work included).
 RECORDED = {
     "calibrate_lines": 40, "lines_data@*": 0.7, "import_scenes": 119, "fold_data@*": 29, "fold_data_points@*": 29,
-    "train_lines@*": 940, "train_lines_seed@*": 940, "eval_lines_ours_seed@*": 14,
-    "eval_lines_generalisation_seed@*": 14, "essential_train_seed@*": 70, "fold_train@*": 115,
+    "train_lines@*": 940, "train_lines_seed@*": 596, "eval_lines_ours_seed@*": 29,
+    "eval_lines_generalisation_seed@*": 27, "essential_train_seed@*": 75, "essential_tune_seed@*": 117,
+    "essential_eval_seed@*": 67, "fold_train@*": 115,
     "fold_train_seed@*": 115, "fold_train_points@*": 115,
     "fold_train_ablation@*": 60, "essential_train@*": 70, "eval_lines_ours@*": 14,
     "eval_lines_generalisation@*": 14, "eval_lines_ransac@*": 3, "eval_lines_oracle@*": 3,

@@ -118,3 +118,20 @@ def test_line_claims_take_both_rows_over_their_seeds(tmp_path):
     assert pd.read_csv(tmp_path / "wide" / "claims.csv").iloc[0]["verdict"] == "supported"
     put("ours-s1", good, iterations=30)  # a seed evaluated at another budget: the claim (150) is not checked
     assert claims.build(ev, tmp_path / "other", (wide,))["missing"] == ["Ours-0.5 ties Ours"]
+
+
+def test_a_line_claim_at_a_rate_without_other_seeds_uses_the_first_seed(tmp_path):
+    """The other line seeds train only at lines.seed_rates: at any other rate Ours is its first seed alone, not a
+    claim left unchecked."""
+    ev = tmp_path / "eval"
+    for d, rate, errs in (("ours", 0.1, [0.02] * 10), ("ransac", 0.1, [0.02] * 5 + [1.0] * 5),
+                          ("ours-s1", 0.3, [0.02] * 10)):
+        out = ev / "lines" / d / f"o{rate:g}"
+        out.mkdir(parents=True)
+        pd.DataFrame({"instance": range(10), "err_deg": errs}).to_csv(out / "errors.csv", index=False)
+        (out / "summary.json").write_text(json.dumps({"iterations": 150}))
+    claim = claims.Claim("Ours beats RANSAC at 0.1", "test", "lines", "0.1", 150, "ours", "ransac", "better",
+                         ("angle",), 0.01)
+    assert claims.build(ev, tmp_path / "out", (claim,))["missing"] == []
+    row = pd.read_csv(tmp_path / "out" / "claims.csv").iloc[0]
+    assert row["seeds"] == 1 and row["angle: model − control [95%]"].startswith("+0.500")

@@ -257,8 +257,19 @@ def line_seed_runs(root: Path) -> dict[str, list[str]]:
     return out
 
 
+def line_runs_at(root: Path, runs: list[str], rate: float) -> list[str]:
+    """The runs of a model (``line_seed_runs``) with results at ``rate``: its other seeds train only at
+    lines.seed_rates; [] when the model's own (first) run has none there."""
+    have = [d for d in runs if (root / d / f"o{rate:g}" / "errors.csv").is_file()]
+    return have if have and have[0] == runs[0] else []
+
+
 def line_errors(root: Path, runs: list[str], rate: float):
-    """(S, M) errors of ``runs`` at ``rate``, None unless every run has them on one test set."""
+    """(S, M) errors at ``rate`` of the ``runs`` that have results there (``line_runs_at``), None when there are none
+    or they are not on one test set."""
+    runs = line_runs_at(root, runs, rate)
+    if not runs:
+        return None
     errs = [read_errors(root / d / f"o{rate:g}" / "errors.csv") for d in runs]
     if any(e is None for e in errs) or len({e.size for e in errs}) != 1:
         return None
