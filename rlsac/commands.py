@@ -60,7 +60,7 @@ def check_lines(params: dict[str, Any]) -> None:
         else:
             raise RlsacError(f"unknown params key lines.{key}; known: rates, iterations, n_<split>, seed_<split>, "
                              "seeds, seed_rates")
-    extra = sorted(set(lines.get("seed_rates", [])) - set(lines.get("rates", lines.get("seed_rates", []))))
+    extra = sorted(set(lines.get("seed_rates", [])) - set(lines["rates"])) if "rates" in lines else []
     if extra:
         raise RlsacError(f"lines.seed_rates {extra} are not in lines.rates")
 

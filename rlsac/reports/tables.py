@@ -248,12 +248,14 @@ def table1(eval_root: str | Path = "reports/eval", out_dir: str | Path = "report
 def line_seed_runs(root: Path) -> dict[str, list[str]]:
     """Table 1's models with results of other training seeds under ``root`` (<eval_root>/lines): {"ours": ["ours",
     "ours-s1", ...], "ours-0.5": [...]} (the row's own directory is its seed 0; seeds in numeric order)."""
+    from rlsac.folds import seed_name, split_seed
+
     out: dict[str, list[str]] = {}
     for d in ("ours", "ours-0.5"):
-        seeds = sorted(int(p.name[len(d) + 2:]) for p in root.glob(f"{d}-s*")
-                       if p.is_dir() and p.name[len(d) + 2:].isdigit())
+        seeds = sorted(s for base, s in (split_seed(p.name) for p in root.glob(f"{d}-s*") if p.is_dir())
+                       if base == d and s is not None)
         if seeds:
-            out[d] = [d] + [f"{d}-s{k}" for k in seeds]
+            out[d] = [d] + [seed_name(d, k) for k in seeds]
     return out
 
 
@@ -271,7 +273,7 @@ def line_errors(root: Path, runs: list[str], rate: float):
     if not runs:
         return None
     errs = [read_errors(root / d / f"o{rate:g}" / "errors.csv") for d in runs]
-    if any(e is None for e in errs) or len({e.size for e in errs}) != 1:
+    if len({e.size for e in errs}) != 1:
         return None
     return np.stack(errs)
 
