@@ -269,14 +269,16 @@ def ablate(tracking: bool, sets: tuple[str, ...], **options) -> None:
 
 
 @cli.command()
-@click.option("--stage", type=click.Choice(["data", "train", "tune", "evaluate"]), required=True,
+@click.option("--stage", type=click.Choice(["data", "train", "tune", "evaluate", "select"]), required=True,
               help="data: prepare the fold's train/val/test files; train: its RLSAC models; tune: choose every row's "
                    "settings on the fold's val.h5 (reports/tuning/); evaluate: every row at every budget on test.h5 "
-                   "with its tuned settings.")
+                   "with its tuned settings; select: replay a model's training and test every validated actor "
+                   "(reports/selection/).")
 @click.option("--regime", required=True, help="Data regime, a key of params.yaml folds.pool (e.g. easy, hard).")
 @click.option("--fold", required=True, help="Test building, one of params.yaml folds.test (e.g. castle).")
 @click.option("--model", help="With --stage train: one model of folds.models, ablation_models or the N study's "
-                              "<model>-n<N> [default: all of them].")
+                              "<model>-n<N> [default: all of them]; with --stage select: a model of "
+                              "folds.select_models or <model>-s<seed>.")
 @click.option("--points", type=click.IntRange(min=8), help="With --stage data: N points per pair, one of params.yaml "
                                                              "folds.points (Table 3 c; data/folds/<regime>-n<N>).")
 @click.option("--task", type=click.Choice(["fundamental", "essential"]), default="fundamental", show_default=True,
@@ -298,11 +300,13 @@ def folds(tracking: bool, **options) -> None:
 
 
 @cli.command()
-@click.option("--which", type=click.Choice(["1", "2", "3", "iterations", "folds", "essential", "claims", "all"]),
+@click.option("--which", type=click.Choice(["1", "2", "3", "iterations", "folds", "essential", "claims", "selection",
+                                           "all"]),
               default="all", show_default=True,
               help="Table 1 (lines), 2 (fundamental), 3 (ablations), the iterations CSV, Table 2 over the "
                    "leave-one-building-out folds, Table E (essential matrix, not in the paper), reports/claims.md "
-                   "(every claim against its seed-aware interval), or all.")
+                   "(every claim against its seed-aware interval), reports/selection.md (kept vs last checkpoint), "
+                   "or all.")
 @click.option("--eval-root", default="reports/eval", show_default=True, type=click.Path(file_okay=False),
               help="Root of the evaluation summaries (lines/, fundamental/, ablation/).")
 @click.option("--out-dir", default="reports", show_default=True, type=click.Path(file_okay=False))

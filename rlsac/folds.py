@@ -27,7 +27,7 @@ from typing import Any
 from rlsac.errors import RlsacError
 from rlsac.io import check_writable, write_json
 
-STAGES = ("data", "train", "tune", "evaluate")
+STAGES = ("data", "train", "tune", "evaluate", "select")
 DEFAULTS: dict[str, Any] = {
     "test": ["castle", "herzjesu", "fountain", "entry"],
     "scenes": {"castle": "castle-P19,castle-P30", "herzjesu": "Herz-Jesus-P8,Herz-Jesus-P25",
@@ -63,6 +63,12 @@ DEFAULTS: dict[str, Any] = {
     # models also run with the speed levers of issue #17 (several sets per step, the confidence stop), k and the
     # confidence tuned on validation: rows <model>-fast (not in the paper; the plain rows are the paper's algorithm)
     "fast": [],
+    # checkpoint selection measured (issue #27, item 3; rlsac.selection): these models (of seed_models: every training
+    # seed) replayed, each validated actor tested at these budgets of the model regime; validation scores within
+    # select_tie of the kept one's count as a tie
+    "select_models": [],
+    "select_iterations": [1000],
+    "select_tie": 0.01,
 }
 OPTIONS: dict[str, Any] = {"stage": None, "regime": None, "fold": None, "model": None, "only": None, "points": None,
                            "task": "fundamental",
@@ -121,6 +127,15 @@ def protocol(params: dict[str, Any]) -> dict[str, Any]:
                          "models of folds.models / methods of folds.methods")
     if not set(p["seed_models"]) <= set(p["models"]):
         raise RlsacError(f"folds.seed_models {p['seed_models']} must be models of folds.models {p['models']}")
+    if not set(p["select_models"]) <= set(p["seed_models"]):
+        raise RlsacError(f"folds.select_models {p['select_models']} must be models of folds.seed_models "
+                         f"{p['seed_models']} (the study covers every training seed)")
+    not_rl = sorted(m for m in p["select_models"] if model_method(p, m) != "rlsac")
+    if not_rl:
+        raise RlsacError(f"folds.select_models {not_rl}: the replay keeps RLSAC's validated actors only")
+    if not set(p["select_iterations"]) <= set(p["iterations"][p["model_regime"]]):
+        raise RlsacError(f"folds.select_iterations {p['select_iterations']} must be budgets of folds.iterations "
+                         f"{p['iterations'][p['model_regime']]} (the kept actor's evaluation is read, not redone)")
     if p["points"] and p["model_regime"] not in p["variant_regimes"]:
         raise RlsacError(f"folds.points needs folds.model_regime {p['model_regime']!r} among folds.variant_regimes "
                          f"{p['variant_regimes']} (its models train on that regime's data with N points)")
@@ -162,6 +177,11 @@ def split_seed(row: str) -> tuple[str, int | None]:
     """A row's name -> (the model, training seed) for <model>-s<seed>, (row, None) for any other row."""
     base, _, n = row.rpartition("-s")
     return (base, int(n)) if base and n.isdigit() else (row, None)
+
+
+def select_runs(p: dict[str, Any]) -> list[str]:
+    """The training runs of the checkpoint-selection study: each model of folds.select_models and its other seeds."""
+    return [r for m in p.get("select_models", []) for r in [m] + [seed_name(m, s) for s in p.get("seeds", [])]]
 
 
 def derived_models(p: dict[str, Any]) -> dict[str, dict[str, Any]]:
@@ -229,7 +249,7 @@ def _typed(p: dict[str, Any]) -> dict[str, Any]:
     if p["variant_regimes"] is None:
         p["variant_regimes"] = list(p["regimes"])
     for key in ("test", "regimes", "methods", "models", "lo_models", "fast", "lo_methods", "variant_regimes",
-                "ablation_models", "prob_models", "points_models", "points_methods", "seed_models"):
+                "ablation_models", "prob_models", "points_models", "points_methods", "seed_models", "select_models"):
         if not isinstance(p[key], list):
             raise RlsacError(f"folds.{key} must be a list, got {p[key]!r}")
         p[key] = [check_value(f"folds.{key}", v, str) for v in p[key]]
@@ -250,6 +270,11 @@ def _typed(p: dict[str, Any]) -> dict[str, Any]:
         raise RlsacError(f"folds.seeds must be a list of distinct training seeds, got {p['seeds']!r}")
     p["seeds"] = [check_value("folds.seeds", v, int, SEED_RANGE) for v in p["seeds"]]
     p["model_regime"] = check_value("folds.model_regime", p["model_regime"], str)
+    if not isinstance(p["select_iterations"], list) or not p["select_iterations"]:
+        raise RlsacError(f"folds.select_iterations must be a list of budgets, got {p['select_iterations']!r}")
+    p["select_iterations"] = [check_value("folds.select_iterations", v, int, "[1, inf)")
+                              for v in p["select_iterations"]]
+    p["select_tie"] = check_value("folds.select_tie", p["select_tie"], float, "[0, 1]")
     return p
 
 
@@ -318,7 +343,7 @@ def for_task(p: dict[str, Any], params: dict[str, Any], task: str) -> dict[str, 
     return {**p, "task": task, "methods": list(e["methods"]), "models": ["rlsac"], "lo_models": [], "fast": [],
             "lo_methods": [], "variant_regimes": [e["regime"]], "ablation_models": [], "prob_models": [],
             "points": [], "points_models": [], "points_methods": [], "seeds": list(e["seeds"]),
-            "seed_models": ["rlsac"],
+            "seed_models": ["rlsac"], "select_models": [],
             "regimes": [e["regime"]], "model_regime": e["regime"], "iterations": {e["regime"]: list(e["iterations"])}}
 
 
@@ -386,8 +411,11 @@ def check_options(options: dict[str, Any], p: dict[str, Any] | None = None) -> d
         if o["stage"] in ("data", "train") and o["task"] != "fundamental":
             raise RlsacError(f"folds --stage {o['stage']} is the fundamental benchmark's (the essential task reads its "
                              "data; its models train with `rlsac train --task essential`)")
-        if o["stage"] == "train" and o["regime"] != p["model_regime"]:
+        if o["stage"] in ("train", "select") and o["regime"] != p["model_regime"]:
             raise RlsacError(f"models are trained on regime {p['model_regime']!r} only (folds.model_regime)")
+        if o["stage"] == "select" and o["model"] not in select_runs(p):
+            raise RlsacError(f"folds --stage select needs --model, one of {', '.join(select_runs(p)) or 'none'} "
+                             "(folds.select_models and their training seeds)")
         models = trained_models(p) + list(derived_models(p))
         if o["stage"] == "train" and o["model"] is not None and o["model"] not in models:
             raise RlsacError(f"unknown model {o['model']!r} (known: {', '.join(models)})")
@@ -568,12 +596,27 @@ def tune_fold(p: dict, params: dict, regime: str, fold: str, o: dict, track: boo
     return out
 
 
-def evaluate_fold(p: dict, params: dict, regime: str, fold: str, o: dict, track: bool) -> list[dict]:
-    """Every selected row at every budget on the fold's test file, with the settings of its tuning record
-    (rlsac.tune: chosen on the fold's validation pairs only, checked against the test scenes here)."""
+def tuned_settings(ev: dict, regime: str, fold: str, name: str, train_scenes: list[str], test_scenes: list[str],
+                   task: str = "fundamental") -> dict[str, Any]:
+    """Row ``name``'s settings from its tuning record (chosen on the fold's validation pairs only, checked against
+    the test scenes) as evaluate options."""
     import json
 
     from rlsac import tune
+
+    path = tune.record_path(regime, fold, name, task)
+    if not path.is_file():
+        raise RlsacError(f"{path}: no tuning record (run `rlsac folds --stage tune` first)")
+    try:
+        rec = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise RlsacError(f"{path}: not a tuning record ({e})") from None
+    return tune.as_options(tune.check_record(rec, path, regime, fold, name, train_scenes, test_scenes), ev.get("lo"))
+
+
+def evaluate_fold(p: dict, params: dict, regime: str, fold: str, o: dict, track: bool) -> list[dict]:
+    """Every selected row at every budget on the fold's test file, with the settings of its tuning record
+    (rlsac.tune: chosen on the fold's validation pairs only, checked against the test scenes here)."""
     from rlsac.config import section
     from rlsac.evaluate import check_all, evaluate
 
@@ -581,17 +624,8 @@ def evaluate_fold(p: dict, params: dict, regime: str, fold: str, o: dict, track:
     train_scenes, test_scenes = (scene_list(s) for s in split_scenes(p, fold))
     task = p["task"]
     ev = section(params, "evaluate", task)
-    settings = {}
-    for name in chosen_rows:  # every record read and checked before the first evaluation
-        path = tune.record_path(regime, fold, name, task)
-        if not path.is_file():
-            raise RlsacError(f"{path}: no tuning record (run `rlsac folds --stage tune` first)")
-        try:
-            rec = json.loads(path.read_text())
-        except (OSError, ValueError) as e:
-            raise RlsacError(f"{path}: not a tuning record ({e})") from None
-        settings[name] = tune.as_options(tune.check_record(rec, path, regime, fold, name, train_scenes, test_scenes),
-                                         ev.get("lo"))
+    # every record read and checked before the first evaluation
+    settings = {name: tuned_settings(ev, regime, fold, name, train_scenes, test_scenes, task) for name in chosen_rows}
     jobs = []
     for name, row in chosen_rows.items():
         for it in p["iterations"][regime]:
@@ -635,6 +669,10 @@ def folds(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
         result["models"] = train_models(p, params, regime, fold, models, o, track)
     elif o["stage"] == "tune":
         result["tuned"] = tune_fold(p, params, regime, fold, o, track)
+    elif o["stage"] == "select":
+        from rlsac.selection import select_fold
+
+        result["selection"] = select_fold(p, params, regime, fold, o["model"], o)
     else:
         result["evaluations"] = evaluate_fold(p, params, regime, fold, o, track)
     result["seconds"] = round(time.time() - t0, 1)
@@ -654,6 +692,11 @@ def format_summary(s: dict[str, Any]) -> str:
     if s["stage"] == "tune":
         return head + "; ".join(f"{t['row']}: {t['chosen']} (val mAA {t['mAA']:.3f})" for t in s["tuned"]) + (
             f" -> {tune.record_path(s['regime'], s['fold'], '-', s['task']).parent}")
+    if s["stage"] == "select":
+        sel = s["selection"]
+        return head + f"{sel['model']}: kept step {sel['kept_step']} of {sel['steps']}; " + "; ".join(
+            f"step {st} " + ", ".join(f"@{it} R {m['mAA_R']:.3f} t {m['mAA_t']:.3f}" for it, m in per.items())
+            for st, per in sel["test"].items()) + f" -> {', '.join(sel['files'])}"
     return head + "; ".join(f"{e['method']}@{e['iterations']} R {e['mAA_R']:.3f} t {e['mAA_t']:.3f}"
                             for e in s["evaluations"]) + (
         f" -> {eval_dir(s['regime'], s['fold'], '-', 1, s['task']).parent.parent}")

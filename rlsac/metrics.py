@@ -46,7 +46,7 @@ def paired_bootstrap_maa(errors_a, errors_b, limit: float, n_boot: int = 2000, s
 
 
 def seed_bootstrap_maa(errors_a, errors_b, limit: float, strata=None, n_boot: int = 2000, seed: int = 0,
-                       level: float = 0.95) -> dict[str, float]:
+                       level: float = 0.95, paired_seeds: bool = False) -> dict[str, float]:
     """mAA(a) - mAA(b) across training seeds, on the same instances, with a hierarchical bootstrap interval.
 
     errors_a: (S_a, M) errors of S_a training seeds of a method on M instances; errors_b: (S_b, M) of another
@@ -60,6 +60,9 @@ def seed_bootstrap_maa(errors_a, errors_b, limit: float, strata=None, n_boot: in
     "sd_b"} (seed mean and seed-to-seed standard deviation of each method's mAA; sd 0 for one seed) and
     "p_improve": the probability that a random seed of a beats a random seed of b on a random stratum (rliable's
     probability of improvement with the strata as its tasks, ties counting one half).
+
+    paired_seeds: row s of a and of b come from the same training run (e.g. two checkpoints of one run,
+    rlsac.selection): each draw picks the same seeds for both (S_a = S_b), as it picks the same instances.
     """
     a, b = (np.atleast_2d(np.asarray(e, dtype=np.float64)) for e in (errors_a, errors_b))
     if a.shape[1] != b.shape[1] or a.shape[1] == 0 or 0 in (a.shape[0], b.shape[0]):
@@ -75,7 +78,9 @@ def seed_bootstrap_maa(errors_a, errors_b, limit: float, strata=None, n_boot: in
                           for k in np.unique(strata)], axis=1)  # (n_boot, M): the same instances for a and b
     per_a, per_b = acc_a[:, idx].mean(axis=2), acc_b[:, idx].mean(axis=2)  # (S, n_boot): each seed's resampled mAA
     pick_a = rng.integers(0, len(acc_a), size=(n_boot, len(acc_a)))
-    pick_b = rng.integers(0, len(acc_b), size=(n_boot, len(acc_b)))
+    if paired_seeds and len(acc_a) != len(acc_b):
+        raise ValueError(f"paired seeds need as many seeds in a as in b, got {len(acc_a)} and {len(acc_b)}")
+    pick_b = pick_a if paired_seeds else rng.integers(0, len(acc_b), size=(n_boot, len(acc_b)))
     cols = np.arange(n_boot)[:, None]
     boot = per_a[pick_a, cols].mean(axis=1) - per_b[pick_b, cols].mean(axis=1)
     tail = 100 * (1 - level) / 2

@@ -108,13 +108,17 @@ def check(options: dict, track: bool = True) -> TrainConf:
     return conf
 
 
-def train(options: dict, track: bool = True) -> dict:
-    """``rlsac train``: options -> TrainConf; train, keep the selected actor in ``out``; -> a summary."""
+def train(options: dict, track: bool = True, snapshots: list | None = None) -> dict:
+    """``rlsac train``: options -> TrainConf; train, keep the selected actor in ``out``; -> a summary.
+    ``snapshots``: a list that receives the checkpoint payload of every validated actor, kept or not (rlsac.selection
+    replays a fold model's training to measure the choice; nothing of the run itself changes)."""
     conf = check(options, track)
     out, state_path = Path(conf.out), Path(conf.out).with_suffix(".state.pt")
     if conf.threads > 0:
         torch.set_num_threads(conf.threads)
     device = resolve_device(conf.device)
+    if conf.method == "ngransac" and snapshots is not None:
+        raise RlsacError("train: snapshots of every validated actor are RLSAC's training's (rlsac.selection)")
     if conf.method == "ngransac":  # its own training (rlsac.ngransac): same data, validation and selection
         from rlsac import ngransac
 
@@ -127,6 +131,7 @@ def train(options: dict, track: bool = True) -> dict:
     for p in (out, state_path):  # left by a process killed while saving
         clean_stale_temps(p)
     run = _TrainingRun(conf, task, agent, gen, val, out, state_path, device)
+    run.snapshots = snapshots
     if conf.resume:
         run.resume(data)
 
@@ -194,6 +199,7 @@ class _TrainingRun:
         self.mlflow_id: str | None = None
         self.saved = {"step": 0, "after_signal": False}  # the last state saved, and whether a signal preceded it
         self.stop: _StopOnSignal | None = None
+        self.snapshots: list | None = None  # every validated actor's payload, when a caller asks (train's snapshots)
 
     # ------------------------------------------------------------ MLflow run
     def name(self) -> str:
@@ -246,6 +252,9 @@ class _TrainingRun:
         """Validate the actor; keep it (``out``) when it beats the best score of the selection rule."""
         summ = validation_metrics(self.task, self.val, self.agent, self.conf, self.device)
         self.history.append({"step": step, **summ})
+        if self.snapshots is not None:
+            self.snapshots.append(checkpoint.actor_payload(self.agent.actor, self.conf_dict, in_channels(self.task),
+                                                           step, summ, self.conf.selection, self.history))
         score = summ[SELECTION_KEY.get(self.conf.selection, "charts/val_mAA")]
         if self.conf.selection != "last" and score > self.best["score"]:
             self.best.update(score=score, step=step, **summ)

@@ -29,6 +29,8 @@ from typing import Any, Callable
 from rlsac.errors import RlsacError
 
 IGNORED_NAMES = {"timing.json"}  # untracked per-run sidecars (rlsac.evaluate.TIMING_FILE), never committed
+# stages that train (minutes each): by name, besides any stage writing a checkpoint; fold_select* replays a training
+TRAINING_WORDS = ("train", "select")
 DEFAULTS = {"stages": None, "sample": None, "seed": 0, "include_train": False, "scratch": None, "keep": False,
             "repo": "."}
 
@@ -134,11 +136,17 @@ def load_stages(repo_dir: str | os.PathLike) -> tuple[Path, list[dict]]:
                 "deps": [rel(d.fs_path) for d in st.deps
                          if not isinstance(d, ParamsDependency) and d.protocol == "local"],
                 "outs": [rel(o.fs_path) for o in outs], "committed": why is None, "why": why,
-                "train": any(p.endswith(".pt") for p in (rel(o.fs_path) for o in outs))
-                or "train" in address.split("@")[0].split(":")[-1]})
+                "train": is_training(address, [rel(o.fs_path) for o in outs])})
     finally:
         repo.close()
     return root, stages
+
+
+def is_training(address: str, outs: list[str]) -> bool:
+    """Whether a stage trains (left out of a sample unless --include-train): it writes a checkpoint, or its name (the
+    stage's, before any @item) holds a word of ``TRAINING_WORDS``."""
+    name = address.split("@")[0].split(":")[-1]
+    return any(p.endswith(".pt") for p in outs) or any(w in name for w in TRAINING_WORDS)
 
 
 def select(stages: list[dict], names: str | None, sample: int | None, seed: int, include_train: bool) -> list[dict]:

@@ -135,3 +135,19 @@ def test_a_line_claim_at_a_rate_without_other_seeds_uses_the_first_seed(tmp_path
     assert claims.build(ev, tmp_path / "out", (claim,))["missing"] == []
     row = pd.read_csv(tmp_path / "out" / "claims.csv").iloc[0]
     assert row["seeds"] == 1 and row["angle: model − control [95%]"].startswith("+0.500")
+
+
+def test_a_fold_claim_against_a_learned_control_takes_the_controls_seeds_too(tmp_path):
+    """rlsac-nosnn (one seed, solves every pair) against rlsac: rlsac's first seed solves every pair as well, its second
+    none. Over rlsac's first seed alone the tie would be exact; with both of its seeds the control's mean is 0.5, the
+    difference +0.5, and the seeds column says 1 vs 2."""
+    ev = tmp_path / "eval"
+    for fold in ("a", "b"):
+        _write(ev, fold, "rlsac-nosnn", [0.5] * 6, [0.5] * 6)
+        _write(ev, fold, "rlsac", [0.5] * 6, [0.5] * 6)
+        _write(ev, fold, "rlsac-s1", [20.0] * 6, [20.0] * 6)
+    claim = claims.Claim("no-SNN ties RLSAC", "test", "folds", "hard", 100, "rlsac-nosnn", "rlsac", "tie")
+    claims.build(ev, tmp_path / "out", (claim,))
+    row = pd.read_csv(tmp_path / "out" / "claims.csv").iloc[0]
+    assert row["seeds"] == "1 vs 2" and row["R: model − control [95%]"].startswith("+0.500")
+    assert row["verdict"] != "supported"

@@ -383,6 +383,15 @@ def test_fold_table_across_seeds_resamples_seeds_and_keeps_them_out_of_the_main_
     assert cells[3] == "0.500 ± 0.707" and cells[4] == "0.500"  # R: seed mean and SD, the control's mAA
     lo, hi = (float(x) for x in cells[5].split("[")[1].rstrip("]").split(","))
     assert cells[5].startswith("+0.000") and lo <= -0.5 and hi >= 0.5 and cells[6] == "0.50"
+    # a variant with seeds against the paper recipe: both sides over their seeds (rlsac's mean 0.5, SD 0.707)
+    for fold in ("a", "b"):
+        _write_errors(ev, "hard", fold, "rlsac-nosnn", 100, [0.6] * 4, [0.6] * 4)
+        _write_errors(ev, "hard", fold, "rlsac-nosnn-s1", 100, [0.7] * 4, [0.7] * 4)
+    fold_table.build(ev, tmp_path / "out2", tmp_path / "rec")
+    md = (tmp_path / "out2" / "table2_folds.md").read_text().split("### Across training seeds", 1)[1]
+    line = next(x for x in md.splitlines() if x.count("(2 seeds)") == 2)
+    cells = [c.strip() for c in line.split("|")[1:-1]]
+    assert cells[3] == "1.000 ± 0.000" and cells[4] == "0.500 ± 0.707" and cells[5].startswith("+0.500")
 
 
 def test_table_refuses_an_n_row_run_on_other_data(tmp_path):
@@ -451,7 +460,7 @@ def test_folds_command_end_to_end(imported, tmp_path, monkeypatch):
                             "rlsac-trainmax": {"sac": {"train_sampling": "max"}}},
                   "iterations": [15], "seed": 0, "fast": ["rlsac"],
                   "points": [30], "points_models": ["rlsac"], "points_methods": ["uniform"],
-                  "seeds": [1], "seed_models": ["rlsac"]},
+                  "seeds": [1], "seed_models": ["rlsac"], "select_models": ["rlsac"], "select_iterations": [15]},
         "essential": {"regime": "hard", "methods": ["ransac", "usac"], "iterations": [15]},
         "tuning": {"iterations": 15, "threshold_px": [1.0, 2.0], "prefilter": [0.9, 1.0], "extend": 0,
                    "guide_temperature": [0.1], "lo_sigma_scale": [0.5], "sets_per_step": [2], "confidence": [0.99]},
@@ -550,6 +559,30 @@ def test_folds_command_end_to_end(imported, tmp_path, monkeypatch):
     assert "Settings chosen on each fold's validation pairs" in md and ("SNN<0.9" in md or "no filter" in md)
     errors = pd.read_csv(tmp_path / "reports/eval/folds/hard/fountain/uniform/i15/errors.csv")
     assert (errors["n_hypotheses"] == 15).all()  # the paper's algorithm: the whole budget, every pair
+    # issue #27, item 3: the training replayed, every validated actor tested; the kept one's errors are its evaluation's
+    r = run.invoke(cli, base + ["--stage", "select", "--model", "rlsac-ws"])
+    assert r.exit_code == 2 and "needs --model, one of rlsac, rlsac-s1" in r.output
+    r = run.invoke(cli, base + ["--stage", "select", "--model", "rlsac-s1"])
+    assert r.exit_code == 0, r.output
+    sel = json.loads((tmp_path / "reports/selection/hard/fountain/rlsac-s1.json").read_text())
+    assert sel["steps"] == [4, 8] and sel["last_step"] == 8 and sel["kept_step"] == s1["step"] and sel["reproduced"]
+    assert sel["kept_step"] in sel["candidates"] and [h["step"] for h in sel["history"]] == [4, 8]
+    per_pair = pd.read_csv(tmp_path / "reports/selection/hard/fountain/rlsac-s1.csv", dtype={"pair": str})
+    kept_rows = per_pair[per_pair["step"] == sel["kept_step"]]
+    ev_s1 = pd.read_csv(tmp_path / "reports/eval/folds/hard/fountain/rlsac-s1/i15/errors.csv")
+    assert len(per_pair) == 2 * 8 and np.allclose(kept_rows["err_R"], ev_s1["err_R"])
+    other = per_pair[per_pair["step"] != sel["kept_step"]]
+    assert mAA(other["err_R"].to_numpy(), 10) == pytest.approx(sel["test"][str(other["step"].iloc[0])]["15"]["mAA_R"])
+    r = run.invoke(cli, ["table", "--which", "selection", "--no-tracking"])
+    assert r.exit_code == 0, r.output
+    assert "| rlsac   | 15 " in (tmp_path / "reports/selection.md").read_text()
+    assert len(pd.read_csv(tmp_path / "reports/selection.csv")) == 2  # rlsac-s1's two validated actors
+    ck = tmp_path / "checkpoints/folds/hard/fountain/rlsac-s1.pt"
+    good_ck = ck.read_bytes()
+    torch.save({**s1, "actor": {k: v + 1e-3 for k, v in s1["actor"].items()}}, ck)  # not what the options train
+    r = run.invoke(cli, base + ["--stage", "select", "--model", "rlsac-s1"])
+    assert r.exit_code == 2 and "does not give the kept actor" in r.output
+    ck.write_bytes(good_ck)
     # Table E through the same protocol: our RANSAC also tunes the final refit, OpenCV's rows do not
     ess = base + ["--task", "essential"]
     r = run.invoke(cli, ess + ["--stage", "train"])

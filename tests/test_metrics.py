@@ -126,3 +126,18 @@ def test_translation_error_ignores_sign_and_scale():
     assert metrics.translation_error_deg(x, np.array([0.0, 0.0, 3.0])) == pytest.approx(90.0)
     # column vectors (3, 1) are accepted
     assert metrics.translation_error_deg(x[:, None], np.array([[1.0], [1.0], [0.0]])) == pytest.approx(45.0)
+
+
+def test_seed_bootstrap_with_paired_seeds_draws_the_same_seeds_for_both():
+    """Two checkpoints of two runs: run 0's last actor loses one of six instances its kept actor solves, run 1's actors
+    solve none. Paired, no draw's difference is below 0 (the instance draw alone moves it up to a few sixths); unpaired,
+    the seeds' own spread (+-0.5) swamps it."""
+    inf = np.inf
+    kept = np.array([[0.0] * 6, [inf] * 6])
+    last = np.array([[0.0] * 5 + [inf], [inf] * 6])
+    paired = metrics.seed_bootstrap_maa(kept, last, 10.0, n_boot=2000, paired_seeds=True)
+    assert paired["diff"] == pytest.approx(1 / 12) and paired["lo"] == 0.0 and paired["hi"] < 0.4
+    unpaired = metrics.seed_bootstrap_maa(kept, last, 10.0, n_boot=2000)
+    assert unpaired["lo"] <= -0.4 and unpaired["hi"] >= 0.4
+    with pytest.raises(ValueError, match="as many seeds"):
+        metrics.seed_bootstrap_maa(kept, last[:1], 10.0, paired_seeds=True)

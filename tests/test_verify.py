@@ -230,3 +230,14 @@ def test_tracking_logs_a_finished_run(repo, workdir):
     local = mlflow.artifacts.download_artifacts(run_id=runs[0].info.run_id, artifact_path="verify.json",
                                                 dst_path=str(workdir / "art"))
     assert json.loads(Path(local).read_text())[0]["status"] == "identical"
+
+
+def test_stages_that_train_are_told_by_their_checkpoint_or_their_name():
+    """fold_select* replays a training (minutes per stage, no checkpoint written): a training stage like fold_train."""
+    from rlsac.verify import is_training
+
+    assert is_training("fold_select_seed@castle-rlsac-1", ["reports/selection/hard/castle/rlsac-s1.csv"])
+    assert is_training("fold_train@castle-rlsac", ["checkpoints/folds/hard/castle/rlsac.pt"])
+    assert is_training("custom@x", ["model.pt"])
+    assert not is_training("fold_eval@hard-castle-rlsac", ["reports/eval/folds/hard/castle/rlsac"])
+    assert not is_training("experiments/quick/dvc.yaml:tables", ["reports/claims.md"])

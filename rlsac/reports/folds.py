@@ -342,8 +342,9 @@ def _control_section(res, regime: str, budgets, folds) -> str:
     return "\n".join(out)
 
 
-# the comparisons of the across-seed section (issue #27): the controls, then the strongest rows of each arm
-SEED_CONTROLS = ("uniform", "guided", "ransac", "prosac", "magsac", "degensac", "poselib")
+# the comparisons of the across-seed section (issue #27): the paper recipe (against its variants with seeds: both
+# sides resampled), the controls, then the strongest rows of each arm
+SEED_CONTROLS = ("rlsac", "uniform", "guided", "ransac", "prosac", "magsac", "degensac", "poselib")
 
 
 def seed_runs(res: dict[tuple[str, str, int], pd.DataFrame], regime: str) -> dict[str, list[str]]:
@@ -376,25 +377,27 @@ def _seed_section(res, regime: str, budgets) -> str:
     from rlsac.metrics import seed_bootstrap_maa
 
     rows = []
-    for model, runs in seed_runs(res, regime).items():
+    seeded = seed_runs(res, regime)
+    for model, runs in seeded.items():
         for it in budgets:
             frames = [res.get((regime, m, it)) for m in runs]
             if any(df is None for df in frames):
                 continue
             for control in SEED_CONTROLS:
-                c = res.get((regime, control, it))
-                if c is None:
+                controls = seeded.get(control, [control])
+                cs = [res.get((regime, m, it)) for m in controls]
+                if control == model or any(c is None for c in cs):
                     continue
                 row = {"iterations": it, "model": f"{NAMES.get(model, model)} ({len(runs)} seeds)",
-                       "control": NAMES.get(control, control)}
+                       "control": NAMES.get(control, control) + (f" ({len(cs)} seeds)" if len(cs) > 1 else "")}
                 for col, name in (("err_R", "R"), ("err_t", "t")):
-                    got = _aligned(frames + [c], col)
+                    got = _aligned(frames + cs, col)
                     if got is None:
                         continue
                     err, fold = got
-                    s = seed_bootstrap_maa(err[:-1], err[-1:], LIMIT, strata=fold, n_boot=N_BOOT, seed=0)
+                    s = seed_bootstrap_maa(err[:len(runs)], err[len(runs):], LIMIT, strata=fold, n_boot=N_BOOT, seed=0)
                     row[f"model {name} (mean ± SD)"] = f"{s['mean_a']:.3f} ± {s['sd_a']:.3f}"
-                    row[f"control {name}"] = f"{s['mean_b']:.3f}"
+                    row[f"control {name}"] = f"{s['mean_b']:.3f}" + (f" ± {s['sd_b']:.3f}" if len(cs) > 1 else "")
                     row[f"{name}: model − control"] = f"{s['diff']:+.3f} [{s['lo']:+.3f}, {s['hi']:+.3f}]"
                     row[f"P(improve) {name}"] = f"{s['p_improve']:.2f}"
                 rows.append(row)

@@ -494,8 +494,8 @@ def metrics(eval_root: str | Path = "reports/eval", out_dir: str | Path = "repor
 
 # ------------------------------------------------------------------------------------------- command
 
-WHICH = ("1", "2", "3", "iterations", "folds", "essential", "claims", "all")
-ALL = ("1", "folds", "essential", "claims")
+WHICH = ("1", "2", "3", "iterations", "folds", "essential", "claims", "selection", "all")
+ALL = ("1", "folds", "essential", "claims", "selection")
 
 
 def build(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
@@ -529,7 +529,7 @@ def build(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
     with start_run("reports", f"table {which}", params={"which": which, "eval_root": str(eval_root),
                                                         "out_dir": str(out_dir)},
                    tags={"command": "table"}, enabled=track) as run:
-        for key in ("1", "2", "3", "iterations", "folds", "essential", "claims"):
+        for key in ("1", "2", "3", "iterations", "folds", "essential", "claims", "selection"):
             # "all" = the pipeline's tables; 2, 3 and iterations (the retired 87-pair split) by name only
             if which != key and not (which == "all" and key in ALL):
                 continue
@@ -550,6 +550,11 @@ def build(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
                 got = claims.build(eval_root, out_dir)
                 files += got["files"]
                 missing += [f"claim: {c}" for c in got["missing"]]
+                continue
+            if key == "selection":  # issue #27, item 3: the records of the fold_select stages
+                from rlsac.reports import selection
+
+                files += selection.build(Path(out_dir) / "selection", out_dir)["files"]
                 continue
             if key == "iterations":
                 df = iterations_csv(eval_root, out_dir)

@@ -1,0 +1,161 @@
+"""reports/selection.{md,csv}: checkpoint selection measured (issue #27, item 3), from the records of the
+fold_select stages (rlsac.selection): <root>/<regime>/<fold>/<run>.json and .csv, one per training run.
+
+For each model of folds.select_models, over its training seeds and the folds:
+  * kept vs last: the actor the selection rule kept against the run's final actor, pooled over the folds, with a 95%
+    interval that resamples training seeds (the same seeds for both: two checkpoints of one run) and test pairs within
+    their building (rlsac.metrics.seed_bootstrap_maa, paired_seeds);
+  * the candidates: actors whose validation score lies within the record's tie of the kept one's (validation cannot
+    tell them apart): their test spread (best - worst mAA of a run's candidates) and how often the kept one is the
+    candidate with the best test mAA.
+The CSV lists every run: kept, last and candidate steps, each validated actor's validation inlier ratio and test mAA.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from rlsac.errors import RlsacError
+from rlsac.io import atomic_path, write_text
+
+LIMIT = 10.0  # mAA@10 deg, as Table 2
+N_BOOT = 2000
+METRICS = ("R", "t")
+
+
+def read_runs(root: str | Path) -> list[dict[str, Any]]:
+    """Every run's record with its per-pair errors (``errors``: the CSV as a frame), sorted by regime, fold, run."""
+    from rlsac.folds import split_seed
+
+    out = []
+    for path in sorted(Path(root).glob("*/*/*.json")):
+        csv = path.with_suffix(".csv")
+        try:
+            rec = json.loads(path.read_text())
+            errors = pd.read_csv(csv, dtype={"pair": str, "scene": str})
+        except (OSError, ValueError) as e:
+            raise RlsacError(f"{path}: not a readable selection record ({e.__class__.__name__})") from None
+        need = {"regime", "fold", "model", "kept_step", "last_step", "steps", "candidates", "history", "iterations"}
+        if not isinstance(rec, dict) or not need <= set(rec) or not {"step", "iterations", "err_R", "err_t"} <= set(
+                errors.columns):
+            raise RlsacError(f"{path}: not a selection record of rlsac.selection")
+        base, seed = split_seed(rec["model"])
+        out.append({**rec, "base": base, "seed": 0 if seed is None else seed, "errors": errors})
+    return out
+
+
+def _errors(run: dict[str, Any], step: int, it: int, col: str) -> np.ndarray:
+    e = run["errors"]
+    return e.loc[(e["step"] == step) & (e["iterations"] == it), col].to_numpy(np.float64)
+
+
+def _accuracy(err: np.ndarray) -> float:
+    from rlsac.metrics import mAA
+
+    return float(mAA(err, LIMIT))
+
+
+def run_table(runs: list[dict[str, Any]]) -> pd.DataFrame:
+    """One row per (run, validated step): its validation inlier ratio and mAA, whether it is kept / last / a
+    candidate, and its test mAA of R and t at every budget."""
+    rows = []
+    for r in runs:
+        val = {int(h["step"]): h for h in r["history"]}
+        for step in r["steps"]:
+            row = {"model": r["base"], "seed": r["seed"], "regime": r["regime"], "fold": r["fold"], "step": step,
+                   "kept": step == r["kept_step"], "last": step == r["last_step"],
+                   "candidate": step in r["candidates"],
+                   "val inlier ratio": round(float(val.get(step, {}).get("charts/val_inlier_ratio", np.nan)), 4),
+                   "val mAA": round(float(val.get(step, {}).get("charts/val_mAA", np.nan)), 4)}
+            for it in r["iterations"]:
+                for m in METRICS:
+                    row[f"test mAA_{m} @{it}"] = round(_accuracy(_errors(r, step, it, f"err_{m}")), 4)
+            rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def summary(runs: list[dict[str, Any]]) -> pd.DataFrame:
+    """Per model and budget: kept vs last (seed-aware paired interval) and the candidates' test spread."""
+    from rlsac.metrics import seed_bootstrap_maa
+
+    rows = []
+    for base in sorted({r["base"] for r in runs}):
+        mine = [r for r in runs if r["base"] == base]
+        seeds = sorted({r["seed"] for r in mine})
+        folds = sorted({r["fold"] for r in mine})
+        complete = [s for s in seeds if {r["fold"] for r in mine if r["seed"] == s} == set(folds)]
+        for it in sorted({i for r in mine for i in r["iterations"]}):
+            for m in METRICS:
+                col = f"err_{m}"
+                row: dict[str, Any] = {"model": base, "iterations": it, "metric": f"mAA_{m}", "seeds": len(complete),
+                                       "runs": len(mine),
+                                       "kept = last": f"{sum(r['kept_step'] == r['last_step'] for r in mine)}"
+                                                      f"/{len(mine)}"}
+                kept, last, strata = [], [], None
+                for s in complete:  # each seed's pairs of every fold, in one order
+                    rs = sorted((r for r in mine if r["seed"] == s), key=lambda r: r["fold"])
+                    kept.append(np.concatenate([_errors(r, r["kept_step"], it, col) for r in rs]))
+                    last.append(np.concatenate([_errors(r, r["last_step"], it, col) for r in rs]))
+                    strata = np.concatenate([[r["fold"]] * len(_errors(r, r["kept_step"], it, col)) for r in rs])
+                if complete:
+                    st = seed_bootstrap_maa(np.stack(kept), np.stack(last), LIMIT, strata=strata, n_boot=N_BOOT,
+                                            seed=0, paired_seeds=True)
+                    row["kept (mean ± SD)"] = f"{st['mean_a']:.3f} ± {st['sd_a']:.3f}"
+                    row["last (mean ± SD)"] = f"{st['mean_b']:.3f} ± {st['sd_b']:.3f}"
+                    row["kept − last [95%]"] = f"{st['diff']:+.3f} [{st['lo']:+.3f}, {st['hi']:+.3f}]"
+                spread, kept_best = [], 0
+                for r in mine:  # the runs whose validation cannot tell several actors apart
+                    got = {s: _accuracy(_errors(r, s, it, col)) for s in r["candidates"]}
+                    if len(got) > 1:
+                        spread.append(max(got.values()) - min(got.values()))
+                        kept_best += got[r["kept_step"]] == max(got.values())
+                row["tied runs"] = len(spread)
+                row["tied spread (mean / max)"] = f"{np.mean(spread):.3f} / {np.max(spread):.3f}" if spread else "–"
+                row["kept best of tied"] = f"{kept_best}/{len(spread)}" if spread else "–"
+                rows.append(row)
+    return pd.DataFrame(rows)
+
+
+HEAD = """# Checkpoint selection measured (issue #27, item 3)
+
+Generated by `rlsac table` from reports/selection/ (stages `fold_select*`, rlsac.selection). A fold model's training
+validates its actor every `val_every` steps on 40 validation pairs of its training buildings and keeps the one with
+the best mean inlier ratio of the final hypotheses (the paper's unsupervised signal). The stages replay each training
+run (same options and seed; each replay gave the kept actor bit for bit, or the stage would have failed) and test
+every validated actor on the fold's test pairs, in the model regime, with the settings tuned for the kept actor.
+
+* **kept − last**: the kept actor against the run's final one, mAA@10° pooled over the folds; `mean ± SD` over
+  training seeds; the interval resamples the seeds (the same for both: two checkpoints of one run) and the test pairs
+  within their building ({n_boot} draws). One unit of mAA is one test pair's accuracy over {pairs} pairs per seed.
+* **tied**: runs where another validated actor's validation inlier ratio lies within the tie ({tie}) of the kept
+  one's, so that validation cannot tell them apart; `spread`: best − worst test mAA among those actors, and how often
+  the kept one is the best of them on test.
+"""
+
+
+def build(root: str | Path = "reports/selection", out_dir: str | Path = "reports") -> dict[str, Any]:
+    """Write <out_dir>/selection.{md,csv} from the records under ``root`` -> {"files"} (none without records)."""
+    runs = read_runs(root)
+    if not runs:
+        print(f"selection: no records under {root}; nothing written")
+        return {"files": []}
+    per_run, summ = run_table(runs), summary(runs)
+    pairs = sorted({int(sum(len(_errors(r, r["kept_step"], r["iterations"][0], "err_R")) for r in runs
+                            if r["base"] == b and r["seed"] == s)) for b, s in {(r["base"], r["seed"]) for r in runs}})
+    ties = sorted({float(r.get("tie", np.nan)) for r in runs})
+    md = (HEAD.format(n_boot=N_BOOT, pairs=" / ".join(map(str, pairs)), tie=" / ".join(f"{t:g}" for t in ties))
+          + "\n## Kept vs last, and the actors validation cannot tell apart\n\n"
+          + summ.to_markdown(index=False, disable_numparse=True)
+          + "\n\n## Every run (reports/selection.csv)\n\n" + per_run.to_markdown(index=False, disable_numparse=True)
+          + "\n")
+    out_dir = Path(out_dir)
+    md_path, csv_path = out_dir / "selection.md", out_dir / "selection.csv"
+    with atomic_path(csv_path) as tmp:
+        per_run.to_csv(tmp, index=False)
+    write_text(md_path, md)
+    return {"files": [str(md_path), str(csv_path)]}
