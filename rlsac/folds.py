@@ -133,7 +133,7 @@ def protocol(params: dict[str, Any]) -> dict[str, Any]:
     not_rl = sorted(m for m in p["select_models"] if model_method(p, m) != "rlsac")
     if not_rl:
         raise RlsacError(f"folds.select_models {not_rl}: the replay keeps RLSAC's validated actors only")
-    if not set(p["select_iterations"]) <= set(p["iterations"][p["model_regime"]]):
+    if p["select_models"] and not set(p["select_iterations"]) <= set(p["iterations"][p["model_regime"]]):
         raise RlsacError(f"folds.select_iterations {p['select_iterations']} must be budgets of folds.iterations "
                          f"{p['iterations'][p['model_regime']]} (the kept actor's evaluation is read, not redone)")
     if p["points"] and p["model_regime"] not in p["variant_regimes"]:

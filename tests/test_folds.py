@@ -63,6 +63,10 @@ def test_every_test_building_is_tested_once_and_never_trained_on(params):
     ({"seeds": [1], "seed_models": ["rlsac-nosnn"]}, "folds.seed_models"),
     ({"seeds": [0, 1], "seed_models": ["rlsac"]}, "the seed of model 'rlsac' itself"),
     ({"seeds": [1, 1], "seed_models": ["rlsac"]}, "distinct training seeds"),
+    ({"select_models": ["rlsac"]}, "folds.select_models"),  # not a model of seed_models
+    ({"select_models": ["rlsac"], "seed_models": ["rlsac"], "select_iterations": [7]}, "select_iterations"),
+    ({"select_tie": 2.0}, "select_tie"),
+    ({"select_iterations": "1000"}, "select_iterations"),
 ])
 def test_protocol_rejects_inconsistent_folds(change, message):
     with pytest.raises(RlsacError, match=message):
