@@ -68,3 +68,21 @@ def test_the_report_refuses_a_record_that_is_not_one(tmp_path):
     with pytest.raises(RlsacError, match="not a selection record"):
         report.build(tmp_path / "selection", tmp_path)
     assert report.build(tmp_path / "none", tmp_path) == {"files": []}
+
+
+def test_every_shipped_checkpoint_says_how_it_was_kept(tmp_path):
+    from rlsac import checkpoint
+
+    root = tmp_path / "checkpoints"
+    checkpoint.write(root / "folds" / "a.pt", {"actor": {}, "selection": "inlier_ratio", "step": 200,
+                                                "history": [{"step": 100}, {"step": 200}, {"step": 300}]})
+    checkpoint.write(root / "old.pt", {"actor": {}, "step": 1000})
+    checkpoint.write(root / "folds" / "a.state.pt", {"not": "a checkpoint"})  # a training state: left out
+    got = report.shipped(root)
+    assert list(got["checkpoint"]) == [str(root / "folds" / "a.pt"), str(root / "old.pt")]
+    assert got.iloc[0]["kept by"].startswith("best validation inlier ratio") and got.iloc[0]["kept step"] == 200
+    assert got.iloc[0]["validated steps"] == "100 200 300"
+    assert got.iloc[1]["kept by"].startswith("not recorded") and got.iloc[1]["validated steps"] == "–"
+    _record(tmp_path / "selection", "a", "rlsac", 2, {1: 0.3, 2: 0.5}, {1: False, 2: True})
+    report.build(tmp_path / "selection", tmp_path, root)
+    assert "## How every shipped checkpoint was kept" in (tmp_path / "selection.md").read_text()

@@ -138,8 +138,29 @@ every validated actor on the fold's test pairs, in the model regime, with the se
 """
 
 
-def build(root: str | Path = "reports/selection", out_dir: str | Path = "reports") -> dict[str, Any]:
-    """Write <out_dir>/selection.{md,csv} from the records under ``root`` -> {"files"} (none without records)."""
+RULES = {"inlier_ratio": "best validation inlier ratio (the paper's unsupervised signal)",
+         "val_mAA": "best validation mAA (ground truth; not the paper's)", "last": "the final actor"}
+
+
+def shipped(ckpt_root: str | Path) -> pd.DataFrame:
+    """Every checkpoint under ``ckpt_root`` (training states left out): how its actor was kept -> one row each."""
+    from rlsac.checkpoint import kind_of, read
+
+    rows = []
+    for path in sorted(p for p in Path(ckpt_root).rglob("*.pt") if not p.name.endswith(".state.pt")):
+        ck = read(path)
+        hist = ck.get("history") or []
+        rule = ck.get("selection")
+        rows.append({"checkpoint": str(path), "kind": kind_of(ck), "kept by": RULES.get(rule, rule) if rule else
+                     "not recorded (written before the checkpoint format kept it)", "kept step": ck.get("step"),
+                     "validated steps": " ".join(str(h.get("step")) for h in hist) or "–"})
+    return pd.DataFrame(rows)
+
+
+def build(root: str | Path = "reports/selection", out_dir: str | Path = "reports",
+          ckpt_root: str | Path | None = None) -> dict[str, Any]:
+    """Write <out_dir>/selection.{md,csv} from the records under ``root`` (and, with ``ckpt_root``, how every shipped
+    checkpoint was kept) -> {"files"} (none without records)."""
     runs = read_runs(root)
     if not runs:
         print(f"selection: no records under {root}; nothing written")
@@ -153,6 +174,11 @@ def build(root: str | Path = "reports/selection", out_dir: str | Path = "reports
           + summ.to_markdown(index=False, disable_numparse=True)
           + "\n\n## Every run (reports/selection.csv)\n\n" + per_run.to_markdown(index=False, disable_numparse=True)
           + "\n")
+    ships = shipped(ckpt_root) if ckpt_root is not None else pd.DataFrame()
+    if not ships.empty:
+        md += ("\n## How every shipped checkpoint was kept\n\nFrom each file under " + f"`{ckpt_root}/`" + " (its "
+               "`selection` and `step`, and the steps its training validated).\n\n"
+               + ships.to_markdown(index=False, disable_numparse=True) + "\n")
     out_dir = Path(out_dir)
     md_path, csv_path = out_dir / "selection.md", out_dir / "selection.csv"
     with atomic_path(csv_path) as tmp:

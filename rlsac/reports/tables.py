@@ -554,7 +554,7 @@ def build(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
             if key == "selection":  # issue #27, item 3: the records of the fold_select stages
                 from rlsac.reports import selection
 
-                files += selection.build(Path(out_dir) / "selection", out_dir)["files"]
+                files += selection.build(Path(out_dir) / "selection", out_dir, "checkpoints")["files"]
                 continue
             if key == "iterations":
                 df = iterations_csv(eval_root, out_dir)
