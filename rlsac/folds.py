@@ -672,7 +672,7 @@ def folds(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
     elif o["stage"] == "select":
         from rlsac.selection import select_fold
 
-        result["selection"] = select_fold(p, params, regime, fold, o["model"], o)
+        result["selection"] = select_fold(p, params, regime, fold, o["model"], o, track)
     else:
         result["evaluations"] = evaluate_fold(p, params, regime, fold, o, track)
     result["seconds"] = round(time.time() - t0, 1)

@@ -72,9 +72,12 @@ def replay(train_opts: dict[str, Any], kept: dict[str, Any], where: Path) -> lis
     return snaps
 
 
-def select_fold(p: dict, params: dict, regime: str, fold: str, model: str, o: dict) -> dict[str, Any]:
+def select_fold(p: dict, params: dict, regime: str, fold: str, model: str, o: dict, track: bool = True
+                ) -> dict[str, Any]:
     """Replay ``model``'s training on (regime, fold), evaluate every validated actor on the test pairs; write the
-    two files -> a summary."""
+    two files and log an MLflow run (each step's test mAA, the seconds) -> a summary."""
+    import time
+
     from rlsac import checkpoint
     from rlsac.config import section
     from rlsac.evaluate import check_options, resolve_device, score
@@ -89,6 +92,7 @@ def select_fold(p: dict, params: dict, regime: str, fold: str, model: str, o: di
         tuned_settings,
     )
     from rlsac.tasks import task_class
+    from rlsac.tracking import check_store, start_run
 
     row = rows(p, fold, regime)[model]
     iterations = list(p["select_iterations"])
@@ -112,10 +116,18 @@ def select_fold(p: dict, params: dict, regime: str, fold: str, model: str, o: di
     csv_path, json_path = paths(regime, fold, model)
     for path in (csv_path, json_path):
         check_writable(path)
+    experiment = task_class(task).experiment
+    check_store(track, experiment)
     device = resolve_device(o["device"])
     frames, test_maa = [], {}
-    with tempfile.TemporaryDirectory(prefix="rlsac-select-") as tmp:
+    tags = {"command": "folds", "benchmark": "folds", "regime": regime, "fold": fold, "model": model}
+    with tempfile.TemporaryDirectory(prefix="rlsac-select-") as tmp, start_run(
+            experiment, f"select folds {regime} {fold} {model}", params={"iterations": iterations,
+                                                                        "tie": p["select_tie"], **settings},
+            tags=tags, enabled=track) as mlrun:
+        t0 = time.perf_counter()
         snaps = replay(train_options(p, params, regime, fold, model, o), kept, Path(tmp))
+        mlrun.metrics({"time/replay_seconds": time.perf_counter() - t0})
         for snap in snaps:
             step = int(snap["step"])
             for it in iterations:
@@ -131,6 +143,8 @@ def select_fold(p: dict, params: dict, regime: str, fold: str, model: str, o: di
                 frames.append(pd.DataFrame({"step": step, "iterations": int(it), "scene": data["scene"],
                                             "pair": data["pair"], "err_R": got["err_R"], "err_t": got["err_t"]}))
                 test_maa.setdefault(str(step), {})[str(it)] = {k: float(summ[k]) for k in ("mAA", "mAA_R", "mAA_t")}
+                mlrun.metrics({f"test_{k}/step{step}/i{it}": v for k, v in test_maa[str(step)][str(it)].items()})
+        mlrun.metrics({"time/seconds": time.perf_counter() - t0})
     history = [dict(h) for h in kept.get("history", [])]
     record = {"regime": regime, "fold": fold, "model": model, "checkpoint": str(row["checkpoint"]),
               "selection": kept.get("selection"), "score": SCORE_KEY, "kept_step": int(kept["step"]),
