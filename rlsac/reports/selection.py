@@ -64,7 +64,7 @@ def run_table(runs: list[dict[str, Any]]) -> pd.DataFrame:
     """One row per (run, validated step): its validation inlier ratio and mAA, whether it is kept / last / a
     candidate, and its test mAA of R and t at every budget."""
     rows = []
-    for r in runs:
+    for r in sorted(runs, key=lambda r: (r["base"], r["seed"], r["regime"], r["fold"])):
         val = {int(h["step"]): h for h in r["history"]}
         for step in r["steps"]:
             row = {"model": r["base"], "seed": r["seed"], "regime": r["regime"], "fold": r["fold"], "step": step,
