@@ -34,7 +34,7 @@ RECORDED = {
     "train_lines@*": 940, "train_lines_seed@*": 596, "eval_lines_ours_seed@*": 29,
     "eval_lines_generalisation_seed@*": 27, "essential_train_seed@*": 75, "essential_tune_seed@*": 117,
     "essential_eval_seed@*": 67, "fold_train@*": 115,
-    "fold_train_seed@*": 115, "fold_train_points@*": 115, "fold_select*": 195,
+    "fold_train_seed@*": 115, "fold_train_points@*": 115, "fold_select*": 153,
     "fold_train_ablation@*": 60, "essential_train@*": 70, "eval_lines_ours@*": 14,
     "eval_lines_generalisation@*": 14, "eval_lines_ransac@*": 3, "eval_lines_oracle@*": 3,
     "fold_tune*": 36.5, "fold_eval*": 29, "essential_tune*": 67, "essential_eval*": 22, "tables": 30, "figures": 25,
