@@ -26,18 +26,6 @@ from rlsac.errors import RlsacError
 from rlsac.io import atomic_path, check_writable, write_json
 
 ROOT = Path("reports") / "selection"
-# validation inlier ratios this close to the kept one's count as a tie: the selection signal's run-to-run noise on 40
-# validation pairs (issue #27 saw the signal move by <= 0.01 while validation mAA moved by 0.1)
-SCORE_KEY = "charts/val_inlier_ratio"
-
-
-def _read_json(path: Path) -> dict[str, Any]:
-    import json
-
-    try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError) as e:
-        raise RlsacError(f"{path}: not a readable summary ({e.__class__.__name__})") from None
 
 
 def paths(regime: str, fold: str, model: str, root: str | Path = ROOT) -> tuple[Path, Path]:
@@ -46,9 +34,10 @@ def paths(regime: str, fold: str, model: str, root: str | Path = ROOT) -> tuple[
     return d / f"{model}.csv", d / f"{model}.json"
 
 
-def candidates(history: list[dict[str, Any]], kept_step: int, tie: float, key: str = SCORE_KEY) -> list[int]:
-    """Steps of ``history`` whose validation score ``key`` lies within ``tie`` of the kept step's (the kept one
-    included): the actors the selection signal cannot tell apart."""
+def candidates(history: list[dict[str, Any]], kept_step: int, tie: float, key: str = "charts/val_inlier_ratio"
+               ) -> list[int]:
+    """Steps of ``history`` whose validation score ``key`` (the selection rule's, rlsac.train.selection_score) lies
+    within ``tie`` of the kept step's (the kept one included): the actors the selection signal cannot tell apart."""
     score = {int(h["step"]): float(h[key]) for h in history}
     if kept_step not in score:
         raise RlsacError(f"kept step {kept_step} is not a validated step {sorted(score)}")
@@ -91,8 +80,10 @@ def select_fold(p: dict, params: dict, regime: str, fold: str, model: str, o: di
         train_options,
         tuned_settings,
     )
+    from rlsac.reports.tables import read_summary
     from rlsac.tasks import task_class
     from rlsac.tracking import check_store, start_run
+    from rlsac.train import selection_score
 
     row = rows(p, fold, regime)[model]
     iterations = list(p["select_iterations"])
@@ -112,7 +103,7 @@ def select_fold(p: dict, params: dict, regime: str, fold: str, model: str, o: di
         err = pd.read_csv(d / "errors.csv", dtype={"scene": str, "pair": str})
         if [f"{a}/{b}" for a, b in zip(err["scene"], err["pair"], strict=True)] != pairs:
             raise RlsacError(f"{d}: its pairs are not those of {test}")
-        kept_eval[it] = (err, _read_json(d / "summary.json"))
+        kept_eval[it] = (err, read_summary(d / "summary.json"))
     csv_path, json_path = paths(regime, fold, model)
     for path in (csv_path, json_path):
         check_writable(path)
@@ -146,11 +137,13 @@ def select_fold(p: dict, params: dict, regime: str, fold: str, model: str, o: di
                 mlrun.metrics({f"test_{k}/step{step}/i{it}": v for k, v in test_maa[str(step)][str(it)].items()})
         mlrun.metrics({"time/seconds": time.perf_counter() - t0})
     history = [dict(h) for h in kept.get("history", [])]
+    score = selection_score(str(kept.get("selection")))
     record = {"regime": regime, "fold": fold, "model": model, "checkpoint": str(row["checkpoint"]),
-              "selection": kept.get("selection"), "score": SCORE_KEY, "kept_step": int(kept["step"]),
+              "selection": kept.get("selection"), "score": score, "kept_step": int(kept["step"]),
               "last_step": int(max(int(s["step"]) for s in snaps)), "steps": sorted(int(s["step"]) for s in snaps),
               "reproduced": True, "tie": float(p["select_tie"]),
-              "candidates": candidates(history, int(kept["step"]), float(p["select_tie"])), "iterations": iterations,
+              "candidates": candidates(history, int(kept["step"]), float(p["select_tie"]), score),
+              "iterations": iterations,
               "settings": settings, "history": history, "test": test_maa}
     with atomic_path(csv_path) as t:
         pd.concat(frames, ignore_index=True).to_csv(t, index=False, float_format="%.6g")

@@ -255,7 +255,7 @@ class _TrainingRun:
         if self.snapshots is not None:
             self.snapshots.append(checkpoint.actor_payload(self.agent.actor, self.conf_dict, in_channels(self.task),
                                                            step, summ, self.conf.selection, self.history))
-        score = summ[SELECTION_KEY.get(self.conf.selection, "charts/val_mAA")]
+        score = summ[selection_score(self.conf.selection)]
         if self.conf.selection != "last" and score > self.best["score"]:
             self.best.update(score=score, step=step, **summ)
             self.save_actor(step, summ)
@@ -295,6 +295,12 @@ class _TrainingRun:
 
 
 SELECTION_KEY = {"inlier_ratio": "charts/val_inlier_ratio", "val_mAA": "charts/val_mAA"}
+
+
+def selection_score(selection: str) -> str:
+    """The validation metric a selection rule ranks actors by (``last`` keeps the final one; its validations are
+    still scored by validation mAA)."""
+    return SELECTION_KEY.get(selection, "charts/val_mAA")
 
 
 @torch.no_grad()

@@ -135,22 +135,17 @@ def _row(claim: Claim, seeds: int | str, stats: dict[str, dict], pairs: int) -> 
 def check(claim: Claim, res: dict[tuple[str, str, int], pd.DataFrame]) -> dict[str, Any] | None:
     """The claim against ``res`` (rlsac.reports.folds.collect of its benchmark) -> a row of claims.md, or None when
     its rows are missing."""
-    from rlsac.metrics import seed_bootstrap_maa
-    from rlsac.reports.folds import LIMIT, N_BOOT, _aligned, seed_runs
+    from rlsac.reports.folds import seed_comparison, seed_runs
 
     seeds = seed_runs(res, claim.regime)
     runs, controls = seeds.get(claim.model, [claim.model]), seeds.get(claim.control, [claim.control])
-    frames = [res.get((claim.regime, m, claim.iterations)) for m in runs + controls]
-    if any(f is None for f in frames):
-        return None
-    stats = {}
-    for name in claim.metrics:
-        got = _aligned(frames, f"err_{name}")
+    stats, pairs = {}, 0
+    for name in claim.metrics:  # a learned control (e.g. rlsac against one of its variants) over its seeds too
+        got = seed_comparison(res, seeds, claim.regime, claim.model, claim.control, claim.iterations, f"err_{name}")
         if got is None:
             return None
-        err, fold = got  # a learned control (e.g. rlsac against one of its variants) over its seeds too
-        stats[name] = seed_bootstrap_maa(err[:len(runs)], err[len(runs):], LIMIT, strata=fold, n_boot=N_BOOT, seed=0)
-    return _row(claim, len(runs) if len(controls) == 1 else f"{len(runs)} vs {len(controls)}", stats, err.shape[1])
+        stats[name], pairs = got
+    return _row(claim, len(runs) if len(controls) == 1 else f"{len(runs)} vs {len(controls)}", stats, pairs)
 
 
 def check_lines(claim: Claim, root: Path) -> dict[str, Any] | None:

@@ -370,12 +370,27 @@ def _aligned(frames: list[pd.DataFrame], col: str) -> tuple[np.ndarray, np.ndarr
     return np.stack([df.loc[common, col].to_numpy(np.float64) for df in keyed]), keyed[0].loc[common, "fold"].to_numpy()
 
 
+def seed_comparison(res, seeded: dict[str, list[str]], regime: str, model: str, control: str, it: int, col: str
+                    ) -> tuple[dict[str, float], int] | None:
+    """``model`` − ``control`` in column ``col`` at ``it`` iterations, each row over its training seeds (``seeded``:
+    ``seed_runs``; a row without other seeds is one run), on the pairs every run has -> (metrics.seed_bootstrap_maa's
+    result, the number of pairs), or None when a run or common pairs are missing."""
+    from rlsac.metrics import seed_bootstrap_maa
+
+    runs, controls = seeded.get(model, [model]), seeded.get(control, [control])
+    frames = [res.get((regime, m, it)) for m in runs + controls]
+    got = None if any(f is None for f in frames) else _aligned(frames, col)
+    if got is None:
+        return None
+    err, fold = got
+    return (seed_bootstrap_maa(err[:len(runs)], err[len(runs):], LIMIT, strata=fold, n_boot=N_BOOT, seed=0),
+            err.shape[1])
+
+
 def _seed_section(res, regime: str, budgets) -> str:
     """Issue #27: every model trained with several seeds against each control at every budget: the seed mean and
     seed-to-seed SD of its pooled mAA, the difference of seed means with a 95% interval that resamples seeds and pairs
     (pairs within their test building), and the probability of improvement (metrics.seed_bootstrap_maa)."""
-    from rlsac.metrics import seed_bootstrap_maa
-
     rows = []
     seeded = seed_runs(res, regime)
     for model, runs in seeded.items():
@@ -391,11 +406,10 @@ def _seed_section(res, regime: str, budgets) -> str:
                 row = {"iterations": it, "model": f"{NAMES.get(model, model)} ({len(runs)} seeds)",
                        "control": NAMES.get(control, control) + (f" ({len(cs)} seeds)" if len(cs) > 1 else "")}
                 for col, name in (("err_R", "R"), ("err_t", "t")):
-                    got = _aligned(frames + cs, col)
+                    got = seed_comparison(res, seeded, regime, model, control, it, col)
                     if got is None:
                         continue
-                    err, fold = got
-                    s = seed_bootstrap_maa(err[:len(runs)], err[len(runs):], LIMIT, strata=fold, n_boot=N_BOOT, seed=0)
+                    s = got[0]
                     row[f"model {name} (mean ± SD)"] = f"{s['mean_a']:.3f} ± {s['sd_a']:.3f}"
                     row[f"control {name}"] = f"{s['mean_b']:.3f}" + (f" ± {s['sd_b']:.3f}" if len(cs) > 1 else "")
                     row[f"{name}: model − control"] = f"{s['diff']:+.3f} [{s['lo']:+.3f}, {s['hi']:+.3f}]"

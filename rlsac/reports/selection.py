@@ -22,9 +22,8 @@ import pandas as pd
 
 from rlsac.errors import RlsacError
 from rlsac.io import atomic_path, write_text
+from rlsac.reports.folds import LIMIT, N_BOOT  # mAA@10 deg and the bootstrap's draws, as Table 2
 
-LIMIT = 10.0  # mAA@10 deg, as Table 2
-N_BOOT = 2000
 METRICS = ("R", "t")
 
 
@@ -99,9 +98,10 @@ def summary(runs: list[dict[str, Any]]) -> pd.DataFrame:
                 kept, last, strata = [], [], None
                 for s in complete:  # each seed's pairs of every fold, in one order
                     rs = sorted((r for r in mine if r["seed"] == s), key=lambda r: r["fold"])
-                    kept.append(np.concatenate([_errors(r, r["kept_step"], it, col) for r in rs]))
+                    per_run = [_errors(r, r["kept_step"], it, col) for r in rs]
+                    kept.append(np.concatenate(per_run))
                     last.append(np.concatenate([_errors(r, r["last_step"], it, col) for r in rs]))
-                    strata = np.concatenate([[r["fold"]] * len(_errors(r, r["kept_step"], it, col)) for r in rs])
+                    strata = np.concatenate([[r["fold"]] * len(e) for r, e in zip(rs, per_run, strict=True)])
                 if complete:
                     st = seed_bootstrap_maa(np.stack(kept), np.stack(last), LIMIT, strata=strata, n_boot=N_BOOT,
                                             seed=0, paired_seeds=True)
