@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import sys
+from pathlib import Path
 
 import click
 
@@ -363,16 +364,36 @@ def calibrate_lines(tracking: bool, params_path: str, **options) -> None:
 @click.option("--keep", is_flag=True, help="Keep the scratch folder (re-run outputs, logs/<stage>.log).")
 @click.option("--repo", default=".", show_default=True, type=click.Path(file_okay=False),
               help="The DVC repository to verify.")
+@click.option("--tolerance", type=float,
+              help="Also accept outputs that agree by value: JSON numbers within this much, CSV numbers not "
+                   "compared (another numeric platform; such a stage is 'close').")
+@click.option("--platform", "platform_only", is_flag=True,
+              help="Only compare this machine's numeric platform with the record's (reports/platform.json); "
+                   "exit 1 when they differ.")
 @tracking_option
-def verify(tracking: bool, **options) -> None:
+def verify(tracking: bool, platform_only: bool, **options) -> None:
     """Re-run committed pipeline stages in a scratch copy and compare every output byte for byte
-    (rlsac.verify); exit 1 when one differs or fails."""
+    (rlsac.verify); exit 1 when one differs or fails (or, with --tolerance, is not even close)."""
+    from rlsac import numerics
     from rlsac.verify import format_summary
     from rlsac.verify import verify as run
 
+    record_file = Path(options["repo"]) / numerics.RECORD
+    if platform_only or record_file.exists():
+        record = numerics.load_record(options["repo"])
+        here = numerics.describe()
+        diff = numerics.differences(record, here)
+        if platform_only:
+            for k in numerics.KEYS:
+                click.echo(f"{k:<16} record {record[k]:<14} here {here[k]}")
+            click.echo(f"platform: differs ({'; '.join(diff)})" if diff else "platform: the record's")
+            sys.exit(1 if diff else 0)
+        if diff:
+            click.echo(f"note: this machine's numeric platform is not the record's ({'; '.join(diff)}): its bytes "
+                       f"are not expected to match (reports/platform.md)")
     s = run(options, track=tracking, report=click.echo)
     click.echo(format_summary(s))
-    if s["n_identical"] != s["n_stages"]:
+    if s["n_identical"] + s["n_close"] != s["n_stages"]:
         sys.exit(1)
 
 

@@ -32,16 +32,20 @@ IGNORED_NAMES = {"timing.json"}  # untracked per-run sidecars (rlsac.evaluate.TI
 # stages that train (minutes each): by name, besides any stage writing a checkpoint; fold_select* replays a training
 TRAINING_WORDS = ("train", "select")
 DEFAULTS = {"stages": None, "sample": None, "seed": 0, "include_train": False, "scratch": None, "keep": False,
-            "repo": "."}
+            "repo": ".", "tolerance": None}
 
 
 def verify(options: dict[str, Any], track: bool = True, report: Callable[[str], None] | None = None) -> dict:
     """Verify the stages ``options`` selects (keys of DEFAULTS); ``report`` gets one line per stage as it
-    finishes. -> {"results": [{stage, status, detail, seconds}], "n_identical", "n_differs", "n_failed",
+    finishes. ``tolerance``: JSON numbers may differ by this much, CSV cells that are numbers are not compared
+    (per-instance errors; another numeric platform, rlsac.numerics): a stage that agrees so is "close".
+    -> {"results": [{stage, status, detail, seconds}], "n_identical", "n_close", "n_differs", "n_failed",
     "n_stages", "scratch" (None once removed), "run_id"}."""
     from rlsac.tracking import check_store, start_run
 
     o = {**DEFAULTS, **{k: v for k, v in options.items() if v is not None}}
+    if o["tolerance"] is not None and not 0 <= o["tolerance"] < float("inf"):
+        raise RlsacError(f"--tolerance must be a finite number >= 0, got {o['tolerance']}")
     root, stages = load_stages(o["repo"])
     selected = select(stages, o["stages"], o["sample"], o["seed"], o["include_train"])
     tracked = git_files(root)
@@ -59,11 +63,12 @@ def verify(options: dict[str, Any], track: bool = True, report: Callable[[str], 
         work = scratch / "repo"
         copy_workspace(root, tracked, work, [d for s in selected for d in s["deps"]])
         params = {"stages": o["stages"] or "", "sample": o["sample"], "seed": o["seed"],
-                  "include_train": o["include_train"], "repo": str(root),
+                  "include_train": o["include_train"], "repo": str(root), "tolerance": o["tolerance"],
                   "selected": ",".join(s["address"] for s in selected)}
         with start_run("verify", f"verify {len(selected)} stages", params=params, enabled=track) as run:
-            results = _run_all(root, work, scratch, selected, report or (lambda line: None))
-            counts = {f"n_{k}": sum(r["status"] == k for r in results) for k in ("identical", "differs", "failed")}
+            results = _run_all(root, work, scratch, selected, report or (lambda line: None), o["tolerance"])
+            counts = {f"n_{k}": sum(r["status"] == k for r in results)
+                      for k in ("identical", "close", "differs", "failed")}
             run.metrics(counts)
             (scratch / "verify.json").write_text(json.dumps(results, indent=2) + "\n")
             run.artifact(scratch / "verify.json")
@@ -82,11 +87,14 @@ def format_result(r: dict) -> str:
     """``identical  <stage>  (<s> s)`` / ``differs    <stage>: <file>: <detail>`` / ``failed     <stage>: ...``."""
     if r["status"] == "identical":
         return f"identical  {r['stage']}  ({r['seconds']:.1f} s)"
+    if r["status"] == "close":
+        return f"close      {r['stage']}  ({r['seconds']:.1f} s): not the same bytes, {r['detail']}"
     return f"{r['status']:<9}  {r['stage']}: {r['detail']}"
 
 
 def format_summary(s: dict) -> str:
-    return (f"verify: {s['n_identical']} identical, {s['n_differs']} differ, {s['n_failed']} failed of "
+    close = f"{s['n_close']} close, " if s.get("n_close") else ""
+    return (f"verify: {s['n_identical']} identical, {close}{s['n_differs']} differ, {s['n_failed']} failed of "
             f"{s['n_stages']} stages (scratch: {s['scratch'] or 'removed'})")
 
 
@@ -244,7 +252,8 @@ def copy_workspace(root: Path, tracked: list[str], work: Path, deps: list[str]) 
 # ------------------------------------------------------------------ running and comparing
 
 
-def _run_all(root: Path, work: Path, scratch: Path, selected: list[dict], report: Callable[[str], None]) -> list[dict]:
+def _run_all(root: Path, work: Path, scratch: Path, selected: list[dict], report: Callable[[str], None],
+             tolerance: float | None = None) -> list[dict]:
     from rlsac.progress import tqdm
 
     env = {**os.environ, "MLFLOW_TRACKING_URI": f"sqlite:///{scratch / 'mlflow.db'}", "CI": "true"}
@@ -259,7 +268,7 @@ def _run_all(root: Path, work: Path, scratch: Path, selected: list[dict], report
     with tqdm(total=len(selected), desc="verify", unit="stage", disable=None, leave=False) as bar:
         for s in selected:
             bar.set_postfix_str(s["address"])
-            r = run_stage(s, root, work, scratch, env, ignore)
+            r = run_stage(s, root, work, scratch, env, ignore, tolerance)
             results.append(r)
             with bar.external_write_mode():
                 report(format_result(r))
@@ -267,8 +276,10 @@ def _run_all(root: Path, work: Path, scratch: Path, selected: list[dict], report
     return results
 
 
-def run_stage(s: dict, root: Path, work: Path, scratch: Path, env: dict, ignore) -> dict:
-    """Delete the stage's outputs in ``work``, run its command(s), compare each output with the workspace."""
+def run_stage(s: dict, root: Path, work: Path, scratch: Path, env: dict, ignore,
+              tolerance: float | None = None) -> dict:
+    """Delete the stage's outputs in ``work``, run its command(s), compare each output with the workspace
+    (byte for byte; then, with ``tolerance``, by value: status "close")."""
     r = {"stage": s["address"], "status": "identical", "detail": "", "seconds": 0.0}
     real = os.path.realpath(work)
     for out in s["outs"]:
@@ -292,6 +303,13 @@ def run_stage(s: dict, root: Path, work: Path, scratch: Path, env: dict, ignore)
             if detail := compare(root / out, work / out, out, ignore):
                 r.update(status="differs", detail=detail)
                 break
+        if r["status"] == "differs" and tolerance is not None:
+            far = next((d for out in s["outs"] if (d := compare(root / out, work / out, out, ignore, tolerance))),
+                       None)
+            if far:
+                r["detail"] = far
+            else:
+                r.update(status="close", detail=f"every JSON number within {tolerance:g} ({r['detail']})")
     if r["status"] != "identical":  # later stages must see the committed outputs; keep these for inspection
         aside = scratch / "rerun" / log.stem
         for out in s["outs"]:
@@ -329,29 +347,33 @@ def _files(folder: Path, rel: str, ignore) -> set[str]:
     return names
 
 
-def compare(committed: Path, rerun: Path, rel: str, ignore=None) -> str | None:
-    """None if the re-run output equals the committed one, else ``<file>: <first difference>``."""
+def compare(committed: Path, rerun: Path, rel: str, ignore=None, tolerance: float | None = None) -> str | None:
+    """None if the re-run output equals the committed one (with ``tolerance``: agrees by value, see
+    ``close_file``), else ``<file>: <first difference>``."""
     if not rerun.exists():
         return f"{rel}: not written by the re-run"
     if committed.is_dir() != rerun.is_dir():
         return f"{rel}: committed a {'folder' if committed.is_dir() else 'file'}, re-run wrote the other"
     if not committed.is_dir():
-        return compare_file(committed, rerun, rel)
+        return compare_file(committed, rerun, rel, tolerance)
     a, b = _files(committed, rel, ignore), _files(rerun, rel, ignore)
     if a != b:
         parts = [f"{what} in re-run: {', '.join(sorted(names)[:5])}{' ...' if len(names) > 5 else ''}"
                  for what, names in (("missing", a - b), ("extra", b - a)) if names]
         return f"{rel}: {'; '.join(parts)}"
     for name in sorted(a):
-        if detail := compare_file(committed / name, rerun / name, f"{rel}/{name}"):
+        if detail := compare_file(committed / name, rerun / name, f"{rel}/{name}", tolerance):
             return detail
     return None
 
 
-def compare_file(committed: Path, rerun: Path, rel: str) -> str | None:
+def compare_file(committed: Path, rerun: Path, rel: str, tolerance: float | None = None) -> str | None:
     x, y = committed.read_bytes(), rerun.read_bytes()
     if x == y:
         return None
+    if tolerance is not None:
+        detail = close_file(x, y, committed.suffix.lower(), tolerance)
+        return None if detail is None else f"{rel}: {detail}"
     suffix = committed.suffix.lower()
     # JSON by key path; text and CSV by line (CSV: the column); anything else by byte offset
     detail = _json_diff(x, y) if suffix == ".json" else None
@@ -364,6 +386,39 @@ def compare_file(committed: Path, rerun: Path, rel: str) -> str | None:
 
 
 _ABSENT = object()
+
+
+def close_file(x: bytes, y: bytes, suffix: str, tolerance: float) -> str | None:
+    """None where two outputs agree by value: JSON with every number within ``tolerance`` and everything else
+    equal; CSV with the same header, rows and non-numeric cells (numeric cells are per-instance errors, which
+    another platform's rounding may move by any amount: a different minimal set wins); other files byte for
+    byte. Else the first disagreement."""
+    if suffix == ".json":
+        try:
+            a, b = json.loads(x), json.loads(y)
+        except ValueError:
+            return "not JSON"
+        found = _first_json_diff(a, b, "", tolerance)
+        return None if found is None else f"{found[0] or '(top level)'} committed {_short(json.dumps(found[1]))} " \
+                                          f"re-run {_short(json.dumps(found[2]))} (tolerance {tolerance:g})"
+    if suffix == ".csv":
+        ra, rb = (list(csv.reader(v.decode(errors="replace").splitlines())) for v in (x, y))
+        if len(ra) != len(rb) or ra[:1] != rb[:1]:
+            return f"committed has {len(ra)} rows, re-run {len(rb)} (or another header)"
+        for i, (fa, fb) in enumerate(zip(ra, rb, strict=True)):
+            if len(fa) != len(fb) or any(p != q and not (_number(p) and _number(q))
+                                         for p, q in zip(fa, fb, strict=True)):
+                return f"line {i + 1}: committed {_short(','.join(fa))!r} re-run {_short(','.join(fb))!r}"
+        return None
+    return f"first differing byte at offset {_mismatch(x, y)}"
+
+
+def _number(cell: str) -> bool:
+    try:
+        float(cell)
+    except ValueError:
+        return False
+    return True
 
 
 def _json_diff(x: bytes, y: bytes) -> str | None:
@@ -379,19 +434,22 @@ def _json_diff(x: bytes, y: bytes) -> str | None:
     return f"{path or '(top level)'} committed {show(va)} re-run {show(vb)}"
 
 
-def _first_json_diff(a, b, path: str):
+def _first_json_diff(a, b, path: str, tolerance: float | None = None):
     if isinstance(a, dict) and isinstance(b, dict):
         for k in [*a, *(k for k in b if k not in a)]:
             sub = f"{path}.{k}" if path else str(k)
-            if (d := _first_json_diff(a.get(k, _ABSENT), b.get(k, _ABSENT), sub)) is not None:
+            if (d := _first_json_diff(a.get(k, _ABSENT), b.get(k, _ABSENT), sub, tolerance)) is not None:
                 return d
         return None
     if isinstance(a, list) and isinstance(b, list):
         for i in range(max(len(a), len(b))):
             va, vb = a[i] if i < len(a) else _ABSENT, b[i] if i < len(b) else _ABSENT
-            if (d := _first_json_diff(va, vb, f"{path}[{i}]")) is not None:
+            if (d := _first_json_diff(va, vb, f"{path}[{i}]", tolerance)) is not None:
                 return d
         return None
+    numbers = all(isinstance(v, int | float) and not isinstance(v, bool) for v in (a, b))
+    if tolerance is not None and numbers:  # NaN only matches NaN
+        return None if (a != a and b != b) or abs(a - b) <= tolerance else (path, a, b)
     same_nan = isinstance(a, float) and isinstance(b, float) and a != a and b != b
     if type(a) is not type(b) or (a != b and not same_nan):  # 1 vs 1.0 vs true differ in bytes too
         return path, a, b

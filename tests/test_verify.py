@@ -225,7 +225,7 @@ def test_tracking_logs_a_finished_run(repo, workdir):
     mlflow.set_tracking_uri(os.environ["MLFLOW_TRACKING_URI"])
     runs = mlflow.search_runs(experiment_names=["verify"], output_format="list")
     assert len(runs) == 1 and runs[0].info.status == "FINISHED"
-    assert runs[0].data.metrics == {"n_identical": 1.0, "n_differs": 0.0, "n_failed": 0.0}
+    assert runs[0].data.metrics == {"n_identical": 1.0, "n_close": 0.0, "n_differs": 0.0, "n_failed": 0.0}
     assert runs[0].data.params["selected"] == "make"
     local = mlflow.artifacts.download_artifacts(run_id=runs[0].info.run_id, artifact_path="verify.json",
                                                 dst_path=str(workdir / "art"))
@@ -241,3 +241,87 @@ def test_stages_that_train_are_told_by_their_checkpoint_or_their_name():
     assert is_training("custom@x", ["model.pt"])
     assert not is_training("fold_eval@hard-castle-rlsac", ["reports/eval/folds/hard/castle/rlsac"])
     assert not is_training("experiments/quick/dvc.yaml:tables", ["reports/claims.md"])
+
+
+# ------------------------------------------------------------------ another numeric platform (--tolerance, --platform)
+
+
+def test_tolerance_accepts_a_json_number_within_it_and_ignores_csv_numbers(repo):
+    a, b = repo / "out/a.json", repo / "out/b.csv"
+    a.write_text(a.read_text().replace("0.8125", "0.8145"))  # another platform's rounding: 0.002 away
+    b.write_text(b.read_text().replace("1,0.5", "1,0.73"))  # a per-instance error: any amount
+    r = verify(repo, "--stages", "make", "--no-tracking", "--tolerance", "0.005")
+    assert r.exit_code == 0, r.output
+    assert lines(r)[0].startswith("close      make")
+    assert "every JSON number within 0.005 (out/a.json: summary.mAA committed 0.8145 re-run 0.8125)" in lines(r)[0]
+    assert lines(r)[-1].startswith("verify: 0 identical, 1 close, 0 differ, 0 failed of 1 stages")
+
+
+def test_tolerance_refuses_a_number_past_it_and_any_other_change(repo):
+    a = repo / "out/a.json"
+    a.write_text(a.read_text().replace("0.8125", "0.8185"))
+    r = verify(repo, "--stages", "make", "--no-tracking", "--tolerance", "0.005")
+    assert r.exit_code == 1, r.output
+    assert lines(r)[0] == ("differs    make: out/a.json: summary.mAA committed 0.8185 re-run 0.8125 "
+                           "(tolerance 0.005)")
+    a.write_text(a.read_text().replace("0.8185", "0.8125").replace('"n": 3', '"n": 4'))
+    assert "summary.n committed 4 re-run 3" in lines(verify(repo, "--stages", "make", "--no-tracking",
+                                                           "--tolerance", "0.005"))[0]
+    b = repo / "out/b.csv"
+    a.write_text(a.read_text().replace('"n": 4', '"n": 3'))
+    b.write_text(b.read_text() + "3,1.0\n")  # a row more is no rounding
+    r = verify(repo, "--stages", "make", "--no-tracking", "--tolerance", "0.005")
+    assert r.exit_code == 1 and "out/b.csv: committed has 5 rows, re-run 4" in lines(r)[0], r.output
+
+
+def test_bad_tolerance_is_a_user_error(repo):
+    assert_user_error(verify(repo, "--stages", "make", "--no-tracking", "--tolerance", "-1"), "--tolerance")
+
+
+def _record(repo, **over):
+    from rlsac import numerics
+
+    rec = {**{k: v for k, v in numerics.describe().items() if k in numerics.KEYS}, **over}
+    (repo / "reports").mkdir(exist_ok=True)
+    (repo / numerics.RECORD).write_text(json.dumps(rec))
+
+
+def test_platform_same_and_other(repo):
+    _record(repo)
+    r = verify(repo, "--platform", "--no-tracking")
+    assert r.exit_code == 0 and lines(r)[-1] == "platform: the record's", r.output
+    _record(repo, cpu_vendor="SomeOtherVendor", mkl_branch="AVX-9")
+    r = verify(repo, "--platform", "--no-tracking")
+    assert r.exit_code == 1, r.output
+    assert "cpu_vendor SomeOtherVendor -> " in lines(r)[-1] and "mkl_branch AVX-9 -> " in lines(r)[-1]
+    # a run on another platform says so before its first stage, and still compares bytes
+    r = verify(repo, "--stages", "make", "--no-tracking")
+    assert r.exit_code == 0 and lines(r)[0].startswith("note: this machine's numeric platform is not the record's")
+
+
+def test_platform_record_missing_or_malformed_is_a_user_error(repo):
+    assert_user_error(verify(repo, "--platform", "--no-tracking"), "cannot read the record's platform")
+    (repo / "reports").mkdir()
+    (repo / "reports/platform.json").write_text('{"machine": "x86_64"}')
+    assert_user_error(verify(repo, "--platform", "--no-tracking"), "needs the string keys")
+
+
+def test_mkl_family_reads_the_branch_mkl_names():
+    from rlsac.numerics import mkl_family
+
+    assert mkl_family("Intel(R) Advanced Vector Extensions 512 (Intel(R) AVX-512) with support of Intel(R) Deep "
+                      "Learning Boost (Intel(R) DL Boost) and bfloat16") == "AVX-512"
+    assert mkl_family("Intel(R) Advanced Vector Extensions 2 (Intel(R) AVX2) enabled processors") == "AVX2"
+    assert mkl_family("Intel(R) Architecture processors") == "generic"
+    assert mkl_family("something new") == "unknown"
+
+
+def test_this_machines_platform_is_described():
+    import torch
+
+    from rlsac.numerics import describe
+
+    d = describe()
+    assert d["aten_capability"] == torch.backends.cpu.get_cpu_capability()
+    # torch's CPU wheels are built with MKL: its verbose line must be found (else every platform compares alike)
+    assert d["mkl_branch"] in ("AVX-512", "AVX2", "AVX", "SSE4.2", "generic") and d["mkl_branch_text"]
