@@ -61,13 +61,14 @@ def test_table1_cells_paper_and_missing(tree):
     assert math.isnan(cell(df, "0.5 mAA", method="Ours", source="ours"))
     for label, rows in paper.TABLE1.items():
         assert cell(df, "0.7 mAA", method=label, source="paper") == rows[0.7][0]
-    assert len(df.attrs["missing"]) == 4 * 7 - 2
-    assert set(df.loc[df["method"] == "Oracle", "source"]) == {"ours"}  # no paper row for our extra method
+    assert len(df.attrs["missing"]) == 5 * 7 - 2
+    for extra in ("Oracle", "NG-RANSAC"):  # no paper row for our extra methods
+        assert set(df.loc[df["method"] == extra, "source"]) == {"ours"}
     md = (tree / "out" / "table1_lines.md").read_text()
     assert "calibrated synthetic lines" in md and "0.812" in md and "0.608" in md and "–" in md
     assert (tree / "out" / "table1_lines.tex").read_text().count("--") > 10
     csv = pd.read_csv(tree / "out" / "table1_lines.csv")
-    assert csv.shape == (7, 16) and csv["0.1 mAA"].iloc[0] == pytest.approx(0.8123)
+    assert csv.shape == (8, 16) and csv["0.1 mAA"].iloc[0] == pytest.approx(0.8123)
 
 
 def test_table1_paired_comparison_from_errors(tree):
@@ -77,9 +78,15 @@ def test_table1_paired_comparison_from_errors(tree):
         d.mkdir(parents=True, exist_ok=True)
         pd.DataFrame({"instance": range(10), "err_deg": errs}).to_csv(d / "errors.csv", index=False)
     paired = tables.table1("ev", "out").attrs["paired"]
-    assert list(paired["comparison"]) == ["Ours − RANSAC", "Ours-0.5 − RANSAC"]
+    assert list(paired["comparison"]) == ["Ours − RANSAC", "Ours-0.5 − RANSAC", "NG-RANSAC − RANSAC",
+                                          "Ours − NG-RANSAC"]
     assert paired.loc[0, "o=0.2"].startswith("+0.500 [")
-    assert paired.loc[0, "o=0.1"] == "–" and paired.loc[1, "o=0.2"] == "–"
+    assert paired.loc[0, "o=0.1"] == "–" and paired.loc[1, "o=0.2"] == "–" and paired.loc[3, "o=0.2"] == "–"
+    d = tree / "ev" / "lines" / "ngransac" / "o0.2"  # NG-RANSAC (issue #29): 8 of 10 right
+    d.mkdir(parents=True)
+    pd.DataFrame({"instance": range(10), "err_deg": [0.02] * 8 + [1.0] * 2}).to_csv(d / "errors.csv", index=False)
+    paired = tables.table1("ev", "out").attrs["paired"]
+    assert paired.loc[2, "o=0.2"].startswith("+0.300 [") and paired.loc[3, "o=0.2"].startswith("+0.200 [")
     assert "Paired comparison" in (tree / "out" / "table1_lines.md").read_text()
 
 
@@ -206,3 +213,21 @@ def test_learning_curves_take_a_models_seeds_together(tmp_path):
     assert list(t.columns) == ["rlsac", "rlsac-s1"] and t.mean(axis=1).tolist() == pytest.approx([0.3, 0.3])
     files, _ = fold_figures.plot_learning_curves(read, tmp_path / "fig")
     assert [Path(f).name for f in files] == ["learning_curves.png", "learning_curves.pdf"]
+
+
+def test_table1_ngransac_row_over_its_seeds(tree):
+    """Issue #29 on lines: NG-RANSAC's training seeds (ngransac-s<seed>) are taken like Ours', and Ours is compared
+    with it over both rows' seeds."""
+    ev = tree / "ev"
+    _line_errors(ev, "ransac", 0.5, [0.02] * 5 + [1.0] * 5)  # 0.5
+    for d, errs in (("ours", [0.02] * 10), ("ours-s1", [0.02] * 9 + [1.0]), ("ngransac", [0.02] * 6 + [1.0] * 4),
+                    ("ngransac-s1", [0.02] * 8 + [1.0] * 2)):
+        _line_errors(ev, d, 0.5, errs)
+    assert tables.line_seed_runs(ev / "lines") == {"ours": ["ours", "ours-s1"], "ngransac": ["ngransac", "ngransac-s1"]}
+    tables.table1("ev", "out")
+    rows = {r.split("|")[2].strip(): [c.strip() for c in r.strip("|").split("|")]
+            for r in (tree / "out" / "table1_lines.md").read_text().splitlines() if r.startswith("| 0.5")}
+    assert set(rows) == {"Ours − RANSAC", "NG-RANSAC − RANSAC", "Ours − NG-RANSAC"}
+    # seed means: Ours 0.95, NG-RANSAC 0.7: +0.25 over two seeds each
+    assert rows["Ours − NG-RANSAC"][2:5] == ["2 vs 2", "0.950 ± 0.071", "0.700 ± 0.141"]
+    assert rows["Ours − NG-RANSAC"][5].startswith("+0.250 [")

@@ -2,7 +2,7 @@
 
 Result layout read here (written by ``rlsac evaluate --out-dir ...`` / ``rlsac ablate``):
 
-    <eval_root>/lines/{ransac,ours,ours-0.5,oracle}/o{rate}/{summary.json,errors.csv}   Table 1
+    <eval_root>/lines/{ransac,ours,ours-0.5,ngransac,oracle}/o{rate}/{summary.json,errors.csv}   Table 1
     <eval_root>/fundamental/{method}/i{iterations}/summary.json                     Table 2, iterations figure
     <eval_root>/ablation/{variant}/summary.json                                     Table 3
 
@@ -30,7 +30,12 @@ DASH = "–"
 LINE_LIMIT_DEG = 0.5  # Table 1's mAA limit (thresholds 0.05..0.5 deg)
 PAIRED_BOOT = 2000  # bootstrap resamples of the Table 1 paired comparison: interval ends stable to ~0.001
 # directory -> Table 1 row; "oracle" (TLS on the true inliers) is ours only: the reference a sampler aims at
-LINE_METHODS = {"ransac": "RANSAC", "ours": "Ours", "ours-0.5": "Ours-0.5", "oracle": "Oracle"}
+# ngransac: NG-RANSAC's sampling network (issue #29, not in the paper), the one-shot learned sampler beside RLSAC
+LINE_METHODS = {"ransac": "RANSAC", "ours": "Ours", "ours-0.5": "Ours-0.5", "ngransac": "NG-RANSAC", "oracle": "Oracle"}
+# Table 1's learned rows that have training seeds (<row>-s<seed>), and the comparisons made over them
+LINE_SEED_MODELS = ("ours", "ours-0.5", "ngransac")
+LINE_SEED_PAIRS = (("ours", "ransac"), ("ours-0.5", "ransac"), ("ours-0.5", "ours"), ("ngransac", "ransac"),
+                   ("ours", "ngransac"))
 # extra rows (issue #14), shown when at least one of their results exists: the samplers with local optimisation
 LINE_LO_METHODS = {"ransac-lo": "RANSAC-LO (not in the paper)", "ours-lo": "Ours-LO (not in the paper)"}
 # Table 2 rows: (directory, row label, paper row or None, note)
@@ -217,6 +222,8 @@ def table1(eval_root: str | Path = "reports/eval", out_dir: str | Path = "report
                + (f"Budget {'/'.join(map(str, its))} hypotheses per instance. " if its else "")
                + "Columns: mAA@0.5° and median angular error (°) per outlier rate o. "
                + "Ours = a model trained at each rate; Ours-0.5 = the model trained at 0.5, tested at every rate; "
+               + "NG-RANSAC = our RANSAC with every minimal set drawn from a per-point network trained at each rate "
+               + "(issue #29, not in the paper; `rlsac.ngransac`, params.yaml `lines.ngransac`); "
                + "Oracle = total least squares on the true inliers (not in the paper: the estimate a sampler aims at)"
                + (f" (checkpoints: {', '.join(ckpts)})." if ckpts else ".")
                + " Ours and Ours-0.5 run the paper's algorithm (one minimal set per episode step, the whole budget; "
@@ -251,7 +258,7 @@ def line_seed_runs(root: Path) -> dict[str, list[str]]:
     from rlsac.folds import seed_name, split_seed
 
     out: dict[str, list[str]] = {}
-    for d in ("ours", "ours-0.5"):
+    for d in LINE_SEED_MODELS:
         seeds = sorted(s for base, s in (split_seed(p.name) for p in root.glob(f"{d}-s*") if p.is_dir())
                        if base == d and s is not None)
         if seeds:
@@ -286,7 +293,7 @@ def _line_seed_section(root: Path, rates) -> str:
 
     runs = line_seed_runs(root)
     rows, sizes = [], set()
-    for d, base in (("ours", "ransac"), ("ours-0.5", "ransac"), ("ours-0.5", "ours")):
+    for d, base in LINE_SEED_PAIRS:
         if d not in runs:
             continue
         for r in rates:
@@ -338,14 +345,15 @@ def _gap_closed(df: pd.DataFrame, rates) -> pd.DataFrame | None:
 
 
 def _paired_vs_ransac(root: Path, rates) -> pd.DataFrame | None:
-    """Ours / Ours-0.5 minus RANSAC per rate from the per-instance errors; None if nothing to pair."""
+    """Ours / Ours-0.5 / NG-RANSAC minus RANSAC, and Ours minus NG-RANSAC, per rate from the per-instance errors;
+    None if nothing to pair."""
     def errors(d: str, r: float):
         path = root / d / f"o{r:g}" / "errors.csv"
         return read_errors(path)
 
     ransac = {r: errors("ransac", r) for r in rates}
     rows = []
-    pairs = [("ours", "ransac"), ("ours-0.5", "ransac")]
+    pairs = [("ours", "ransac"), ("ours-0.5", "ransac"), ("ngransac", "ransac"), ("ours", "ngransac")]
     if any((root / "ours-lo" / f"o{r:g}" / "errors.csv").is_file() for r in rates):
         pairs += [("ours-lo", "ransac-lo"), ("ours-lo", "ransac")]  # not in the paper: LO rows (issue #14)
     names = {**LINE_METHODS, "ransac-lo": "RANSAC-LO", "ours-lo": "Ours-LO"}
