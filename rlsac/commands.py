@@ -7,6 +7,7 @@ Each function takes a plain options dict (what the CLI parsed, or what a noteboo
 from __future__ import annotations
 
 import dataclasses
+import os
 from pathlib import Path
 from typing import Any
 
@@ -199,6 +200,7 @@ it. The error is the angle to the ground-truth line in degrees; mAA is taken at 
 thresholds. `mAA_ours` and `median_ours` are means over the seeds; `diff` = ours - paper. `oracle` =
 total least squares on the true inliers of the same instances: what any sampler followed by the same
 refinement aims at, so `mAA_oracle - mAA_ours` is the headroom left to a better sampler such as RLSAC.
+MKL runs on its vendor-independent branch (`MKL_CBWR={os.environ.get("MKL_CBWR", "")}`, `reports/platform.md`).
 
 ## Generator settings (`LineDataConf`, outlier_rate and seed vary)
 
@@ -224,10 +226,14 @@ def calibrate_lines(options: dict[str, Any], track: bool = True,
     rates (list, default 0.1..0.7), plus any LineDataConf field.
     Writes ``<out>.md`` and ``<out>.csv``; -> {"table": DataFrame, "md", "csv", "run_id"}.
     """
+    from rlsac import numerics
     from rlsac.baselines import oracle, ransac
     from rlsac.data import lines
     from rlsac.evaluate import resolve_device, run_method, task_from
 
+    # the README's main job gives the same bytes on Intel and AMD CPUs: MKL on its vendor-independent branch, set
+    # before its first call (the rest of the record is on its platform's branch, reports/platform.md)
+    numerics.pin_portable_blas()
     o = {"n_instances": 1000, "seed": 123, "n_seeds": 12, "out": "reports/calibration_lines", "iterations": 150,
          "device": "auto", "batch_size": 256, "rates": sorted(PAPER_RANSAC_LINES)}
     o.update({k: v for k, v in options.items() if v is not None})
@@ -276,9 +282,10 @@ def calibrate_lines(options: dict[str, Any], track: bool = True,
         by_seed = np.array([per_seed[r] for r in sorted(per_seed)]).T  # (n_seeds, rates)
         all_within = float(np.mean(np.all(np.abs(by_seed - table["mAA_paper"].to_numpy()) <= 0.03, axis=1)))
         md_path, csv_path = out.with_suffix(".md"), out.with_suffix(".csv")
+        md = calibration_markdown(table, shown, iterations, seeds, command, all_within)  # before either file
         with atomic_path(csv_path) as tmp:
             table.to_csv(tmp, index=False, float_format="%.4f")
-        write_text(md_path, calibration_markdown(table, shown, iterations, seeds, command, all_within))
+        write_text(md_path, md)
         run.metrics({"mean_abs_mAA_diff": float(table["mAA_diff"].abs().mean()),
                      "max_abs_mAA_diff": float(table["mAA_diff"].abs().max()), "seeds_all_within": all_within,
                      "mean_abs_median_diff": float(table["median_diff"].abs().mean())})

@@ -82,6 +82,15 @@ def describe() -> dict:
             "opencv": cv2.__version__}
 
 
+def pin_portable_blas() -> bool:
+    """Put MKL, for the rest of this process, on the branch that every x86-64 vendor runs alike (MKL_CBWR=COMPATIBLE:
+    on the machine of reports/platform.md it gave the same bytes with MKL on its generic and on its Intel AVX-512
+    branch). MKL reads the setting at its first call, so this must come before any; a value the user set is kept.
+    -> whether MKL_CBWR is COMPATIBLE now."""
+    os.environ.setdefault("MKL_CBWR", "COMPATIBLE")
+    return os.environ["MKL_CBWR"] == "COMPATIBLE"
+
+
 def load_record(root: str | Path = ".") -> dict:
     """The record's platform (``reports/platform.json`` under ``root``); RlsacError when missing or malformed."""
     path = Path(root) / RECORD

@@ -1,6 +1,7 @@
 """End to end through the click CLI on tiny budgets, in a tmp working directory."""
 
 import json
+import os
 import subprocess
 import sys
 import types
@@ -250,7 +251,8 @@ def test_train_builds_options_from_params_flags_and_sets(workdir, monkeypatch):
     assert_user_error(invoke("train", "--task", "line", "--set", "novalue"), "key=value")
 
 
-def test_calibrate_lines_tiny(workdir):
+def test_calibrate_lines_tiny(workdir, monkeypatch):
+    monkeypatch.delenv("MKL_CBWR", raising=False)  # restored at teardown: the command sets it for its process
     r = invoke("calibrate-lines", "--n-instances", 10, "--n-seeds", 2, "--iterations", 20, "--out", "rep/cal",
                "--no-tracking")
     assert r.exit_code == 0, r.output
@@ -262,6 +264,8 @@ def test_calibrate_lines_tiny(workdir):
     assert np.allclose(table["mAA_diff"], table["mAA_ours"] - table["mAA_paper"], atol=1e-3)
     md = (workdir / "rep/cal.md").read_text()
     assert "| band |" in md and "0.608" in md
+    # the README's main job runs MKL on its vendor-independent branch (the same bytes on Intel and AMD CPUs)
+    assert os.environ["MKL_CBWR"] == "COMPATIBLE" and "`MKL_CBWR=COMPATIBLE`" in md
     # the default noise model is not listed (the committed report predates the knob and keeps its bytes); another is
     assert "| noise |" not in md
     gauss = commands.calibration_markdown(table, {"band": 0.03, "noise": "gaussian"}, 20, [1], "rlsac calibrate-lines")
@@ -278,3 +282,12 @@ def test_calibration_table():
     t = commands.calibration_table({0.1: (0.905, 0.04)}, per_seed={0.1: [0.86, 0.95]})
     assert t["mAA_sd"].tolist() == pytest.approx([0.0636396]) and t["seeds_within"].tolist() == [0.5]
     assert t["mAA_min"].tolist() == [0.86] and t["mAA_max"].tolist() == [0.95]
+
+
+def test_portable_blas_pin_keeps_a_value_the_user_set(monkeypatch):
+    from rlsac.numerics import pin_portable_blas
+
+    monkeypatch.setenv("MKL_CBWR", "AVX2")
+    assert pin_portable_blas() is False and os.environ["MKL_CBWR"] == "AVX2"
+    monkeypatch.delenv("MKL_CBWR")
+    assert pin_portable_blas() is True and os.environ["MKL_CBWR"] == "COMPATIBLE"
