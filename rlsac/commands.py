@@ -219,6 +219,16 @@ Mean |diff|: mAA {mean_abs['mAA_diff']:.3f}, median {mean_abs['median_diff']:.3f
 
 def calibrate_lines(options: dict[str, Any], track: bool = True,
                     params_path: str | Path | None = "params.yaml") -> dict:
+    """``_calibrate_lines`` with MKL on its vendor-independent branch: the README's main job gives the same bytes on
+    Intel and AMD CPUs (the rest of the record is on its platform's branch, reports/platform.md)."""
+    from rlsac import numerics
+
+    with numerics.portable_blas():
+        return _calibrate_lines(options, track, params_path)
+
+
+def _calibrate_lines(options: dict[str, Any], track: bool = True,
+                     params_path: str | Path | None = "params.yaml") -> dict:
     """Run our RANSAC on the default line sets at outlier rates 0.1..0.7 and compare with the paper.
 
     options: n_instances (1000), seed (123), n_seeds (12: data seeds seed..seed+n_seeds-1, averaged),
@@ -226,14 +236,10 @@ def calibrate_lines(options: dict[str, Any], track: bool = True,
     rates (list, default 0.1..0.7), plus any LineDataConf field.
     Writes ``<out>.md`` and ``<out>.csv``; -> {"table": DataFrame, "md", "csv", "run_id"}.
     """
-    from rlsac import numerics
     from rlsac.baselines import oracle, ransac
     from rlsac.data import lines
     from rlsac.evaluate import resolve_device, run_method, task_from
 
-    # the README's main job gives the same bytes on Intel and AMD CPUs: MKL on its vendor-independent branch, set
-    # before its first call (the rest of the record is on its platform's branch, reports/platform.md)
-    numerics.pin_portable_blas()
     o = {"n_instances": 1000, "seed": 123, "n_seeds": 12, "out": "reports/calibration_lines", "iterations": 150,
          "device": "auto", "batch_size": 256, "rates": sorted(PAPER_RANSAC_LINES)}
     o.update({k: v for k, v in options.items() if v is not None})

@@ -20,6 +20,7 @@ import platform
 import re
 import subprocess
 import sys
+from contextlib import contextmanager
 from pathlib import Path
 
 from rlsac.errors import RlsacError
@@ -82,13 +83,22 @@ def describe() -> dict:
             "opencv": cv2.__version__}
 
 
-def pin_portable_blas() -> bool:
-    """Put MKL, for the rest of this process, on the branch that every x86-64 vendor runs alike (MKL_CBWR=COMPATIBLE:
-    on the machine of reports/platform.md it gave the same bytes with MKL on its generic and on its Intel AVX-512
-    branch). MKL reads the setting at its first call, so this must come before any; a value the user set is kept.
-    -> whether MKL_CBWR is COMPATIBLE now."""
+@contextmanager
+def portable_blas():
+    """MKL on the branch that every x86-64 vendor runs alike (MKL_CBWR=COMPATIBLE: on the machine of
+    reports/platform.md it gave the same bytes with MKL on its generic and on its Intel AVX-512 branch) for the MKL
+    calls of a process that has made none yet: MKL reads the setting at its first call and keeps it. A value the user
+    set is kept; the environment is put back on exit, so that later child processes do not inherit it.
+    -> (as the context value) whether MKL_CBWR is COMPATIBLE inside."""
+    old = os.environ.get("MKL_CBWR")
     os.environ.setdefault("MKL_CBWR", "COMPATIBLE")
-    return os.environ["MKL_CBWR"] == "COMPATIBLE"
+    try:
+        yield os.environ["MKL_CBWR"] == "COMPATIBLE"
+    finally:
+        if old is None:
+            os.environ.pop("MKL_CBWR", None)
+        else:
+            os.environ["MKL_CBWR"] = old
 
 
 def load_record(root: str | Path = ".") -> dict:

@@ -252,7 +252,7 @@ def test_train_builds_options_from_params_flags_and_sets(workdir, monkeypatch):
 
 
 def test_calibrate_lines_tiny(workdir, monkeypatch):
-    monkeypatch.delenv("MKL_CBWR", raising=False)  # restored at teardown: the command sets it for its process
+    monkeypatch.delenv("MKL_CBWR", raising=False)
     r = invoke("calibrate-lines", "--n-instances", 10, "--n-seeds", 2, "--iterations", 20, "--out", "rep/cal",
                "--no-tracking")
     assert r.exit_code == 0, r.output
@@ -265,7 +265,9 @@ def test_calibrate_lines_tiny(workdir, monkeypatch):
     md = (workdir / "rep/cal.md").read_text()
     assert "| band |" in md and "0.608" in md
     # the README's main job runs MKL on its vendor-independent branch (the same bytes on Intel and AMD CPUs)
-    assert os.environ["MKL_CBWR"] == "COMPATIBLE" and "`MKL_CBWR=COMPATIBLE`" in md
+    # MKL on its vendor-independent branch while it ran, and the environment put back (tests/conftest.py made this
+    # process's first MKL call, so its branch stays the default one)
+    assert "(`MKL_CBWR=COMPATIBLE`" in md and "MKL_CBWR" not in os.environ
     # the default noise model is not listed (the committed report predates the knob and keeps its bytes); another is
     assert "| noise |" not in md
     gauss = commands.calibration_markdown(table, {"band": 0.03, "noise": "gaussian"}, 20, [1], "rlsac calibrate-lines")
@@ -284,10 +286,14 @@ def test_calibration_table():
     assert t["mAA_min"].tolist() == [0.86] and t["mAA_max"].tolist() == [0.95]
 
 
-def test_portable_blas_pin_keeps_a_value_the_user_set(monkeypatch):
-    from rlsac.numerics import pin_portable_blas
+def test_portable_blas_sets_compatible_inside_keeps_a_users_value_and_puts_the_environment_back(monkeypatch):
+    from rlsac.numerics import portable_blas
 
+    monkeypatch.delenv("MKL_CBWR", raising=False)
+    with portable_blas() as pinned:
+        assert pinned is True and os.environ["MKL_CBWR"] == "COMPATIBLE"
+    assert "MKL_CBWR" not in os.environ
     monkeypatch.setenv("MKL_CBWR", "AVX2")
-    assert pin_portable_blas() is False and os.environ["MKL_CBWR"] == "AVX2"
-    monkeypatch.delenv("MKL_CBWR")
-    assert pin_portable_blas() is True and os.environ["MKL_CBWR"] == "COMPATIBLE"
+    with portable_blas() as pinned:
+        assert pinned is False and os.environ["MKL_CBWR"] == "AVX2"
+    assert os.environ["MKL_CBWR"] == "AVX2"
