@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import os
 import sys
-from pathlib import Path
 
 import click
 
@@ -378,19 +377,13 @@ def verify(tracking: bool, platform_only: bool, **options) -> None:
     from rlsac.verify import format_summary
     from rlsac.verify import verify as run
 
-    record_file = Path(options["repo"]) / numerics.RECORD
-    if platform_only or record_file.exists():
-        record = numerics.load_record(options["repo"])
-        here = numerics.describe()
-        diff = numerics.differences(record, here)
-        if platform_only:
-            for k in numerics.KEYS:
-                click.echo(f"{k:<16} record {record[k]:<14} here {here[k]}")
-            click.echo(f"platform: differs ({'; '.join(diff)})" if diff else "platform: the record's")
-            sys.exit(1 if diff else 0)
-        if diff:
-            click.echo(f"note: this machine's numeric platform is not the record's ({'; '.join(diff)}): its bytes "
-                       f"are not expected to match (reports/platform.md)")
+    platform = numerics.compare(options["repo"], required=platform_only)
+    if platform_only:
+        click.echo("\n".join(numerics.report_lines(platform)))
+        sys.exit(1 if platform["differences"] else 0)
+    if platform and platform["differences"]:
+        click.echo(f"note: this machine's numeric platform is not the record's ({'; '.join(platform['differences'])}):"
+                   f" its bytes are not expected to match (reports/platform.md)")
     s = run(options, track=tracking, report=click.echo)
     click.echo(format_summary(s))
     if s["n_identical"] + s["n_close"] != s["n_stages"]:

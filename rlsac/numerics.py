@@ -118,3 +118,21 @@ def load_record(root: str | Path = ".") -> dict:
 def differences(record: dict, here: dict) -> list[str]:
     """``key record -> here`` for every deciding key whose value differs (empty: the same platform)."""
     return [f"{k} {record[k]} -> {here[k]}" for k in KEYS if record[k] != here[k]]
+
+
+def compare(root: str | Path = ".", required: bool = False) -> dict | None:
+    """This machine's platform against the record's under ``root``: {"record", "here", "differences"}; None when
+    the repository has no record of its platform (an RlsacError instead when ``required``)."""
+    if not required and not (Path(root) / RECORD).exists():
+        return None
+    record = load_record(root)
+    here = describe()
+    return {"record": record, "here": here, "differences": differences(record, here)}
+
+
+def report_lines(c: dict) -> list[str]:
+    """``compare``'s result as lines: each deciding key, record beside here, then the verdict."""
+    lines = [f"{k:<16} record {c['record'][k]:<14} here {c['here'][k]}" for k in KEYS]
+    diff = c["differences"]
+    return lines + [f"platform: differs ({'; '.join(diff)})" if diff else "platform: the record's"]
+
