@@ -399,8 +399,7 @@ def close_file(x: bytes, y: bytes, suffix: str, tolerance: float) -> str | None:
         except ValueError:
             return "not JSON"
         found = _first_json_diff(a, b, "", tolerance)
-        return None if found is None else f"{found[0] or '(top level)'} committed {_short(json.dumps(found[1]))} " \
-                                          f"re-run {_short(json.dumps(found[2]))} (tolerance {tolerance:g})"
+        return None if found is None else f"{_json_difference(*found)} (tolerance {tolerance:g})"
     if suffix == ".csv":
         ra, rb = (list(csv.reader(v.decode(errors="replace").splitlines())) for v in (x, y))
         if len(ra) != len(rb) or ra[:1] != rb[:1]:
@@ -429,7 +428,11 @@ def _json_diff(x: bytes, y: bytes) -> str | None:
     found = _first_json_diff(a, b, "")
     if found is None:  # same values, other formatting: the text diff says where
         return None
-    path, va, vb = found
+    return _json_difference(*found)
+
+
+def _json_difference(path: str, va, vb) -> str:
+    """``<key path> committed <value> re-run <value>`` of ``_first_json_diff``'s find."""
     show = lambda v: "(absent)" if v is _ABSENT else _short(json.dumps(v))  # noqa: E731
     return f"{path or '(top level)'} committed {show(va)} re-run {show(vb)}"
 

@@ -267,8 +267,11 @@ def test_tolerance_refuses_a_number_past_it_and_any_other_change(repo):
     a.write_text(a.read_text().replace("0.8185", "0.8125").replace('"n": 3', '"n": 4'))
     assert "summary.n committed 4 re-run 3" in lines(verify(repo, "--stages", "make", "--no-tracking",
                                                            "--tolerance", "0.005"))[0]
+    a.write_text(a.read_text().replace('"n": 4', '"n": 3, "extra": 1'))  # a key the re-run does not write
+    assert "summary.extra committed 1 re-run (absent) (tolerance 0.005)" in lines(
+        verify(repo, "--stages", "make", "--no-tracking", "--tolerance", "0.005"))[0]
     b = repo / "out/b.csv"
-    a.write_text(a.read_text().replace('"n": 4', '"n": 3'))
+    a.write_text(a.read_text().replace('"n": 3, "extra": 1', '"n": 3'))
     b.write_text(b.read_text() + "3,1.0\n")  # a row more is no rounding
     r = verify(repo, "--stages", "make", "--no-tracking", "--tolerance", "0.005")
     assert r.exit_code == 1 and "out/b.csv: committed has 5 rows, re-run 4" in lines(r)[0], r.output
