@@ -174,7 +174,8 @@ def calibration_table(ours: dict[float, tuple[float, float]],
 
 
 def calibration_markdown(table: pd.DataFrame, conf: dict[str, Any], iterations: int, seeds: list[int],
-                         command: str, all_within: float | None = None) -> str:
+                         command: str, all_within: float | None = None, mkl_cbwr: str = "COMPATIBLE") -> str:
+    """``mkl_cbwr``: the MKL_CBWR the run had (``numerics.portable_blas`` sets COMPATIBLE unless the user set one)."""
     from rlsac.data.lines import LineDataConf
 
     # the noise model only when it is not the default, as in the line files: the committed report keeps its bytes
@@ -200,7 +201,7 @@ it. The error is the angle to the ground-truth line in degrees; mAA is taken at 
 thresholds. `mAA_ours` and `median_ours` are means over the seeds; `diff` = ours - paper. `oracle` =
 total least squares on the true inliers of the same instances: what any sampler followed by the same
 refinement aims at, so `mAA_oracle - mAA_ours` is the headroom left to a better sampler such as RLSAC.
-MKL runs on its vendor-independent branch (`MKL_CBWR={os.environ.get("MKL_CBWR", "")}`, `reports/platform.md`).
+{_mkl_sentence(mkl_cbwr)}
 
 ## Generator settings (`LineDataConf`, outlier_rate and seed vary)
 
@@ -217,6 +218,13 @@ Mean |diff|: mAA {mean_abs['mAA_diff']:.3f}, median {mean_abs['median_diff']:.3f
 """
 
 
+def _mkl_sentence(mkl_cbwr: str) -> str:
+    if mkl_cbwr == "COMPATIBLE":
+        return "MKL runs on its vendor-independent branch (`MKL_CBWR=COMPATIBLE`, `reports/platform.md`)."
+    return (f"MKL ran with `MKL_CBWR={mkl_cbwr}` (set by the user), not on its vendor-independent branch: these "
+            "numbers are this machine's (`reports/platform.md`).")
+
+
 def calibrate_lines(options: dict[str, Any], track: bool = True,
                     params_path: str | Path | None = "params.yaml") -> dict:
     """``_calibrate_lines`` with MKL on its vendor-independent branch: the README's main job gives the same bytes on
@@ -224,11 +232,11 @@ def calibrate_lines(options: dict[str, Any], track: bool = True,
     from rlsac import numerics
 
     with numerics.portable_blas():
-        return _calibrate_lines(options, track, params_path)
+        return _calibrate_lines(options, track, params_path, mkl_cbwr=os.environ["MKL_CBWR"])
 
 
 def _calibrate_lines(options: dict[str, Any], track: bool = True,
-                     params_path: str | Path | None = "params.yaml") -> dict:
+                     params_path: str | Path | None = "params.yaml", mkl_cbwr: str = "COMPATIBLE") -> dict:
     """Run our RANSAC on the default line sets at outlier rates 0.1..0.7 and compare with the paper.
 
     options: n_instances (1000), seed (123), n_seeds (12: data seeds seed..seed+n_seeds-1, averaged),
@@ -288,7 +296,7 @@ def _calibrate_lines(options: dict[str, Any], track: bool = True,
         by_seed = np.array([per_seed[r] for r in sorted(per_seed)]).T  # (n_seeds, rates)
         all_within = float(np.mean(np.all(np.abs(by_seed - table["mAA_paper"].to_numpy()) <= 0.03, axis=1)))
         md_path, csv_path = out.with_suffix(".md"), out.with_suffix(".csv")
-        md = calibration_markdown(table, shown, iterations, seeds, command, all_within)  # before either file
+        md = calibration_markdown(table, shown, iterations, seeds, command, all_within, mkl_cbwr)  # before either file
         with atomic_path(csv_path) as tmp:
             table.to_csv(tmp, index=False, float_format="%.4f")
         write_text(md_path, md)

@@ -272,6 +272,10 @@ def test_calibrate_lines_tiny(workdir, monkeypatch):
     assert "| noise |" not in md
     gauss = commands.calibration_markdown(table, {"band": 0.03, "noise": "gaussian"}, 20, [1], "rlsac calibrate-lines")
     assert "| noise | gaussian |" in gauss
+    # a user's own MKL_CBWR is named as such, not as the vendor-independent branch
+    user = commands.calibration_markdown(table, {"band": 0.03}, 20, [1], "rlsac calibrate-lines", mkl_cbwr="AVX2")
+    assert "`MKL_CBWR=AVX2` (set by the user), not on its vendor-independent branch" in user
+    assert "MKL runs on its vendor-independent branch" not in user
 
 
 def test_calibration_table():
