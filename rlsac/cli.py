@@ -300,6 +300,32 @@ def folds(tracking: bool, **options) -> None:
 
 
 @cli.command()
+@click.option("--checkpoint", required=True, type=click.Path(dir_okay=False),
+              help="An RLSAC checkpoint whose training is replayed (its own options, data and seed).")
+@click.option("--data", required=True, type=click.Path(dir_okay=False), help="Test h5 every validated actor runs on.")
+@click.option("--kept-eval", required=True, type=click.Path(file_okay=False),
+              help="The checkpoint's own evaluation on --data (errors.csv, summary.json): the replayed kept actor "
+                   "must give its mAA.")
+@click.option("--out", required=True, help="Output stem: writes <out>.csv and <out>.json (e.g. "
+                                           "reports/selection/lines/o0.7-s1).")
+@click.option("--iterations", type=int, help="Hypotheses per instance [default: params.yaml evaluate.<task>].")
+@click.option("--tie", type=float, help="Validation scores within this of the kept one's count as tied [0.005].")
+@click.option("--params", "params_path", default="params.yaml", show_default=True,
+              help="params.yaml: its evaluate.<task> section gives the test settings.")
+@device_option
+@tracking_option
+def select(tracking: bool, params_path: str, **options) -> None:
+    """Checkpoint selection measured: replay a model's training and test every validated actor (rlsac.selection)."""
+    from rlsac.config import read_params
+    from rlsac.selection import select_checkpoint
+
+    s = select_checkpoint(options, read_params(params_path), track=tracking)
+    tests = ", ".join(f"{k}: {v.get('mAA', float('nan')):.4f}" for k, v in s["test"].items())
+    click.echo(f"select: kept step {s['kept_step']}, last {s['last_step']}; test mAA by step {{{tests}}}; "
+               f"wrote {', '.join(s['files'])}")
+
+
+@cli.command()
 @click.option("--which", type=click.Choice(["1", "2", "3", "iterations", "folds", "essential", "claims", "selection",
                                            "all"]),
               default="all", show_default=True,

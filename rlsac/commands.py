@@ -48,7 +48,8 @@ def check_lines(params: dict[str, Any]) -> None:
     """params.yaml ``lines``, the line experiment's protocol: rates in [0, 1), iterations, per split ``n_<split>``
     instances and ``seed_<split>`` (``lines_protocol_data``), and the seed grid (issue #27): the other training
     ``seeds`` (from 1: seed 0 is each rate's model) of the models at ``seed_rates`` (rates of ``rates``), and
-    NG-RANSAC's line recipe (issue #29): ``ngransac`` (NGRansacConf fields) and ``ngransac_val_every``."""
+    NG-RANSAC's line recipe (issue #29): ``ngransac`` (NGRansacConf fields) and ``ngransac_val_every``; the tie of
+    ``rlsac select`` on the line models (``select_tie``)."""
     from rlsac.ngransac import NGRansacConf
 
     lines = section(params, "lines")
@@ -57,6 +58,8 @@ def check_lines(params: dict[str, Any]) -> None:
             config.build(NGRansacConf, value, "lines.ngransac")
         elif key == "ngransac_val_every":
             config.check_value("lines.ngransac_val_every", value, int, "[1, inf)")
+        elif key == "select_tie":
+            config.check_value("lines.select_tie", value, float, "[0, inf)")
         elif key in ("rates", "seed_rates"):
             config.check_value(f"lines.{key}", value, list[float], "[0, 1)")
         elif key == "seeds":
@@ -67,7 +70,7 @@ def check_lines(params: dict[str, Any]) -> None:
             config.check_value(f"lines.{key}", value, int, config.SEED_RANGE)
         else:
             raise RlsacError(f"unknown params key lines.{key}; known: rates, iterations, n_<split>, seed_<split>, "
-                             "seeds, seed_rates, ngransac, ngransac_val_every")
+                             "seeds, seed_rates, select_tie, ngransac, ngransac_val_every")
     extra = sorted(set(lines.get("seed_rates", [])) - set(lines["rates"])) if "rates" in lines else []
     if extra:
         raise RlsacError(f"lines.seed_rates {extra} are not in lines.rates")

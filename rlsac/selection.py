@@ -150,3 +150,118 @@ def select_fold(p: dict, params: dict, regime: str, fold: str, model: str, o: di
     write_json(json_path, record)
     return {"model": model, "kept_step": record["kept_step"], "last_step": record["last_step"],
             "steps": record["steps"], "test": test_maa, "files": [str(csv_path), str(json_path)]}
+
+
+# ----------------------------------------------------------------------------------- a model of one data file (lines)
+
+
+def first_best(history: list[dict[str, Any]], key: str) -> int:
+    """The step a training keeping ``key``'s best would keep: the first maximum (a later actor is kept only when it
+    is strictly better, rlsac.train)."""
+    best = max(float(h[key]) for h in history)
+    return next(int(h["step"]) for h in history if float(h[key]) == best)
+
+
+def check_select_options(o: dict[str, Any], params: dict) -> dict[str, Any]:
+    """``rlsac select``'s options with their defaults and checks, before any work -> complete options."""
+    from rlsac.config import check_value, section
+    from rlsac.io import check_writable
+
+    for key in ("checkpoint", "data", "kept_eval", "out"):
+        if not o.get(key):
+            raise RlsacError(f"select needs --{key.replace('_', '-')}")
+    for key in ("checkpoint", "data"):
+        if not Path(o[key]).is_file():
+            raise RlsacError(f"{o[key]}: no such file")
+    for name in ("errors.csv", "summary.json"):
+        if not (Path(o["kept_eval"]) / name).is_file():
+            raise RlsacError(f"{o['kept_eval']}: no {name} (the kept checkpoint's own evaluation, rlsac evaluate)")
+    o = dict(o)
+    o["tie"] = check_value("tie", 0.005 if o.get("tie") is None else o["tie"], float, "[0, inf)")
+    if o.get("iterations") is not None:
+        o["iterations"] = check_value("iterations", o["iterations"], int, "[1, inf)")
+    out = Path(o["out"])
+    for path in (out.with_suffix(".csv"), out.with_suffix(".json")):
+        check_writable(path)
+    section(params, "evaluate")  # a params file without the section fails here, not after the replay
+    return o
+
+
+def select_checkpoint(o: dict[str, Any], params: dict, track: bool = True) -> dict[str, Any]:
+    """Checkpoint selection measured for a model trained on one data file (the line models of Table 1): replay the
+    training of ``o['checkpoint']`` from its own options (its ``conf``: the same data, options and seed), test every
+    validated actor on ``o['data']`` with evaluate.<task>'s settings at ``o['iterations']``, and write
+    ``<out>.csv`` (step, instance, the task's errors) and ``<out>.json`` (the validation history; the kept, the last
+    and the inlier-ratio-best step; the candidates within ``tie`` of the kept one's validation score; each step's
+    test summary). The kept actor must come back tensor for tensor and give the test mAA of its committed evaluation
+    ``o['kept_eval']``, or nothing is written (RlsacError). -> a summary."""
+    import json
+    import time
+
+    from rlsac import checkpoint
+    from rlsac.config import section
+    from rlsac.evaluate import check_options, resolve_device, score
+    from rlsac.tasks import task_class
+    from rlsac.tracking import check_store, start_run
+    from rlsac.train import SELECTION_KEY, selection_score
+
+    o = check_select_options(o, params)
+    kept = checkpoint.read(o["checkpoint"])
+    if checkpoint.kind_of(kept) != "rlsac" or not isinstance(kept.get("conf"), dict) or "actor" not in kept:
+        raise RlsacError(f"{o['checkpoint']}: not an RLSAC checkpoint (select replays RLSAC's training)")
+    conf = dict(kept["conf"])
+    task = str(conf.get("task"))
+    task_cls = task_class(task)
+    kept_summary = json.loads((Path(o["kept_eval"]) / "summary.json").read_text())
+    if Path(str(kept_summary.get("checkpoint", ""))).resolve() != Path(o["checkpoint"]).resolve() or Path(
+            str(kept_summary.get("data", ""))).resolve() != Path(o["data"]).resolve():
+        raise RlsacError(f"{o['kept_eval']}: an evaluation of {kept_summary.get('checkpoint')} on "
+                         f"{kept_summary.get('data')}, not of {o['checkpoint']} on {o['data']}")
+    ev = section(params, "evaluate", task)
+    iterations = int(o["iterations"] or ev.get("iterations") or task_cls.default_iterations)
+    if int(kept_summary.get("iterations", -1)) != iterations:
+        raise RlsacError(f"{o['kept_eval']}: evaluated at {kept_summary.get('iterations')} iterations, not "
+                         f"{iterations}")
+    data, _ = task_class(task).read(o["data"])
+    device = resolve_device(o.get("device"))
+    check_store(track, task_cls.experiment)
+    out = Path(o["out"])
+    frames, test = [], {}
+    with tempfile.TemporaryDirectory(prefix="rlsac-select-") as tmp, start_run(
+            task_cls.experiment, f"select {out.name}", params={"checkpoint": o["checkpoint"], "data": o["data"],
+                                                               "iterations": iterations, "tie": o["tie"]},
+            tags={"command": "select"}, enabled=track) as mlrun:
+        t0 = time.perf_counter()
+        snaps = replay({**conf, "resume": False, "device": o.get("device") or "cpu"}, kept, Path(tmp))
+        mlrun.metrics({"time/replay_seconds": time.perf_counter() - t0})
+        for snap in snaps:
+            step = int(snap["step"])
+            path = Path(tmp) / f"step{step}.pt"
+            checkpoint.write(path, snap)
+            opts = {**ev, "task": task, "method": "rlsac", "checkpoint": str(path), "data": o["data"],
+                    "iterations": iterations}
+            summ, got = score(check_options(opts), data, device)
+            if step == int(kept["step"]) and float(summ["mAA"]) != float(kept_summary.get("mAA", float("nan"))):
+                raise RlsacError(f"{o['kept_eval']}: the replayed kept actor's test mAA {summ['mAA']} is not the "
+                                 f"committed evaluation's {kept_summary.get('mAA')}")
+            errs = {k: v for k, v in got.items() if k.startswith("err")}
+            frames.append(pd.DataFrame({"step": step, "instance": range(len(next(iter(errs.values())))), **errs}))
+            test[str(step)] = {k: float(v) for k, v in summ.items() if isinstance(v, (int, float)) and k in (
+                "mAA", "median_deg", "mAA_R", "mAA_t")}
+            mlrun.metrics({f"test_{k}/step{step}": v for k, v in test[str(step)].items()})
+        mlrun.metrics({"time/seconds": time.perf_counter() - t0})
+    history = [{"step": int(s["step"]), **{k: float(v) for k, v in (s.get("val") or {}).items()}} for s in snaps]
+    selection = str(kept.get("selection") or conf.get("selection") or "val_mAA")
+    key = selection_score(selection)
+    record = {"checkpoint": str(o["checkpoint"]), "data": str(o["data"]), "task": task, "seed": int(conf["seed"]),
+              "selection": selection, "score": key, "kept_step": int(kept["step"]),
+              "last_step": max(int(s["step"]) for s in snaps), "steps": [int(s["step"]) for s in snaps],
+              "inlier_ratio_step": first_best(history, SELECTION_KEY["inlier_ratio"]),
+              "val_mAA_step": first_best(history, SELECTION_KEY["val_mAA"]), "reproduced": True,
+              "tie": float(o["tie"]), "candidates": candidates(history, int(kept["step"]), float(o["tie"]), key),
+              "iterations": iterations, "history": history, "test": test}
+    with atomic_path(out.with_suffix(".csv")) as t:
+        pd.concat(frames, ignore_index=True).to_csv(t, index=False, float_format="%.6g")
+    write_json(out.with_suffix(".json"), record)
+    return {"kept_step": record["kept_step"], "last_step": record["last_step"], "steps": record["steps"],
+            "test": test, "files": [str(out.with_suffix(".csv")), str(out.with_suffix(".json"))]}

@@ -159,29 +159,148 @@ def shipped(ckpt_root: str | Path) -> pd.DataFrame:
 
 def build(root: str | Path = "reports/selection", out_dir: str | Path = "reports",
           ckpt_root: str | Path | None = None) -> dict[str, Any]:
-    """Write <out_dir>/selection.{md,csv} from the records under ``root`` (and, with ``ckpt_root``, how every shipped
-    checkpoint was kept) -> {"files"} (none without records)."""
-    runs = read_runs(root)
-    if not runs:
+    """Write <out_dir>/selection.{md,csv} from the fold records under ``root`` and <out_dir>/selection_lines.csv from
+    the line records under ``root``/lines (and, with ``ckpt_root``, how every shipped checkpoint was kept) ->
+    {"files"} (none without records)."""
+    runs, line_runs = read_runs(root), read_line_runs(Path(root) / LINES)
+    if not runs and not line_runs:
         print(f"selection: no records under {root}; nothing written")
         return {"files": []}
-    per_run, summ = run_table(runs), summary(runs)
-    pairs = sorted({int(sum(len(_errors(r, r["kept_step"], r["iterations"][0], "err_R")) for r in runs
-                            if r["base"] == b and r["seed"] == s)) for b, s in {(r["base"], r["seed"]) for r in runs}})
-    ties = sorted({float(r.get("tie", np.nan)) for r in runs})
-    md = (HEAD.format(n_boot=N_BOOT, pairs=" / ".join(map(str, pairs)), tie=" / ".join(f"{t:g}" for t in ties))
-          + "\n## Kept vs last, and the actors validation cannot tell apart\n\n"
-          + summ.to_markdown(index=False, disable_numparse=True)
-          + "\n\n## Every run (reports/selection.csv)\n\n" + per_run.to_markdown(index=False, disable_numparse=True)
-          + "\n")
+    out_dir = Path(out_dir)
+    md, files = "" if runs else "# Checkpoint selection measured (issue #27, item 3)\n", []
+    if runs:
+        per_run, summ = run_table(runs), summary(runs)
+        models = {(r["base"], r["seed"]) for r in runs}
+        pairs = sorted({int(sum(len(_errors(r, r["kept_step"], r["iterations"][0], "err_R")) for r in runs
+                                if r["base"] == b and r["seed"] == s)) for b, s in models})
+        ties = sorted({float(r.get("tie", np.nan)) for r in runs})
+        md = (HEAD.format(n_boot=N_BOOT, pairs=" / ".join(map(str, pairs)), tie=" / ".join(f"{t:g}" for t in ties))
+              + "\n## Kept vs last, and the actors validation cannot tell apart\n\n"
+              + summ.to_markdown(index=False, disable_numparse=True)
+              + "\n\n## Every run (reports/selection.csv)\n\n" + per_run.to_markdown(index=False, disable_numparse=True)
+              + "\n")
+        csv_path = out_dir / "selection.csv"
+        with atomic_path(csv_path) as tmp:
+            per_run.to_csv(tmp, index=False)
+        files.append(str(csv_path))
+    if line_runs:
+        line_per_run, line_summ = line_run_table(line_runs), line_summary(line_runs)
+        md += (LINE_HEAD.format(n_boot=N_BOOT, n=" / ".join(sorted({str(len(r["errors"]) // len(r["steps"]))
+                                                                    for r in line_runs})),
+                                tie=" / ".join(sorted({f"{r['tie']:g}" for r in line_runs})))
+               + line_summ.to_markdown(index=False, disable_numparse=True)
+               + "\n\n### Every line run (reports/selection_lines.csv)\n\n"
+               + line_per_run.to_markdown(index=False, disable_numparse=True) + "\n")
+        csv_path = out_dir / "selection_lines.csv"
+        with atomic_path(csv_path) as tmp:
+            line_per_run.to_csv(tmp, index=False)
+        files.append(str(csv_path))
     ships = shipped(ckpt_root) if ckpt_root is not None else pd.DataFrame()
     if not ships.empty:
         md += ("\n## How every shipped checkpoint was kept\n\nFrom each file under " + f"`{ckpt_root}/`" + " (its "
                "`selection` and `step`, and the steps its training validated).\n\n"
                + ships.to_markdown(index=False, disable_numparse=True) + "\n")
-    out_dir = Path(out_dir)
-    md_path, csv_path = out_dir / "selection.md", out_dir / "selection.csv"
-    with atomic_path(csv_path) as tmp:
-        per_run.to_csv(tmp, index=False)
+    md_path = out_dir / "selection.md"
     write_text(md_path, md)
-    return {"files": [str(md_path), str(csv_path)]}
+    return {"files": [str(md_path), *files]}
+
+
+# ------------------------------------------------------------------------- the line models (Table 1; rlsac select)
+
+LINES = "lines"  # <root>/lines/<run>.{json,csv}: the records of `rlsac select` on the line models
+LINE_LIMIT = 0.5  # Table 1's mAA limit (deg)
+
+LINE_HEAD = """
+## Line models (Table 1)
+
+From the records of `rlsac select` (stages `select_lines_seed`, reports/selection/lines/): each run replays a line
+model's training (its own options, data and seed; the kept actor came back bit for bit and gave the test mAA of its
+committed evaluation, or the stage would have failed) and tests every validated actor on the rate's 1000 test
+instances at Table 1's budget. The line models are kept by `train.line.selection`: validation mAA on 200 validation
+instances (ground truth; not the paper's signal, which the *inlier-ratio pick* column shows: the actor the
+validation inlier ratio would have kept).
+
+* **kept − last**, **inlier-ratio pick − kept**: mAA@0.5° over the test instances; `mean ± SD` over training seeds;
+  the interval resamples the seeds (the same for both: checkpoints of one run) and the instances ({n_boot} draws).
+  One unit of mAA is one test instance's accuracy over {n} instances per seed.
+* **tied**: runs where another validated actor's validation mAA lies within the tie ({tie}: one validation
+  instance) of the kept one's; `spread`: best − worst test mAA among them, and how often the kept one is the best.
+
+"""
+
+
+def read_line_runs(root: str | Path) -> list[dict[str, Any]]:
+    """Every `rlsac select` record under ``root`` with its per-instance errors (``errors``), sorted by data and seed."""
+    out = []
+    for path in sorted(Path(root).glob("*.json")):
+        try:
+            rec = json.loads(path.read_text())
+            errors = pd.read_csv(path.with_suffix(".csv"))
+        except (OSError, ValueError) as e:
+            raise RlsacError(f"{path}: not a readable selection record ({e.__class__.__name__})") from None
+        need = {"data", "seed", "kept_step", "last_step", "steps", "candidates", "history", "inlier_ratio_step", "tie"}
+        if not isinstance(rec, dict) or not need <= set(rec) or not {"step", "instance", "err_deg"} <= set(
+                errors.columns):
+            raise RlsacError(f"{path}: not a line selection record of rlsac select")
+        out.append({**rec, "set": Path(rec["data"]).stem, "errors": errors})
+    return sorted(out, key=lambda r: (r["set"], r["seed"]))
+
+
+def _line_errors(run: dict[str, Any], step: int) -> np.ndarray:
+    e = run["errors"]
+    return e.loc[e["step"] == step].sort_values("instance")["err_deg"].to_numpy(np.float64)
+
+
+def _line_maa(err: np.ndarray) -> float:
+    from rlsac.metrics import mAA
+
+    return float(mAA(err, LINE_LIMIT))
+
+
+def line_run_table(runs: list[dict[str, Any]]) -> pd.DataFrame:
+    """One row per (line run, validated step): validation mAA and inlier ratio, kept / last / inlier-ratio pick /
+    candidate, test mAA."""
+    rows = []
+    for r in runs:
+        val = {int(h["step"]): h for h in r["history"]}
+        for step in r["steps"]:
+            rows.append({"data": r["set"], "seed": r["seed"], "step": step, "kept": step == r["kept_step"],
+                         "last": step == r["last_step"], "inlier-ratio pick": step == r["inlier_ratio_step"],
+                         "candidate": step in r["candidates"],
+                         "val mAA": round(float(val.get(step, {}).get("charts/val_mAA", np.nan)), 4),
+                         "val inlier ratio": round(float(val.get(step, {}).get("charts/val_inlier_ratio", np.nan)), 4),
+                         "test mAA": round(_line_maa(_line_errors(r, step)), 4)})
+    return pd.DataFrame(rows)
+
+
+def line_summary(runs: list[dict[str, Any]]) -> pd.DataFrame:
+    """Per test set (outlier rate): kept vs last and the inlier-ratio pick vs kept over the seeds (seed-aware paired
+    intervals), and the tied actors' test spread."""
+    from rlsac.metrics import seed_bootstrap_maa
+
+    rows = []
+    for name in sorted({r["set"] for r in runs}):
+        mine = [r for r in runs if r["set"] == name]
+        kept = np.stack([_line_errors(r, r["kept_step"]) for r in mine])
+        last = np.stack([_line_errors(r, r["last_step"]) for r in mine])
+        pick = np.stack([_line_errors(r, r["inlier_ratio_step"]) for r in mine])
+        kl = seed_bootstrap_maa(kept, last, LINE_LIMIT, n_boot=N_BOOT, seed=0, paired_seeds=True)
+        pk = seed_bootstrap_maa(pick, kept, LINE_LIMIT, n_boot=N_BOOT, seed=0, paired_seeds=True)
+        spread, kept_best = [], 0
+        for r in mine:
+            got = {s: _line_maa(_line_errors(r, s)) for s in r["candidates"]}
+            if len(got) > 1:
+                spread.append(max(got.values()) - min(got.values()))
+                kept_best += got[r["kept_step"]] == max(got.values())
+        rows.append({"data": name, "seeds": " ".join(str(r["seed"]) for r in mine),
+                     "kept = last": f"{sum(r['kept_step'] == r['last_step'] for r in mine)}/{len(mine)}",
+                     "kept (mean ± SD)": f"{kl['mean_a']:.3f} ± {kl['sd_a']:.3f}",
+                     "last (mean ± SD)": f"{kl['mean_b']:.3f} ± {kl['sd_b']:.3f}",
+                     "kept − last [95%]": f"{kl['diff']:+.3f} [{kl['lo']:+.3f}, {kl['hi']:+.3f}]",
+                     "inlier-ratio pick = kept": f"{sum(r['inlier_ratio_step'] == r['kept_step'] for r in mine)}"
+                                                f"/{len(mine)}",
+                     "pick − kept [95%]": f"{pk['diff']:+.3f} [{pk['lo']:+.3f}, {pk['hi']:+.3f}]",
+                     "tied runs": len(spread),
+                     "tied spread (mean / max)": f"{np.mean(spread):.3f} / {np.max(spread):.3f}" if spread else "–",
+                     "kept best of tied": f"{kept_best}/{len(spread)}" if spread else "–"})
+    return pd.DataFrame(rows)
