@@ -162,6 +162,11 @@ def first_best(history: list[dict[str, Any]], key: str) -> int:
     return next(int(h["step"]) for h in history if float(h[key]) == best)
 
 
+def out_files(stem: str | Path) -> tuple[Path, Path]:
+    """``<stem>.csv`` and ``<stem>.json`` (appended: a stem such as o0.7-s1 has a dot that is not a suffix)."""
+    return Path(f"{stem}.csv"), Path(f"{stem}.json")
+
+
 def check_select_options(o: dict[str, Any], params: dict) -> dict[str, Any]:
     """``rlsac select``'s options with their defaults and checks, before any work -> complete options."""
     from rlsac.config import check_value, section
@@ -180,8 +185,7 @@ def check_select_options(o: dict[str, Any], params: dict) -> dict[str, Any]:
     o["tie"] = check_value("tie", 0.005 if o.get("tie") is None else o["tie"], float, "[0, inf)")
     if o.get("iterations") is not None:
         o["iterations"] = check_value("iterations", o["iterations"], int, "[1, inf)")
-    out = Path(o["out"])
-    for path in (out.with_suffix(".csv"), out.with_suffix(".json")):
+    for path in out_files(o["out"]):
         check_writable(path)
     section(params, "evaluate")  # a params file without the section fails here, not after the replay
     return o
@@ -260,8 +264,9 @@ def select_checkpoint(o: dict[str, Any], params: dict, track: bool = True) -> di
               "val_mAA_step": first_best(history, SELECTION_KEY["val_mAA"]), "reproduced": True,
               "tie": float(o["tie"]), "candidates": candidates(history, int(kept["step"]), float(o["tie"]), key),
               "iterations": iterations, "history": history, "test": test}
-    with atomic_path(out.with_suffix(".csv")) as t:
+    csv_path, json_path = out_files(out)
+    with atomic_path(csv_path) as t:
         pd.concat(frames, ignore_index=True).to_csv(t, index=False, float_format="%.6g")
-    write_json(out.with_suffix(".json"), record)
+    write_json(json_path, record)
     return {"kept_step": record["kept_step"], "last_step": record["last_step"], "steps": record["steps"],
-            "test": test, "files": [str(out.with_suffix(".csv")), str(out.with_suffix(".json"))]}
+            "test": test, "files": [str(csv_path), str(json_path)]}

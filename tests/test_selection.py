@@ -129,14 +129,15 @@ def _select(*extra):
     from test_cli import invoke
 
     return invoke("select", "--checkpoint", "m.pt", "--data", "te.h5", "--kept-eval", "ev", "--iterations", 20,
-                  "--out", "sel/m", "--no-tracking", *extra)
+                  "--out", "sel/o0.5-m", "--no-tracking", *extra)
 
 
 def test_select_replays_the_training_and_tests_every_validated_actor(line_run, monkeypatch):
     monkeypatch.chdir(line_run)
     r = _select()
     assert r.exit_code == 0, r.output
-    rec = json.loads((line_run / "sel/m.json").read_text())
+    assert sorted(p.name for p in (line_run / "sel").iterdir()) == ["o0.5-m.csv", "o0.5-m.json"]  # a stem, not a suffix
+    rec = json.loads((line_run / "sel/o0.5-m.json").read_text())
     kept = torch.load(line_run / "m.pt", weights_only=False)
     assert rec["steps"] == [20, 40] and rec["last_step"] == 40 and rec["kept_step"] == kept["step"]
     assert rec["reproduced"] is True and rec["selection"] == "val_mAA" and rec["score"] == "charts/val_mAA"
@@ -148,7 +149,7 @@ def test_select_replays_the_training_and_tests_every_validated_actor(line_run, m
     # the kept actor's test result is its committed evaluation's, instance for instance
     ev = json.loads((line_run / "ev/summary.json").read_text())
     assert rec["test"][str(rec["kept_step"])]["mAA"] == ev["mAA"]
-    errs = pd.read_csv(line_run / "sel/m.csv")
+    errs = pd.read_csv(line_run / "sel/o0.5-m.csv")
     assert list(errs.columns) == ["step", "instance", "err_deg"] and len(errs) == 2 * 24
     own = pd.read_csv(line_run / "ev/errors.csv")["err_deg"].to_numpy()
     assert errs.loc[errs["step"] == rec["kept_step"], "err_deg"].to_numpy() == pytest.approx(own, rel=1e-5)
