@@ -26,6 +26,10 @@ class _UserError(click.ClickException):
         click.echo(f"error: {self.format_message()}", err=True)
 
 
+# what torch's CPU and CUDA allocators say when an allocation fails (a RuntimeError, not a MemoryError)
+OUT_OF_MEMORY = ("can't allocate memory", "not enough memory", "alloc_cpu.cpp", "CUDA out of memory")
+
+
 class _Group(click.Group):
     """Turns RlsacError raised by any command into a one-line error with exit code 2 (an interrupted
     training: 130 / 143), and click's own usage errors (unknown option or command, bad choice, a file where a
@@ -57,6 +61,12 @@ class _Group(click.Group):
             return super().invoke(ctx)
         except RlsacError as e:
             raise _UserError(" ".join(str(e).split()) or e.__class__.__name__, getattr(e, "exit_code", 2)) from None
+        except (MemoryError, RuntimeError) as e:  # sizes within their ranges that this machine cannot hold
+            if not isinstance(e, MemoryError) and not any(m in str(e) for m in OUT_OF_MEMORY):
+                raise
+            first = " ".join(str(e).split())[:160]
+            raise _UserError(f"out of memory ({e.__class__.__name__}: {first}); lower the sizes you set (batch_size, "
+                             "buffer_size, num_envs, samples, val_iterations, ...)", 2) from None
 
 
 class _TaskChoice(click.Choice):
@@ -403,14 +413,23 @@ def verify(tracking: bool, platform_only: bool, **options) -> None:
     from rlsac.verify import format_summary
     from rlsac.verify import verify as run
 
-    platform = numerics.compare(options["repo"], required=platform_only)
     if platform_only:
+        given = [k for k in ("stages", "sample", "tolerance", "scratch") if options.get(k) is not None] + [
+            k for k in ("include_train", "keep") if options.get(k)] + (["seed"] if options.get("seed") else [])
+        if given:
+            raise RlsacError(f"--platform only compares platforms; it takes no --{given[0].replace('_', '-')}")
+        platform = numerics.compare(options["repo"], required=True)
         click.echo("\n".join(numerics.report_lines(platform)))
         sys.exit(1 if platform["differences"] else 0)
-    if platform and platform["differences"]:
-        click.echo(f"note: this machine's numeric platform is not the record's ({'; '.join(platform['differences'])}):"
-                   f" its bytes are not expected to match (reports/platform.md)")
-    s = run(options, track=tracking, report=click.echo)
+
+    def note() -> None:  # after the options and inputs were checked: a user error prints nothing else
+        platform = numerics.compare(options["repo"], required=False)
+        if platform and platform["differences"]:
+            click.echo(f"note: this machine's numeric platform is not the record's "
+                       f"({'; '.join(platform['differences'])}): its bytes are not expected to match "
+                       f"(reports/platform.md)")
+
+    s = run(options, track=tracking, report=click.echo, checked=note)
     click.echo(format_summary(s))
     if s["n_identical"] + s["n_close"] != s["n_stages"]:
         sys.exit(1)

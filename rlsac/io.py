@@ -44,14 +44,16 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
 def check_writable(path: str | os.PathLike, what: str = "output", folder: bool = False) -> Path:
     """Fail early, with a one-line RlsacError, when ``path`` (a file to be written, or a directory to
     write into) could not be written: a parent that is a regular file, a folder that cannot be
-    created or written (read-only, /proc, ...). ``folder``: ``path`` is a folder to write into, so an
-    existing file there is an error too. Nothing is left behind: missing folders are not created, the
-    probe file is removed at once. -> ``path`` as a Path."""
+    created or written (read-only, /proc, ...), a folder where the file goes. ``folder``: ``path`` is a folder
+    to write into, so an existing file there is an error instead. Nothing is left behind: missing folders are
+    not created, the probe file is removed at once. -> ``path`` as a Path."""
     path = Path(path)
     if path.exists() and not (path.is_file() or path.is_dir()):
         raise RlsacError(f"cannot write {what} {path}: not a regular file or folder")
     if folder and path.exists() and not path.is_dir():
         raise RlsacError(f"cannot write {what} {path}: {path} is not a folder")
+    if not folder and path.is_dir():  # os.replace onto a folder fails only at the end, after the work
+        raise RlsacError(f"cannot write {what} {path}: a folder of that name is in the way")
     anc = path if path.is_dir() else path.parent
     while not anc.exists():
         if anc.is_symlink():

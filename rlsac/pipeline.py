@@ -203,8 +203,8 @@ def _check_options(o: dict) -> None:
         raise RlsacError(f"--workers {o['workers']}: must be at least 1")
     if o["workers"] is not None and o["address"]:
         raise RlsacError("--workers sizes a local Ray cluster; with --address the cluster's own resources count")
-    if o["gpus_per_train"] < 0:
-        raise RlsacError(f"--gpus-per-train {o['gpus_per_train']}: must be at least 0")
+    if not 0 <= o["gpus_per_train"] < float("inf"):  # nan and inf pass click's FloatRange
+        raise RlsacError(f"--gpus-per-train {o['gpus_per_train']}: must be a finite number >= 0")
 
 
 def _start_ray(o: dict) -> tuple[Any, bool]:

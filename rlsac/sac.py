@@ -24,6 +24,7 @@ import torch
 import torch.nn.functional as F
 
 from rlsac.env import MEMORY_DIM, EnvConf, SampleConsensusEnv
+from rlsac.errors import RlsacError
 from rlsac.policy import Actor, Critic, PolicyConf
 from rlsac.progress import tqdm  # no bars unless a person watches (not under CI, not redirected)
 
@@ -59,6 +60,12 @@ class SACConf:
               "actor_lr": "(0, inf)", "critic_lr": "(0, inf)", "alpha_lr": "(0, inf)", "init_alpha": "(0, inf)",
               "target_entropy_scale": "[0, inf)", "train_sampling": ("prob", "max"),
               "warm_start_updates": "[0, inf)"}
+
+    def __post_init__(self) -> None:
+        sizes = (self.batch_size, self.buffer_size)
+        if all(isinstance(v, int) for v in sizes) and self.batch_size > self.buffer_size:
+            raise RlsacError(f"sac.batch_size {self.batch_size} is larger than sac.buffer_size {self.buffer_size} "
+                             "(an update's batch is drawn from the buffer)")
 
 
 class ReplayBuffer:

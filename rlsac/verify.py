@@ -35,9 +35,11 @@ DEFAULTS = {"stages": None, "sample": None, "seed": 0, "include_train": False, "
             "repo": ".", "tolerance": None}
 
 
-def verify(options: dict[str, Any], track: bool = True, report: Callable[[str], None] | None = None) -> dict:
+def verify(options: dict[str, Any], track: bool = True, report: Callable[[str], None] | None = None,
+           checked: Callable[[], None] | None = None) -> dict:
     """Verify the stages ``options`` selects (keys of DEFAULTS); ``report`` gets one line per stage as it
-    finishes. ``tolerance``: JSON numbers may differ by this much, CSV cells that are numbers are not compared
+    finishes; ``checked`` is called once every option and input has been checked, before any work.
+    ``tolerance``: JSON numbers may differ by this much, CSV cells that are numbers are not compared
     (per-instance errors; another numeric platform, rlsac.numerics): a stage that agrees so is "close".
     -> {"results": [{stage, status, detail, seconds}], "n_identical", "n_close", "n_differs", "n_failed",
     "n_stages", "scratch" (None once removed), "run_id"}."""
@@ -53,6 +55,8 @@ def verify(options: dict[str, Any], track: bool = True, report: Callable[[str], 
     check_inputs(root, selected, stages)
     scratch = _check_scratch(o["scratch"])
     check_store(track, "verify")
+    if checked is not None:
+        checked()
 
     made = scratch is None or not scratch.exists()
     if scratch is None:
@@ -108,14 +112,19 @@ def pipeline_error(repo_dir: str | os.PathLike, e: Exception) -> RlsacError:
 
 
 def open_repo(repo_dir: str | os.PathLike):
-    """DVC's Repo at ``repo_dir`` (the caller closes it); RlsacError on a path that is not a DVC repository or an
-    unparsable dvc.yaml."""
+    """DVC's Repo at ``repo_dir`` (the caller closes it); RlsacError on a path that is not a DVC repository's root
+    (a folder inside one included) or an unparsable dvc.yaml."""
     from dvc.repo import Repo
 
     try:
-        return Repo(str(repo_dir))
+        repo = Repo(str(repo_dir))
     except Exception as e:
         raise pipeline_error(repo_dir, e) from None
+    if Path(repo.root_dir).resolve() != Path(repo_dir).resolve():  # DVC looks upward: the enclosing repository
+        root = repo.root_dir
+        repo.close()
+        raise RlsacError(f"{repo_dir}: not a DVC repository's root (it lies inside the one at {root})")
+    return repo
 
 
 def load_stages(repo_dir: str | os.PathLike) -> tuple[Path, list[dict]]:
@@ -220,12 +229,12 @@ def _check_scratch(path: str | None) -> Path | None:
     from rlsac.io import check_writable
 
     if path is None:
-        check_writable(Path(tempfile.gettempdir()), "the scratch folder")
+        check_writable(Path(tempfile.gettempdir()), "the scratch folder", folder=True)
         return None
     p = Path(path).absolute()
     if p.exists() and (not p.is_dir() or any(p.iterdir())):
         raise RlsacError(f"--scratch {path}: exists and is not an empty folder (verify removes what it writes there)")
-    return check_writable(p, "the scratch folder")
+    return check_writable(p, "the scratch folder", folder=True)
 
 
 def copy_workspace(root: Path, tracked: list[str], work: Path, deps: list[str]) -> None:

@@ -181,8 +181,11 @@ def test_killed_worker_is_reported_and_a_second_run_completes(tmp_path):
 
 def test_bad_input_is_one_error_line_before_any_work(tmp_path):
     repo = make_repo(tmp_path / "repo", TOY)
+    (repo / "sub").mkdir()
     for args, message in ((["nosuch"], "no stage matches 'nosuch'"), (["--workers", "0"], "--workers"),
                           (["--repo", str(tmp_path)], "cannot read the DVC pipeline"),
+                          (["--repo", str(repo / "sub")], "not a DVC repository's root"),
+                          (["--gpus-per-train", "nan"], "must be a finite number >= 0"),
                           (["--gpus-per-train", "1", "--gpu-stages", "b"], "the Ray cluster has 0 GPUs (b would")):
         r = CliRunner().invoke(cli, ["pipeline", "--repo", str(repo), *args, "--no-tracking"])
         assert r.exit_code == 2, (args, r.output)

@@ -239,6 +239,14 @@ def inputs(tmp_path_factory):
         p.parent.mkdir(parents=True)
         p.write_text(content)
         f[name] = p.parents[3]
+    f["ev_ok"] = d / "ev_ok"  # an evaluation root with nothing in it (every cell missing)
+    f["ev_ok"].mkdir()
+    f["rep_way"] = d / "rep_way"  # an output folder where a folder is named like a table file
+    (f["rep_way"] / "metrics.json").mkdir(parents=True)
+    for name in ("lines_out", "ev_out"):  # output folders holding a folder where a file goes
+        f[name] = d / name
+    (f["lines_out"] / "val_o0.5.h5").mkdir(parents=True)
+    (f["ev_out"] / "summary.json").mkdir(parents=True)
     p = d / "ev_nocol" / "lines" / "ransac" / "o0.5"
     p.mkdir(parents=True)
     (p / "summary.json").write_text(json.dumps({"mAA": 0.5, "median_deg": 0.1}))
@@ -346,6 +354,7 @@ CASES = [
     # --- import-scenes
     ("import-max-features", imp("--max-features", "-5"), "max_features must be in [1, inf)"),
     ("import-max-features-0", imp("--max-features", "0"), "max_features must be in [1, inf)"),
+    ("import-split-path", imp("--split", "../../x"), "split '../../x': one folder name under --out"),
     ("import-min-matches", imp("--min-matches", "-1"), "min_matches must be in [0, inf)"),
     ("import-set-type", imp("--set", "keep_snn=abc"), "keep_snn must be a number, got 'abc'"),
     ("import-set-nan", imp("--set", "keep_snn=.nan"), "keep_snn must be a finite number"),
@@ -446,7 +455,15 @@ CASES = [
     ("table-list-summary", ["table", "--eval-root", "{ev_list}", "--out-dir", "rep"], "holds a list, not a mapping"),
     ("table-no-error-column", ["table", "--eval-root", "{ev_nocol}", "--out-dir", "rep"],
      "errors.csv: no 'err_deg' column"),
-    ("table-out-under-file", ["table", "--eval-root", "nowhere", "--out-dir", "{blocker}/rep"], "is not a folder"),
+    ("table-out-under-file", ["table", "--eval-root", "{ev_ok}", "--out-dir", "{blocker}/rep"], "is not a folder"),
+    ("table-no-eval-root", ["table", "--eval-root", "nowhere", "--out-dir", "rep"],
+     "--eval-root nowhere: no such folder"),
+    ("table-out-folder-in-the-way", ["table", "--eval-root", "{ev_ok}", "--out-dir", "{rep_way}"],
+     "metrics.json is a folder"),
+    ("lines-data-out-folder-in-the-way", ["lines-data", "--rate", "0.5", "--out-dir", "{lines_out}", "--params", ""],
+     "val_o0.5.h5: a folder of that name is in the way"),
+    ("evaluate-out-folder-in-the-way", ["evaluate", "--task", "line", "--method", "ransac", "--data", "{lines}",
+                                        "--out-dir", "{ev_out}"], "summary.json: a folder of that name is in the way"),
     # --- plot, ablate
     ("plot-unknown", ["plot", "--set", "bogus=1"], "unknown plot option"),
     ("plot-set-syntax", ["plot", "--set", "novalue"], "key=value"),
@@ -463,6 +480,12 @@ CASES = [
     ("plot-steps-type", ["plot", "--set", "line_steps=abc"], "plot.line_steps must be an integer, got 'abc'"),
     ("plot-steps-range", ["plot", "--set", "fundamental_steps=0"], "plot.fundamental_steps must be in [1, inf)"),
     ("plot-seed", ["plot", "--set", "seed=-1"], "plot.seed must be in"),
+    ("train-batch-over-buffer", train("--set", "sac.batch_size=64", "--set", "sac.buffer_size=32"),
+     "sac.batch_size 64 is larger than sac.buffer_size 32"),
+    ("plot-line-index-text", ["plot", "--set", "which=line", "--set", "line_index=foo"],
+     "plot.line_index must be an integer or 'auto', got 'foo'"),
+    ("plot-pair-text", ["plot", "--set", "which=pair", "--set", "pair=1.5"], "plot.pair must be an integer or 'auto'"),
+    ("plot-which-empty", ["plot", "--set", "which="], "which names no figure"),
     # params.yaml folds: every key typed and range-checked at load, whatever the stage (a stage that does not read
     # a key still refuses it): data, train and evaluate alike
     ("folds-pool-type", ["folds", "--stage", "evaluate", "--regime", "hard", "--fold", "castle", "--params",
@@ -550,7 +573,7 @@ def test_bad_input_is_one_line_error_and_writes_nothing(workdir, inputs, argv, f
 
 
 @pytest.mark.parametrize("argv", [synth(), evaluate(), train(), cal(), lines_data(),
-                                  ["table", "--eval-root", "nowhere", "--out-dir", "rep"]],
+                                  ["table", "--eval-root", "{ev_ok}", "--out-dir", "rep"]],
                          ids=["synth-lines", "evaluate", "train", "calibrate-lines", "lines-data", "table"])
 @pytest.mark.parametrize("store", ["{proc}/mlflow.db", "{blocker}/mlflow.db"], ids=["proc", "under-file"])
 def test_unwritable_tracking_store_is_one_line_error(workdir, inputs, monkeypatch, argv, store):
@@ -1140,3 +1163,39 @@ def test_stop_on_signal_defers_the_first_signal_and_restores_the_handlers(signam
             pytest.fail("the second signal did not stop")
     assert e.value.exit_code == 128 + sig and e.value.run_status == "KILLED"
     assert signal.getsignal(sig) == before
+
+
+def test_cuda_without_a_gpu_is_named_as_such_by_every_torch_command(workdir, inputs, monkeypatch):
+    """--device cuda (plot: device=cuda) where torch sees no GPU: the device is the error, before a file is read
+    (plot used to read the checkpoint onto CUDA first and blame the checkpoint)."""
+    import torch
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    for argv in (["plot", "--set", "which=line", "--set", "device=cuda"],
+                 ["evaluate", "--task", "line", "--method", "ransac", "--data", str(inputs["lines"]), "--device",
+                  "cuda"]):
+        r = CliRunner().invoke(cli, argv + ["--no-tracking"])
+        assert r.exit_code == 2, (argv, r.output)
+        assert r.stderr.strip() == "error: --device cuda requested but no CUDA device is available", r.stderr
+    assert _tree(workdir) == {}
+
+
+@pytest.mark.parametrize("exc", [MemoryError(), RuntimeError("[enforce fail at alloc_cpu.cpp:127] data. "
+                                                             "DefaultCPUAllocator: not enough memory: you tried to "
+                                                             "allocate 600000000000 bytes.")])
+def test_out_of_memory_is_one_line_error(workdir, monkeypatch, exc):
+    """Sizes within their ranges that the machine cannot hold (a batch of 1e9 transitions): one line, exit 2; any
+    other RuntimeError stays a crash with its traceback (a bug, not an input)."""
+    from rlsac import commands
+
+    def boom(*a, **k):
+        raise exc
+
+    monkeypatch.setattr(commands, "synth_lines", boom)
+    r = CliRunner().invoke(cli, synth() + ["--no-tracking"])
+    assert r.exit_code == 2, (r.output, r.exception)
+    err = r.stderr.strip()
+    assert err.startswith("error: out of memory (") and "\n" not in err and "lower the sizes" in err, err
+    monkeypatch.setattr(commands, "synth_lines", lambda *a, **k: (_ for _ in ()).throw(RuntimeError("a bug")))
+    r = CliRunner().invoke(cli, synth() + ["--no-tracking"])
+    assert r.exit_code == 1 and isinstance(r.exception, RuntimeError)

@@ -281,6 +281,19 @@ def test_bad_tolerance_is_a_user_error(repo):
     assert_user_error(verify(repo, "--stages", "make", "--no-tracking", "--tolerance", "-1"), "--tolerance")
 
 
+def test_bad_options_fail_before_the_platform_note_and_with_platform(repo):
+    """A user error is the only line printed (no platform note before it); --platform takes no other option; a folder
+    inside the repository is not a repository (DVC would look upward and verify the enclosing one)."""
+    _record(repo, cpu_vendor="SomeOtherVendor")
+    r = verify(repo, "--stages", "nosuch", "--no-tracking")
+    assert_user_error(r, "no stage matches 'nosuch'")
+    assert "note:" not in r.output
+    assert_user_error(verify(repo, "--platform", "--tolerance", "-1", "--no-tracking"), "it takes no --tolerance")
+    assert_user_error(verify(repo, "--platform", "--stages", "nosuch", "--no-tracking"), "it takes no --stages")
+    (repo / "sub").mkdir()
+    assert_user_error(verify(repo / "sub", "--stages", "make", "--no-tracking"), "not a DVC repository's root")
+
+
 def _record(repo, **over):
     from rlsac import numerics
 

@@ -227,6 +227,9 @@ def _import_scene(src: Path, dst_parent: Path, conf: ImportConf, progress: bool)
 def import_scenes(conf: ImportConf, track: bool = True, progress: bool = True) -> dict:
     """Import every scene of ``conf.src`` into ``<out>/<split>/<scene>``; return a summary."""
     t0 = time.time()
+    split = Path(str(conf.split))
+    if str(conf.split) in ("", ".") or split.is_absolute() or len(split.parts) != 1 or split.name == "..":
+        raise RlsacError(f"split {conf.split!r}: one folder name under --out (e.g. all, train), not a path")
     src = Path(conf.src)
     if not src.is_dir():
         raise RlsacError(f"{src}: no such source folder")

@@ -127,7 +127,15 @@ def _options(options: dict[str, Any]) -> dict[str, Any]:
             names.append(SHORT.get(w, w))
         else:
             raise RlsacError(f"unknown figure {w!r}; known: all, {', '.join(FIGURES)}")
+    if not names:
+        raise RlsacError(f"which names no figure; known: all, {', '.join(FIGURES)}")
     o["which"] = list(dict.fromkeys(names))
+    for key in ("line_index", "pair"):  # an index, or "auto" (the instance the figure picks)
+        if isinstance(o[key], str) and o[key] != "auto":
+            raise RlsacError(f"plot.{key} must be an integer or 'auto', got {o[key]!r}")
+    from rlsac.evaluate import resolve_device
+
+    resolve_device(o["device"])  # cuda without a GPU: the device is named, before a checkpoint is read onto it
     return o
 
 

@@ -522,6 +522,11 @@ def build(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
         raise RlsacError(f"--which must be one of {', '.join(WHICH)}, got {which!r}")
     eval_root = Path(options.get("eval_root") or "reports/eval")
     out_dir = Path(options.get("out_dir") or "reports")
+    if which != "selection" and not eval_root.is_dir():  # else every cell would be written as missing, over the record
+        raise RlsacError(f"--eval-root {eval_root}: no such folder (the evaluation summaries of the tables)")
+    in_the_way = sorted(p for p in out_dir.glob("*") if p.is_dir() and p.suffix in (".md", ".csv", ".tex", ".json"))
+    if in_the_way:  # a folder named like a table file: the write would fail after the others were written
+        raise RlsacError(f"cannot write the tables into {out_dir}: {in_the_way[0]} is a folder")
     builders = {"1": table1, "2": table2, "3": table3}
     files: list[str] = []
     missing: list[str] = []
