@@ -126,7 +126,8 @@ def lines_protocol_data(options: dict[str, Any], track: bool = True,
         raise RlsacError("lines-data needs --rate")
     rate = config.check_value("rate", options["rate"], float, "[0, 1)")
     proto = section(read_params(params_path), "lines")
-    splits = options.get("splits") or "train,val,test"
+    splits = options.get("splits")
+    splits = "train,val,test" if splits is None else splits  # --splits '' names none: an error, not all three
     splits = [x.strip() for x in splits.split(",") if x.strip()] if isinstance(splits, str) else list(splits)
     if not splits:
         raise RlsacError("lines-data --splits names no split")

@@ -408,9 +408,10 @@ def check_options(options: dict[str, Any], p: dict[str, Any] | None = None) -> d
         if o["regime"] not in p["regimes"]:
             raise RlsacError(f"unknown regime {o['regime']!r} (known: {', '.join(p['regimes'])})")
         split_scenes(p, o["fold"] or "")
-        if o["stage"] in ("data", "train") and o["task"] != "fundamental":
-            raise RlsacError(f"folds --stage {o['stage']} is the fundamental benchmark's (the essential task reads its "
-                             "data; its models train with `rlsac train --task essential`)")
+        if o["stage"] in ("data", "train", "select") and o["task"] != "fundamental":
+            raise RlsacError(f"folds --stage {o['stage']} is the fundamental benchmark's (--task essential has tune "
+                             "and evaluate only: it reads the fundamental folds' data, its models train with `rlsac "
+                             "train --task essential`)")
         if o["stage"] in ("train", "select") and o["regime"] != p["model_regime"]:
             raise RlsacError(f"models are trained on regime {p['model_regime']!r} only (folds.model_regime)")
         if o["stage"] == "select" and o["model"] not in select_runs(p):

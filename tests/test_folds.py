@@ -591,6 +591,8 @@ def test_folds_command_end_to_end(imported, tmp_path, monkeypatch):
     ess = base + ["--task", "essential"]
     r = run.invoke(cli, ess + ["--stage", "train"])
     assert r.exit_code == 2 and "essential" in r.output
+    r = run.invoke(cli, ess + ["--stage", "select", "--model", "rlsac-s1"])  # not "needs --model, one of none"
+    assert r.exit_code == 2 and "--task essential has tune and evaluate only" in r.output
     r = run.invoke(cli, ess + ["--stage", "tune"])
     assert r.exit_code == 2 and "no checkpoint checkpoints/essential/hard/fountain.pt" in r.output
     r = run.invoke(cli, ess + ["--stage", "tune", "--only", "ransac,usac"])

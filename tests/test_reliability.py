@@ -543,6 +543,7 @@ CASES = [
      "unknown config key(s) ['step'] in lines.ngransac"),
     ("lines-data-params-ngransac-val", lines_data(params="{p_lines_ngransac_val}"),
      "lines.ngransac_val_every must be in [1, inf)"),
+    ("lines-data-splits-empty", lines_data("--splits", ""), "lines-data --splits names no split"),
     ("lines-data-params-select-tie", lines_data(params="{p_lines_select_tie}"), "lines.select_tie must be in [0, inf)"),
     ("synth-params-calibration", synth(params="{p_calibration}"), "calibration.n_seeds must be in [1, inf)"),
     ("lines-data-params-calibration-key", lines_data(params="{p_calibration_key}"),
