@@ -79,6 +79,9 @@ def load_actor(path: str | Path, device: str | torch.device = "cpu", kind: str =
         actor.load_state_dict(ckpt["actor"])
     except (KeyError, RuntimeError, EOFError, ValueError, TypeError) as e:
         raise RlsacError(f"{path}: not an {kind} checkpoint ({e.__class__.__name__}: {str(e)[:80]})") from None
+    bad = [k for k, v in actor.state_dict().items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
+    if bad:  # a diverged training: every score would be NaN and every sample arbitrary
+        raise RlsacError(f"{path}: non-finite weights in {bad[0]} ({len(bad)} tensor(s)); a diverged training?")
     actor.eval()
     return actor, conf
 

@@ -1200,3 +1200,18 @@ def test_out_of_memory_is_one_line_error(workdir, monkeypatch, exc):
     monkeypatch.setattr(commands, "synth_lines", lambda *a, **k: (_ for _ in ()).throw(RuntimeError("a bug")))
     r = CliRunner().invoke(cli, synth() + ["--no-tracking"])
     assert r.exit_code == 1 and isinstance(r.exception, RuntimeError)
+
+
+def test_a_checkpoint_with_non_finite_weights_is_refused(workdir, inputs):
+    """A diverged training's NaN weights would evaluate to arbitrary samples with exit 0; they are named instead."""
+    import torch
+
+    path = _tiny_checkpoint(workdir / "nan.pt", "line")
+    ck = torch.load(path, weights_only=False)
+    name = next(iter(ck["actor"]))
+    ck["actor"][name] = torch.full_like(ck["actor"][name], float("nan"))
+    torch.save(ck, path)
+    r = CliRunner().invoke(cli, [_arg(a, inputs) for a in rlsac_eval(str(path))] + ["--no-tracking"])
+    assert r.exit_code == 2, r.output
+    assert r.stderr.strip() == f"error: {path}: non-finite weights in {name} (1 tensor(s)); a diverged training?"
+    assert not (workdir / "ev").exists()
