@@ -350,7 +350,17 @@ def train_options(task: str, flags: dict[str, Any], sets: tuple[str, ...] | list
     options = section(read_params(params_path), "train", task)
     options["task"] = task
     options = deep_update(options, {k: v for k, v in flags.items() if v is not None})
-    return deep_update(options, parse_sets(sets))
+    overrides = parse_sets(sets)
+    options = deep_update(options, overrides)
+    from rlsac.train import OWN_SECTIONS
+
+    method = str(options.get("method") or "rlsac")
+    for key in overrides:  # params.yaml may hold both methods' sections; a --set of the other's would do nothing
+        owner = next((m for m, secs in OWN_SECTIONS.items() if key in secs), method)
+        if owner != method:
+            raise RlsacError(f"--set {key}.*: an option of --method {owner}; --method {method} does not read it "
+                             f"(its own: {', '.join(OWN_SECTIONS.get(method, ())) or 'none'})")
+    return options
 
 
 def train(options: dict[str, Any], track: bool = True):

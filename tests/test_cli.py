@@ -238,6 +238,7 @@ def test_train_builds_options_from_params_flags_and_sets(workdir, monkeypatch):
     fake = types.ModuleType("rlsac.train")
     fake.train = lambda options, track=True: got.update(options=options, track=track) or {"out": "ck.pt"}
     fake.check_params = real.check_params  # params.yaml's train section is checked when the file is read
+    fake.OWN_SECTIONS = real.OWN_SECTIONS  # which method reads which section (a --set of the other's is refused)
     monkeypatch.setitem(sys.modules, "rlsac.train", fake)
     (workdir / "params.yaml").write_text("train:\n  line:\n    seed: 3\n    sac: {actor_lr: 0.1, batch_size: 8}\n")
     r = invoke("train", "--task", "line", "--data", "t.h5", "--out", "ck.pt", "--set", "sac.actor_lr=1e-4",
