@@ -226,7 +226,7 @@ def select_checkpoint(o: dict[str, Any], params: dict, track: bool = True) -> di
     if int(kept_summary.get("iterations", -1)) != iterations:
         raise RlsacError(f"{o['kept_eval']}: evaluated at {kept_summary.get('iterations')} iterations, not "
                          f"{iterations}")
-    data, _ = task_class(task).read(o["data"])
+    data, _ = task_cls.read(o["data"])
     device = resolve_device(o.get("device"))
     check_store(track, task_cls.experiment)
     out = Path(o["out"])

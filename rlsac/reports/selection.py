@@ -23,6 +23,7 @@ import pandas as pd
 from rlsac.errors import RlsacError
 from rlsac.io import atomic_path, write_text
 from rlsac.reports.folds import LIMIT, N_BOOT  # mAA@10 deg and the bootstrap's draws, as Table 2
+from rlsac.reports.tables import LINE_LIMIT_DEG  # Table 1's mAA limit, for the line models' records
 
 METRICS = ("R", "t")
 
@@ -53,10 +54,22 @@ def _errors(run: dict[str, Any], step: int, it: int, col: str) -> np.ndarray:
     return e.loc[(e["step"] == step) & (e["iterations"] == it), col].to_numpy(np.float64)
 
 
-def _accuracy(err: np.ndarray) -> float:
+def _accuracy(err: np.ndarray, limit: float = LIMIT) -> float:
     from rlsac.metrics import mAA
 
-    return float(mAA(err, LIMIT))
+    return float(mAA(err, limit))
+
+
+def _tied(runs: list[dict[str, Any]], accuracy) -> tuple[list[float], int]:
+    """Over the runs whose validation cannot tell several actors apart (more than one candidate): the test spread
+    (best - worst ``accuracy(run, step)`` among the candidates) of each, and how many kept the best of them."""
+    spread, kept_best = [], 0
+    for r in runs:
+        got = {s: accuracy(r, s) for s in r["candidates"]}
+        if len(got) > 1:
+            spread.append(max(got.values()) - min(got.values()))
+            kept_best += got[r["kept_step"]] == max(got.values())
+    return spread, kept_best
 
 
 def run_table(runs: list[dict[str, Any]]) -> pd.DataFrame:
@@ -108,12 +121,7 @@ def summary(runs: list[dict[str, Any]]) -> pd.DataFrame:
                     row["kept (mean ± SD)"] = f"{st['mean_a']:.3f} ± {st['sd_a']:.3f}"
                     row["last (mean ± SD)"] = f"{st['mean_b']:.3f} ± {st['sd_b']:.3f}"
                     row["kept − last [95%]"] = f"{st['diff']:+.3f} [{st['lo']:+.3f}, {st['hi']:+.3f}]"
-                spread, kept_best = [], 0
-                for r in mine:  # the runs whose validation cannot tell several actors apart
-                    got = {s: _accuracy(_errors(r, s, it, col)) for s in r["candidates"]}
-                    if len(got) > 1:
-                        spread.append(max(got.values()) - min(got.values()))
-                        kept_best += got[r["kept_step"]] == max(got.values())
+                spread, kept_best = _tied(mine, lambda r, s, it=it, col=col: _accuracy(_errors(r, s, it, col)))
                 row["tied runs"] = len(spread)
                 row["tied spread (mean / max)"] = f"{np.mean(spread):.3f} / {np.max(spread):.3f}" if spread else "–"
                 row["kept best of tied"] = f"{kept_best}/{len(spread)}" if spread else "–"
@@ -208,7 +216,6 @@ def build(root: str | Path = "reports/selection", out_dir: str | Path = "reports
 # ------------------------------------------------------------------------- the line models (Table 1; rlsac select)
 
 LINES = "lines"  # <root>/lines/<run>.{json,csv}: the records of `rlsac select` on the line models
-LINE_LIMIT = 0.5  # Table 1's mAA limit (deg)
 
 LINE_HEAD = """
 ## Line models (Table 1)
@@ -251,12 +258,6 @@ def _line_errors(run: dict[str, Any], step: int) -> np.ndarray:
     return e.loc[e["step"] == step].sort_values("instance")["err_deg"].to_numpy(np.float64)
 
 
-def _line_maa(err: np.ndarray) -> float:
-    from rlsac.metrics import mAA
-
-    return float(mAA(err, LINE_LIMIT))
-
-
 def line_run_table(runs: list[dict[str, Any]]) -> pd.DataFrame:
     """One row per (line run, validated step): validation mAA and inlier ratio, kept / last / inlier-ratio pick /
     candidate, test mAA."""
@@ -269,7 +270,7 @@ def line_run_table(runs: list[dict[str, Any]]) -> pd.DataFrame:
                          "candidate": step in r["candidates"],
                          "val mAA": round(float(val.get(step, {}).get("charts/val_mAA", np.nan)), 4),
                          "val inlier ratio": round(float(val.get(step, {}).get("charts/val_inlier_ratio", np.nan)), 4),
-                         "test mAA": round(_line_maa(_line_errors(r, step)), 4)})
+                         "test mAA": round(_accuracy(_line_errors(r, step), LINE_LIMIT_DEG), 4)})
     return pd.DataFrame(rows)
 
 
@@ -284,14 +285,9 @@ def line_summary(runs: list[dict[str, Any]]) -> pd.DataFrame:
         kept = np.stack([_line_errors(r, r["kept_step"]) for r in mine])
         last = np.stack([_line_errors(r, r["last_step"]) for r in mine])
         pick = np.stack([_line_errors(r, r["inlier_ratio_step"]) for r in mine])
-        kl = seed_bootstrap_maa(kept, last, LINE_LIMIT, n_boot=N_BOOT, seed=0, paired_seeds=True)
-        pk = seed_bootstrap_maa(pick, kept, LINE_LIMIT, n_boot=N_BOOT, seed=0, paired_seeds=True)
-        spread, kept_best = [], 0
-        for r in mine:
-            got = {s: _line_maa(_line_errors(r, s)) for s in r["candidates"]}
-            if len(got) > 1:
-                spread.append(max(got.values()) - min(got.values()))
-                kept_best += got[r["kept_step"]] == max(got.values())
+        kl = seed_bootstrap_maa(kept, last, LINE_LIMIT_DEG, n_boot=N_BOOT, seed=0, paired_seeds=True)
+        pk = seed_bootstrap_maa(pick, kept, LINE_LIMIT_DEG, n_boot=N_BOOT, seed=0, paired_seeds=True)
+        spread, kept_best = _tied(mine, lambda r, s: _accuracy(_line_errors(r, s), LINE_LIMIT_DEG))
         rows.append({"data": name, "seeds": " ".join(str(r["seed"]) for r in mine),
                      "kept = last": f"{sum(r['kept_step'] == r['last_step'] for r in mine)}/{len(mine)}",
                      "kept (mean ± SD)": f"{kl['mean_a']:.3f} ± {kl['sd_a']:.3f}",
