@@ -18,7 +18,9 @@ Settings:
   openblas-skx   OPENBLAS_CORETYPE=SkylakeX (the kernels numpy's OpenBLAS picks on an Intel AVX-512 CPU)
   numpy-v3       NPY_DISABLE_CPU_FEATURES: numpy without its AVX-512 dispatch targets
   opencv-avx2    OPENCV_CPU_DISABLE: OpenCV without AVX-512
-  portable       all pins at once: MKL_CBWR=COMPATIBLE, ATen AVX2, OpenBLAS Haswell, numpy X86_V3, OpenCV AVX2
+  onednn-avx2    ONEDNN_MAX_CPU_ISA=AVX2: oneDNN (torch's mkldnn ops) without AVX-512
+  portable       RLSAC_NUMERICS=portable, all pins at once (rlsac.numerics.PINS): MKL_CBWR=COMPATIBLE, ATen AVX2,
+                 oneDNN AVX2, OpenBLAS Haswell, numpy X86_V3, OpenCV AVX2
   portable+mkl-intel   the same with MKL on its Intel branch: equal hashes with `portable` mean the pins remove
                  MKL's vendor branch from the bytes
 """
@@ -35,13 +37,14 @@ import tempfile
 import time
 from pathlib import Path
 
+from rlsac import numerics
+
 BIN = Path(sys.executable).parent
 ROOT = Path.cwd()
 
-NUMPY_AVX512 = "X86_V4 AVX512_ICL AVX512_SPR"  # numpy 2.4's dispatch targets above X86_V3 (AVX2)
-OPENCV_AVX512 = "AVX512_SKX,AVX512_COMMON,AVX512_KNL,AVX512_KNM,AVX512_CNL,AVX512_CLX,AVX512_ICL"
-PORTABLE = {"MKL_CBWR": "COMPATIBLE", "ATEN_CPU_CAPABILITY": "avx2", "OPENBLAS_CORETYPE": "Haswell",
-            "NPY_DISABLE_CPU_FEATURES": NUMPY_AVX512, "OPENCV_CPU_DISABLE": OPENCV_AVX512}
+PORTABLE = {**numerics.PINS, numerics.OPENCV_PIN[0]: numerics.OPENCV_PIN[1]}  # the portable mode's pins
+NUMPY_AVX512 = numerics.PINS["NPY_DISABLE_CPU_FEATURES"]
+OPENCV_AVX512 = numerics.OPENCV_PIN[1]
 SETTINGS = {
     "default": {},
     "mkl-intel": {"@shim": "1"},
@@ -49,6 +52,7 @@ SETTINGS = {
     "openblas-skx": {"OPENBLAS_CORETYPE": "SkylakeX"},
     "numpy-v3": {"NPY_DISABLE_CPU_FEATURES": NUMPY_AVX512},
     "opencv-avx2": {"OPENCV_CPU_DISABLE": OPENCV_AVX512},
+    "onednn-avx2": {"ONEDNN_MAX_CPU_ISA": "AVX2"},
     "portable": dict(PORTABLE),
     "portable+mkl-intel": {**PORTABLE, "@shim": "1"},
 }
@@ -111,8 +115,10 @@ def run(workload: str, setting: dict, shim: str | None, tmp: Path) -> tuple[str,
     for rel in inputs:
         (work / rel).parent.mkdir(parents=True, exist_ok=True)
         (work / rel).symlink_to(ROOT / rel)
-    env = {k: v for k, v in os.environ.items() if k not in PORTABLE and k != "LD_PRELOAD"}
+    env = {k: v for k, v in os.environ.items() if k not in PORTABLE and k not in ("LD_PRELOAD", numerics.ENV)}
     env.update({k: v for k, v in setting.items() if not k.startswith("@")})
+    # rlsac sets the pins itself in its portable mode; every other row runs native, whatever the record's mode
+    env[numerics.ENV] = "portable" if all(setting.get(k) == v for k, v in PORTABLE.items()) else "native"
     env.update(OMP_NUM_THREADS="1", MLFLOW_TRACKING_URI=f"sqlite:///{work}/mlflow.db", CI="true")
     if "@shim" in setting:
         env["LD_PRELOAD"] = shim

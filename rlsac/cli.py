@@ -11,6 +11,7 @@ import sys
 
 import click
 
+from rlsac import numerics
 from rlsac.errors import RlsacError
 from rlsac.methods import METHODS
 
@@ -58,6 +59,7 @@ class _Group(click.Group):
 
     def invoke(self, ctx):
         try:
+            numerics.check_mode()  # an unknown RLSAC_NUMERICS, or pins that did not take: before any work
             return super().invoke(ctx)
         except RlsacError as e:
             raise _UserError(" ".join(str(e).split()) or e.__class__.__name__, getattr(e, "exit_code", 2)) from None
@@ -160,14 +162,18 @@ def lines_data(tracking: bool, params_path: str, **options) -> None:
 @click.option("--max-features", type=int, help="SIFT keypoints per image. [default: 8000]")
 @click.option("--rootsift/--no-rootsift", default=None, help="RootSIFT descriptors. [default: on]")
 @click.option("--min-matches", type=int, help="Drop pairs with fewer good matches. [default: 100]")
+@click.option("--matches", help="Each pair's matches from this shipped file (written by --write-matches) instead of "
+                                "SIFT; '' extracts them. [default: '']")
+@click.option("--write-matches", type=click.Path(dir_okay=False),
+              help="Also pack the extracted matches into this file, for --matches on another machine.")
 @click.option("--set", "sets", multiple=True, metavar="KEY=VALUE", help="Other ImportConf field; repeatable.")
 @tracking_option
-def import_scenes(tracking: bool, sets: tuple[str, ...], **options) -> None:
+def import_scenes(tracking: bool, sets: tuple[str, ...], write_matches: str | None, **options) -> None:
     """Import real scenes offline into the CVPR 2020 tutorial layout (rlsac.data.scenes)."""
     from rlsac.commands import import_scenes as run
     from rlsac.config import parse_sets
 
-    _echo_result(run({**options, **parse_sets(sets)}, track=tracking))
+    _echo_result(run({**options, **parse_sets(sets)}, track=tracking, write_matches=write_matches))
 
 
 @cli.command("prepare-cvpr2020")
@@ -409,7 +415,6 @@ def calibrate_lines(tracking: bool, params_path: str, **options) -> None:
 def verify(tracking: bool, platform_only: bool, **options) -> None:
     """Re-run committed pipeline stages in a scratch copy and compare every output byte for byte
     (rlsac.verify); exit 1 when one differs or fails (or, with --tolerance, is not even close)."""
-    from rlsac import numerics
     from rlsac.verify import format_summary
     from rlsac.verify import verify as run
 

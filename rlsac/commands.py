@@ -315,13 +315,13 @@ def _calibrate_lines(options: dict[str, Any], track: bool = True,
 # ------------------------------------------------------------------------------------- data
 
 
-def import_scenes(options: dict[str, Any], track: bool = True):
+def import_scenes(options: dict[str, Any], track: bool = True, write_matches: str | None = None):
     """``rlsac.data.scenes.import_scenes(ImportConf(**options))``."""
     from rlsac.data.scenes import ImportConf, import_scenes
 
     conf = _checked(ImportConf, options, "import-scenes", lambda c: [Path(c.out) / c.split / "import_summary.json"],
                     track)
-    return import_scenes(conf, track=track)
+    return import_scenes(conf, track=track, write_matches=write_matches)
 
 
 def prepare_cvpr2020(options: dict[str, Any], track: bool = True):

@@ -10,6 +10,12 @@ libraries choose theirs from the CPU at run time:
 ``reports/platform.json`` records the platform the committed record was made on (how it was established:
 reports/platform.md); ``rlsac verify --platform`` compares it with this machine's, and CI checks the record byte for
 byte only where they match.
+
+Two numeric modes (``RLSAC_NUMERICS``): ``native`` lets each library take the code paths of this CPU (fastest; the
+bytes are this platform's), ``portable`` pins every library to paths that every x86-64 CPU with AVX2 runs alike
+(``PINS``; measured in reports/platform.md: MKL's vendor branch then reaches no output). ``apply_pins`` sets them
+when ``rlsac`` is imported, before torch, numpy and OpenCV load, so every command and every pipeline stage runs
+under the mode of the record.
 """
 
 from __future__ import annotations
@@ -26,8 +32,76 @@ from pathlib import Path
 from rlsac.errors import RlsacError
 
 RECORD = "reports/platform.json"
-# the fields that decide the bytes of a result; the others (models, versions) are there for the reader
+# the fields that decide the bytes of a native result; the others (models, versions) are there for the reader
 KEYS = ("machine", "cpu_vendor", "mkl_branch", "aten_capability")
+# under the pins the vendor and MKL's branch no longer decide (reports/platform.md); the mode and ATen's level do
+PORTABLE_KEYS = ("machine", "numerics", "aten_capability")
+
+ENV = "RLSAC_NUMERICS"
+MODES = ("native", "portable")
+DEFAULT_MODE = "native"  # the mode the committed record was made in (reports/platform.json "numerics")
+# numpy 2.4's dispatch targets above X86_V3 (AVX2); the pinned OpenCV's only one above AVX2 is AVX512-SKX
+# (cv2.getCPUFeaturesLine()); OpenCV warns about disabling a feature the CPU lacks, so that pin is conditional
+_NUMPY_AVX512 = "X86_V4 AVX512_ICL AVX512_SPR"
+_OPENCV_AVX512 = "AVX512-SKX"
+# Each library's code paths pinned to what every x86-64 CPU with AVX2 runs alike. Each is read once, when its
+# library loads or makes its first call, which is why apply_pins runs at `import rlsac`.
+PINS = {
+    "MKL_CBWR": "COMPATIBLE",  # MKL: one branch for every vendor (its AVX-512 branch is Intel's only)
+    "ATEN_CPU_CAPABILITY": "avx2",  # ATen's kernels at AVX2, which Intel and AMD CPUs of the last decade have
+    "ONEDNN_MAX_CPU_ISA": "AVX2",  # oneDNN (torch's mkldnn ops) likewise
+    "OPENBLAS_CORETYPE": "Haswell",  # numpy's OpenBLAS kernels: the AVX2 ones
+    "NPY_DISABLE_CPU_FEATURES": _NUMPY_AVX512,  # numpy's own SIMD loops at AVX2
+}
+# OpenCV's dispatched kernels at AVX2; only where the CPU has AVX-512 (pins() adds it)
+OPENCV_PIN = ("OPENCV_CPU_DISABLE", _OPENCV_AVX512)
+
+
+def _has_avx512() -> bool:
+    try:
+        return " avx512f" in Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return False
+
+
+def pins() -> dict[str, str]:
+    """The portable mode's environment on this machine: PINS, plus OpenCV's where the CPU has AVX-512."""
+    return {**PINS, **(dict([OPENCV_PIN]) if _has_avx512() else {})}
+
+
+def mode() -> str:
+    """The numeric mode this process runs in: ``RLSAC_NUMERICS``, else the record's (DEFAULT_MODE)."""
+    return os.environ.get(ENV, "").strip() or DEFAULT_MODE
+
+
+def apply_pins() -> None:
+    """In the portable mode, set every pin the user has not set (``import rlsac`` calls this first thing). An
+    unknown mode sets nothing; ``check_mode`` reports it."""
+    if mode() == "portable":
+        for k, v in pins().items():
+            os.environ.setdefault(k, v)
+
+
+def check_mode() -> str:
+    """The mode, after checking it: RlsacError for an unknown one, or for a portable process whose pins did not
+    take (a user value that contradicts one, or torch loaded before rlsac at another ATen level)."""
+    m = mode()
+    if m not in MODES:
+        raise RlsacError(f"{ENV}={m}: one of {', '.join(MODES)}")
+    if m == "portable":
+        off = [(k, v) for k, v in pins().items() if os.environ.get(k) != v]
+        if off:
+            k, v = off[0]
+            raise RlsacError(f"{ENV}=portable needs {k}={v} (it is {os.environ.get(k)}); unset it or use "
+                             f"{ENV}=native")
+        if "torch" in sys.modules:
+            import torch
+
+            level = torch.backends.cpu.get_cpu_capability()
+            if level not in ("AVX2", "DEFAULT"):
+                raise RlsacError(f"{ENV}=portable: torch was loaded before rlsac and runs ATen at {level}; "
+                                 f"import rlsac first")
+    return m
 # MKL's verbose line names its code branch: "... for Intel(R) 64 architecture <branch>, Lnx ..."
 _MKL_LINE = re.compile(r"for Intel\(R\) 64 architecture (.*?), Lnx")
 _PROBE = "import torch; torch.ones(64, 64) @ torch.ones(64, 64)"
@@ -76,7 +150,7 @@ def describe() -> dict:
     import torch
 
     branch = mkl_branch()
-    return {"machine": platform.machine(), "cpu_vendor": cpu_vendor(),
+    return {"machine": platform.machine(), "numerics": mode(), "cpu_vendor": cpu_vendor(),
             "mkl_branch": mkl_family(branch) if branch else "none", "aten_capability":
             torch.backends.cpu.get_cpu_capability(), "mkl_branch_text": branch,
             "opencv_dispatch": cv2.getCPUFeaturesLine(), "torch": torch.__version__, "numpy": numpy.__version__,
@@ -110,14 +184,23 @@ def load_record(root: str | Path = ".") -> dict:
         raise RlsacError(f"{path}: cannot read the record's platform ({e.strerror or e})") from None
     except ValueError as e:
         raise RlsacError(f"{path}: not JSON ({e})") from None
-    if not isinstance(rec, dict) or any(not isinstance(rec.get(k), str) for k in KEYS):
+    if not isinstance(rec, dict):
         raise RlsacError(f"{path}: needs the string keys {', '.join(KEYS)}")
+    rec = {"numerics": "native", **rec}  # records from before the modes were native
+    if rec["numerics"] not in MODES or any(not isinstance(rec.get(k), str) for k in deciding_keys(rec)):
+        raise RlsacError(f"{path}: needs the string keys {', '.join(deciding_keys(rec))} "
+                         f"and numerics one of {', '.join(MODES)}")
     return rec
+
+
+def deciding_keys(record: dict) -> tuple[str, ...]:
+    """The fields that decide the bytes of a record made in its mode."""
+    return PORTABLE_KEYS if record.get("numerics") == "portable" else ("numerics", *KEYS)
 
 
 def differences(record: dict, here: dict) -> list[str]:
     """``key record -> here`` for every deciding key whose value differs (empty: the same platform)."""
-    return [f"{k} {record[k]} -> {here[k]}" for k in KEYS if record[k] != here[k]]
+    return [f"{k} {record[k]} -> {here[k]}" for k in deciding_keys(record) if record[k] != here[k]]
 
 
 def compare(root: str | Path = ".", required: bool = False) -> dict | None:
@@ -132,7 +215,7 @@ def compare(root: str | Path = ".", required: bool = False) -> dict | None:
 
 def report_lines(c: dict) -> list[str]:
     """``compare``'s result as lines: each deciding key, record beside here, then the verdict."""
-    lines = [f"{k:<16} record {c['record'][k]:<14} here {c['here'][k]}" for k in KEYS]
+    lines = [f"{k:<16} record {c['record'][k]:<14} here {c['here'][k]}" for k in deciding_keys(c["record"])]
     diff = c["differences"]
     return lines + [f"platform: differs ({'; '.join(diff)})" if diff else "platform: the record's"]
 

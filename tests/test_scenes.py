@@ -162,3 +162,102 @@ def test_import_is_byte_identical_on_a_re_run(tmp_path):
         files.append({p.relative_to(out): p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()})
     assert files[0] == files[1] and len(files[0]) > 3
     assert b"seconds" not in files[0][Path("all/import_summary.json")]
+
+
+# ------------------------------------------------------------------ shipped matches (--matches, --write-matches)
+
+
+def _ship(tmp_path, n=3):
+    """A 3-image source imported once with --write-matches: (source parent, the import's files, the shipped file)."""
+    _strecha()
+    src = _mini_source(tmp_path, n)
+    out, shipped = tmp_path / "extracted", tmp_path / "matches.h5"
+    s = import_scenes(ImportConf(src=str(src.parent), out=str(out), min_matches=0), track=False, progress=False,
+                      write_matches=str(shipped))
+    assert s["wrote_matches"] == str(shipped) and s["kept"] == n * (n - 1) // 2
+    return src.parent, {p.relative_to(out): p.read_bytes() for p in sorted(out.rglob("*.h5"))}, shipped
+
+
+def test_shipped_matches_give_the_same_import_without_sift(tmp_path, monkeypatch):
+    src, extracted, shipped = _ship(tmp_path)
+    from rlsac.data import scenes
+
+    def no_sift(*a, **k):
+        raise AssertionError("SIFT ran although the matches were shipped")
+
+    monkeypatch.setattr(scenes, "detect", no_sift)
+    out = tmp_path / "from_shipped"
+    s = import_scenes(ImportConf(src=str(src), out=str(out), min_matches=0, matches=str(shipped)), track=False,
+                      progress=False)
+    assert s["kept"] == 3 and s["per_scene"]["mini"]["mean_features"] > 1000
+    assert {p.relative_to(out): p.read_bytes() for p in sorted(out.rglob("*.h5"))} == extracted
+    with h5py.File(shipped) as f:  # stored as float32 where that is lossless (SIFT's coordinates, the ratios)
+        assert f["mini/matches/0001-0002"].dtype == np.float32 and f.attrs["max_features"] == 8000
+
+
+def test_shipped_matches_are_what_the_import_writes(tmp_path):
+    # the file is read, not just checked: a changed match in it is the changed match of the import
+    src, _, shipped = _ship(tmp_path)
+    with h5py.File(shipped, "r+") as f:
+        f["mini/matches/0001-0003"][0, 0] = 12.5
+    out = tmp_path / "out"
+    import_scenes(ImportConf(src=str(src), out=str(out), min_matches=0, matches=str(shipped)), track=False,
+                  progress=False)
+    with h5py.File(out / "all" / "mini" / "matches.h5") as f:
+        assert f["0001-0003"][0, 0] == 12.5
+    # a larger minimum is served from the file (its dropped pairs are absent), a smaller one is not
+    s = import_scenes(ImportConf(src=str(src), out=str(out), min_matches=10**6, matches=str(shipped)), track=False,
+                      progress=False)
+    assert s["kept"] == 0 and s["dropped"] == 3
+
+
+def _drop_scene(f):
+    del f["mini"]
+
+
+def _other_images(f):
+    f["mini"].attrs["images"] = "0001,0002"
+
+
+def _nan_match(f):
+    f["mini/matches/0001-0002"][0, 0] = np.nan
+
+
+def _unpaired(f):
+    del f["mini/match_conf/0001-0002"]
+
+
+@pytest.mark.parametrize("breaker, conf, message", [
+    (None, {"matches": "nope.h5"}, r"--matches .*nope\.h5: no such file"),
+    (None, {"max_features": 100}, r"made with max_features=8000, not 100; give --set max_features=8000"),
+    (None, {"min_matches": -1}, r"made with min_matches=0, not -1"),
+    (_drop_scene, {}, r"no scene mini \(it has none\)"),
+    (_other_images, {}, r"scene mini was matched on other images than 3 here"),
+    (_nan_match, {}, r"mini/0001-0002: needs finite \(M,4\) matches"),
+    (_unpaired, {}, r"matches and match_conf must hold the same pairs"),
+])
+def test_shipped_matches_errors_write_nothing(tmp_path, breaker, conf, message):
+    src, _, shipped = _ship(tmp_path)
+    if breaker:
+        with h5py.File(shipped, "r+") as f:
+            breaker(f)
+    out = tmp_path / "out"
+    kw = {"src": str(src), "out": str(out), "min_matches": 0, "matches": str(shipped), **conf}
+    if conf.get("matches"):
+        kw["matches"] = str(tmp_path / conf["matches"])
+    with pytest.raises(RlsacError, match=message):
+        import_scenes(ImportConf(**kw), track=False, progress=False)
+    assert not out.exists()
+
+
+def test_shipped_matches_not_hdf5_and_write_with_shipped(tmp_path):
+    src, _, shipped = _ship(tmp_path, 2)
+    junk = tmp_path / "junk.h5"
+    junk.write_text("not hdf5")
+    out = tmp_path / "out"
+    with pytest.raises(RlsacError, match="junk.h5: not an HDF5 file"):
+        import_scenes(ImportConf(src=str(src), out=str(out), min_matches=0, matches=str(junk)), track=False)
+    with pytest.raises(RlsacError, match="--write-matches packs matches this import extracts"):
+        import_scenes(ImportConf(src=str(src), out=str(out), min_matches=0, matches=str(shipped)), track=False,
+                      write_matches=str(tmp_path / "again.h5"))
+    assert not out.exists() and not (tmp_path / "again.h5").exists()

@@ -16,6 +16,7 @@ renamed into place, so a failure never leaves a half-written scene.
 from __future__ import annotations
 
 import os
+import platform
 import shutil
 import tempfile
 import time
@@ -51,6 +52,9 @@ class ImportConf:
     keep_snn: float = 0.8  # Lowe's ratio-test value: a match below it counts as evidence of overlap
     min_matches: int = 100  # pairs with fewer such matches barely overlap (see the measurement above)
     dedupe: bool = True  # SIFT duplicates keypoints with several orientations: keep one match per coordinate pair
+    # "" runs SIFT and matching here; a file (written by --write-matches) gives each pair's matches instead, as the
+    # CVPR 2020 tutorial ships its matches: SIFT's low bits depend on the CPU's vendor (reports/platform.md)
+    matches: str = ""
 
     # OpenCV reads max_features=0 as "unlimited": a cap must be given
     ranges = {"max_features": "[1, inf)", "store_max_snn": "(0, inf)", "keep_snn": "(0, inf)",
@@ -174,28 +178,112 @@ def _write_h5(path: Path, items: dict[str, np.ndarray]) -> None:
                 f.create_dataset(k, data=v)
 
 
-def _import_scene(src: Path, dst_parent: Path, conf: ImportConf, progress: bool) -> dict:
+# --- shipped matches ------------------------------------------------------------------------------------
+# One HDF5 file: /<scene>/matches/<pair> (M,4) and /<scene>/match_conf/<pair> (M,1), the kept pairs exactly as the
+# import writes them; /<scene> attrs images (the image ids, comma-separated) and mean_features; root attrs the
+# ImportConf fields that decide the matches (SHIPPED_FIELDS) and the numeric platform that made them.
+SHIPPED_FIELDS = ("max_features", "rootsift", "store_max_snn", "keep_snn", "min_matches", "dedupe")
+
+
+def read_shipped(path: str | Path, scenes: dict[str, list[str]], conf: ImportConf) -> dict[str, dict]:
+    """The shipped matches of ``scenes`` (name -> its image ids), checked against them and ``conf`` before any
+    work: {scene: {"matches": {pair: (M,4)}, "match_conf": {pair: (M,1)}, "mean_features": float}}."""
+    path = Path(path)
+    if not path.is_file():
+        raise RlsacError(f"--matches {path}: no such file")
+    try:
+        f = h5py.File(path, "r")
+    except OSError as e:
+        raise RlsacError(f"--matches {path}: not an HDF5 file ({e})") from None
+    out = {}
+    with f:
+        for k in SHIPPED_FIELDS:
+            made = f.attrs.get(k)
+            want = getattr(conf, k)
+            # a pair dropped for fewer matches is not in the file: a larger minimum can still be served from it
+            if made is None or (type(want)(made) > want if k == "min_matches" else type(want)(made) != want):
+                raise RlsacError(f"--matches {path}: made with {k}={made}, not {want}; give "
+                                 f"--set {k}={made} or extract anew with --matches ''")
+        for scene, ids in scenes.items():
+            if scene not in f:
+                raise RlsacError(f"--matches {path}: no scene {scene} (it has {', '.join(sorted(f)) or 'none'})")
+            g = f[scene]
+            if str(g.attrs.get("images", "")) != ",".join(ids):
+                raise RlsacError(f"--matches {path}: scene {scene} was matched on other images than {len(ids)} here")
+            pairs = {f"{a}-{b}" for a, b in combinations(ids, 2)}
+            if "matches" not in g or "match_conf" not in g or set(g["matches"]) != set(g["match_conf"]) or not \
+                    set(g["matches"]) <= pairs:
+                raise RlsacError(f"--matches {path}: scene {scene}: matches and match_conf must hold the same pairs "
+                                 f"of its images")
+            m = {k: g["matches"][k][()].astype(np.float64) for k in g["matches"]}
+            c = {k: g["match_conf"][k][()].astype(np.float64) for k in g["match_conf"]}
+            for k in m:
+                if m[k].ndim != 2 or m[k].shape[1] != 4 or c[k].shape != (len(m[k]), 1) or not \
+                        (np.isfinite(m[k]).all() and np.isfinite(c[k]).all()):
+                    raise RlsacError(f"--matches {path}: {scene}/{k}: needs finite (M,4) matches and (M,1) ratios")
+            out[scene] = {"matches": m, "match_conf": c, "mean_features": float(g.attrs.get("mean_features", 0.0))}
+    return out
+
+
+def write_shipped(path: str | Path, dst: Path, scenes: list[str], per_scene: dict, conf: ImportConf,
+                  made_on: str) -> None:
+    """Pack the import under ``dst`` into the shipped-matches file ``path`` (atomic; gzip, so about half the size)."""
+    with atomic_path(Path(path)) as tmp:
+        with h5py.File(tmp, "w") as f:
+            for k in SHIPPED_FIELDS:
+                f.attrs[k] = getattr(conf, k)
+            f.attrs["made_on"] = made_on
+            for scene in scenes:
+                g = f.create_group(scene)
+                g.attrs["images"] = ",".join(source_images(Path(conf.src) / scene))
+                g.attrs["mean_features"] = per_scene[scene]["mean_features"]
+                for name in ("matches", "match_conf"):
+                    sub = g.create_group(name)
+                    with h5py.File(dst / scene / f"{name}.h5", "r") as src:
+                        for k in src:
+                            v = src[k][()]
+                            # SIFT's coordinates and the ratios are float32 values stored as float64: lossless
+                            if np.array_equal(v.astype(np.float32).astype(v.dtype), v):
+                                v = v.astype(np.float32)
+                            sub.create_dataset(k, data=v, compression="gzip", compression_opts=9, shuffle=True)
+
+
+def _features_and_matches(src: Path, ids: list[str], cams: dict, conf: ImportConf, progress: bool):
+    """SIFT on every image and mutual-NN matching of every pair -> ({pair: (M,4)}, {pair: (M,)}, mean features)."""
+    feats = {}
+    for i in tqdm(ids, desc=f"{src.name}: SIFT", unit="img", disable=not progress, leave=False):
+        xy, d = detect(read_image(src, i, cams[i]), conf.max_features, conf.rootsift)
+        feats[i] = (xy, torch.from_numpy(d))
+    matches, ratios = {}, {}
+    for a, b in tqdm(list(combinations(ids, 2)), desc=f"{src.name}: match", unit="pair", disable=not progress,
+                     leave=False):
+        matches[f"{a}-{b}"], ratios[f"{a}-{b}"] = match_pair(feats[a][0], feats[a][1], feats[b][0], feats[b][1],
+                                                             conf.store_max_snn, conf.dedupe)
+    return matches, ratios, float(np.mean([len(f[0]) for f in feats.values()]))
+
+
+def _import_scene(src: Path, dst_parent: Path, conf: ImportConf, progress: bool, shipped: dict | None) -> dict:
     ids = source_images(src)
     cams = {i: read_camera(src / "cameras" / f"{i}.jpg.camera") for i in ids}
     stage = Path(tempfile.mkdtemp(prefix=f".{src.name}.", suffix=".tmp", dir=dst_parent))
     try:
         (stage / "images").mkdir()
-        feats = {}
-        for i in tqdm(ids, desc=f"{src.name}: SIFT", unit="img", disable=not progress, leave=False):
-            img = read_image(src, i, cams[i])
-            xy, d = detect(img, conf.max_features, conf.rootsift)
-            feats[i] = (xy, torch.from_numpy(d))
+        for i in ids:
             shutil.copyfile(src / "images" / f"{i}.jpg", stage / "images" / f"{i}.jpg")
+        if shipped is None:
+            found, ratios, mean_features = _features_and_matches(src, ids, cams, conf, progress)
+        else:  # the kept pairs as shipped: a pair not in the file was dropped when it was made
+            found, ratios = shipped["matches"], {k: v[:, 0] for k, v in shipped["match_conf"].items()}
+            mean_features = shipped["mean_features"]
         matches, confs, kk = {}, {}, {}
         dropped = []
         n_kept = []
-        for a, b in tqdm(list(combinations(ids, 2)), desc=f"{src.name}: match", unit="pair",
-                         disable=not progress, leave=False):
-            m, snn = match_pair(feats[a][0], feats[a][1], feats[b][0], feats[b][1], conf.store_max_snn, conf.dedupe)
+        for a, b in combinations(ids, 2):
             key = f"{a}-{b}"
-            if int((snn < conf.keep_snn).sum()) < conf.min_matches:
+            if key not in found or int((ratios[key] < conf.keep_snn).sum()) < conf.min_matches:
                 dropped.append(key)
                 continue
+            m, snn = found[key], ratios[key]
             matches[key] = m.astype(np.float64)
             confs[key] = snn.reshape(-1, 1).astype(np.float64)
             kk[key] = np.stack([cams[a]["K"], cams[b]["K"]])[None]
@@ -219,13 +307,15 @@ def _import_scene(src: Path, dst_parent: Path, conf: ImportConf, progress: bool)
     n_pairs = len(ids) * (len(ids) - 1) // 2
     return {
         "images": len(ids), "pairs": n_pairs, "kept": n_pairs - len(dropped), "dropped": len(dropped),
-        "mean_features": float(np.mean([len(f[0]) for f in feats.values()])),
+        "mean_features": mean_features,
         "mean_matches_kept": float(np.mean(n_kept)) if n_kept else 0.0,
     }
 
 
-def import_scenes(conf: ImportConf, track: bool = True, progress: bool = True) -> dict:
-    """Import every scene of ``conf.src`` into ``<out>/<split>/<scene>``; return a summary."""
+def import_scenes(conf: ImportConf, track: bool = True, progress: bool = True,
+                  write_matches: str | None = None) -> dict:
+    """Import every scene of ``conf.src`` into ``<out>/<split>/<scene>``; return a summary. ``conf.matches``: the
+    pairs' matches from that shipped file instead of SIFT; ``write_matches``: pack the result into such a file."""
     t0 = time.time()
     split = Path(str(conf.split))
     if str(conf.split) in ("", ".") or split.is_absolute() or len(split.parts) != 1 or split.name == "..":
@@ -241,13 +331,18 @@ def import_scenes(conf: ImportConf, track: bool = True, progress: bool = True) -
             raise RlsacError(f"{src / s}: no such scene folder")
     for s in scenes:
         check_scene(src / s)
+    shipped = read_shipped(conf.matches, {s: source_images(src / s) for s in scenes}, conf) if conf.matches else None
     dst = Path(conf.out) / conf.split
     check_writable(dst / "import_summary.json")
+    if write_matches:
+        if conf.matches:
+            raise RlsacError("--write-matches packs matches this import extracts; it takes --matches ''")
+        check_writable(Path(write_matches))
     check_store(track, "fundamental")
     created = [p for p in (dst, *dst.parents) if not p.exists()]  # removed again if the import fails
     dst.mkdir(parents=True, exist_ok=True)
     try:
-        return _import_all(src, dst, scenes, conf, track, progress, t0)
+        summary = _import_all(src, dst, scenes, conf, track, progress, t0, shipped)
     except BaseException:
         for p in created:  # deepest first; only folders the import created and left empty
             try:
@@ -255,15 +350,22 @@ def import_scenes(conf: ImportConf, track: bool = True, progress: bool = True) -
             except OSError:
                 break
         raise
+    if write_matches:
+        from rlsac import numerics
+
+        write_shipped(write_matches, dst, scenes, summary["per_scene"], conf,
+                      f"{numerics.cpu_vendor()} {platform.machine()}, numerics {numerics.mode()}")
+        summary["wrote_matches"] = str(write_matches)
+    return summary
 
 
 def _import_all(src: Path, dst: Path, scenes: list[str], conf: ImportConf, track: bool, progress: bool,
-                t0: float) -> dict:
+                t0: float, shipped: dict | None) -> dict:
     with torch.no_grad(), start_run("fundamental", f"import-scenes {dst}", {**asdict(conf), "scenes": ",".join(scenes)},
                                     tags={"command": "import-scenes"}, enabled=track) as run:
         per_scene = {}
         for s in tqdm(scenes, desc="scenes", unit="scene", disable=not progress):
-            per_scene[s] = _import_scene(src / s, dst, conf, progress)
+            per_scene[s] = _import_scene(src / s, dst, conf, progress, shipped[s] if shipped else None)
         tot = {k: sum(v[k] for v in per_scene.values()) for k in ("images", "pairs", "kept", "dropped")}
         summary = {"out": str(dst), **tot, "per_scene": per_scene,
                    "drop_rule": f"fewer than {conf.min_matches} mutual NN matches with SNN < {conf.keep_snn}"}
