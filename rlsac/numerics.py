@@ -39,7 +39,7 @@ PORTABLE_KEYS = ("machine", "numerics", "aten_capability")
 
 ENV = "RLSAC_NUMERICS"
 MODES = ("native", "portable")
-DEFAULT_MODE = "native"  # the mode the committed record was made in (reports/platform.json "numerics")
+DEFAULT_MODE = "portable"  # the mode the committed record was made in (reports/platform.json "numerics")
 # numpy 2.4's dispatch targets above X86_V3 (AVX2); the pinned OpenCV's only one above AVX2 is AVX512-SKX
 # (cv2.getCPUFeaturesLine()); OpenCV warns about disabling a feature the CPU lacks, so that pin is conditional
 _NUMPY_AVX512 = "X86_V4 AVX512_ICL AVX512_SPR"
