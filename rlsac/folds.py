@@ -280,7 +280,8 @@ def _typed(p: dict[str, Any]) -> dict[str, Any]:
 
 # params.yaml ``fundamental``: the Strecha import and preparation settings (dvc.yaml's import and prepare stages,
 # ``make_data``), and the retired 87-pair split's methods and budgets
-FUNDAMENTAL = {"src": str, "raw": str, "import_scenes": str, "max_features": int, "min_matches": int, "scenes": dict,
+FUNDAMENTAL = {"src": str, "raw": str, "import_scenes": str, "max_features": int, "min_matches": int, "matches": str,
+               "scenes": dict,
                "n_points": int, "max_pairs_per_scene": int, "methods": list[str], "iterations": list[int]}
 FUNDAMENTAL_RANGES = {"max_features": "[1, inf)", "min_matches": "[0, inf)", "n_points": "[8, inf)",
                       "max_pairs_per_scene": "[0, inf)", "iterations": "[1, inf)"}
