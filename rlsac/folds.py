@@ -60,6 +60,10 @@ DEFAULTS: dict[str, Any] = {
     # own seed is the model itself), tuned and evaluated like it in every regime: rows <model>-s<seed>
     "seeds": [],
     "seed_models": [],
+    # Table 3's models (of ablation_models) trained with every seed too; with them, every variant row of a model trained
+    # with other seeds (<model>-lo, -fast, -prob, the ablation models) is also a row per seed: <row>-s<seed>, in the
+    # variant regimes (issue #27: the ablations and the same-LO and speed rows are claims about a learned model)
+    "seed_ablation_models": [],
     # models also run with the speed levers of issue #17 (several sets per step, the confidence stop), k and the
     # confidence tuned on validation: rows <model>-fast (not in the paper; the plain rows are the paper's algorithm)
     "fast": [],
@@ -127,6 +131,15 @@ def protocol(params: dict[str, Any]) -> dict[str, Any]:
                          "models of folds.models / methods of folds.methods")
     if not set(p["seed_models"]) <= set(p["models"]):
         raise RlsacError(f"folds.seed_models {p['seed_models']} must be models of folds.models {p['models']}")
+    if not set(p["seed_ablation_models"]) <= set(p["ablation_models"]):
+        raise RlsacError(f"folds.seed_ablation_models {p['seed_ablation_models']} must be models of "
+                         f"folds.ablation_models {p['ablation_models']}")
+    seeded = set(p["seed_models"]) | set(p["seed_ablation_models"])
+    if p["seeds"]:  # the variant rows per seed need their model per seed (dvc.yaml's *_seed stages)
+        for key in ("lo_models", "fast", "prob_models"):
+            if not set(p[key]) <= seeded:
+                raise RlsacError(f"folds.{key} {p[key]}: with folds.seeds every one must be trained with the other "
+                                 f"seeds too (in folds.seed_models or seed_ablation_models)")
     if not set(p["select_models"]) <= set(p["seed_models"]):
         raise RlsacError(f"folds.select_models {p['select_models']} must be models of folds.seed_models "
                          f"{p['seed_models']} (the study covers every training seed)")
@@ -145,7 +158,7 @@ def protocol(params: dict[str, Any]) -> dict[str, Any]:
     base = {**section(params, "train", "fundamental"), "task": "fundamental"}
     for model, recipe in p["train"].items():  # each model's recipe a TrainConf, whichever stage reads the params
         conf = build(TrainConf, deep_update(base, recipe or {}), f"folds.train.{model}")
-        if model in p["seed_models"] and conf.seed in p["seeds"]:
+        if model in seeded and conf.seed in p["seeds"]:
             raise RlsacError(f"folds.seeds {p['seeds']} holds seed {conf.seed}, the seed of model {model!r} itself "
                              "(its recipe's train seed): list the other seeds")
     return p
@@ -190,7 +203,7 @@ def derived_models(p: dict[str, Any]) -> dict[str, dict[str, Any]]:
     out = {points_name(m, n): {"recipe": m, "points": int(n), "seed": None}
            for n in p.get("points", []) for m in p.get("points_models", [])}
     out.update({seed_name(m, s): {"recipe": m, "points": None, "seed": int(s)}
-                for s in p.get("seeds", []) for m in p.get("seed_models", [])})
+                for s in p.get("seeds", []) for m in p.get("seed_models", []) + p.get("seed_ablation_models", [])})
     return out
 
 
@@ -222,6 +235,14 @@ def rows(p: dict[str, Any], fold: str, regime: str | None = None) -> dict[str, d
             out.update({points_name(r, n): {**out[r], "points": int(n), "checkpoint": checkpoint(
                 trained, fold, points_name(r, n), task) if out[r]["checkpoint"] else None}
                 for r in p.get("points_methods", []) + p.get("points_models", [])})
+        for s in p.get("seeds", []):  # issue #27: every variant row of a model (all seeded), per training seed
+            out.update({seed_name(m, s): {"method": model_method(p, m), "checkpoint": checkpoint(
+                trained, fold, seed_name(m, s), task)} for m in p.get("seed_ablation_models", [])})
+            out.update({seed_name(f"{m}-lo", s): {"method": f"{model_method(p, m)}-lo", "checkpoint": checkpoint(
+                trained, fold, seed_name(m, s), task)} for m in p["lo_models"]})
+            out.update({seed_name(f"{m}-fast", s): {**out[seed_name(m, s)], "fast": True} for m in p["fast"]})
+            out.update({seed_name(f"{m}-prob", s): {**out[seed_name(m, s)], "sampling": "prob"}
+                        for m in p.get("prob_models", [])})
     for r in out.values():
         r.setdefault("fast", False)
         r.setdefault("points", None)
@@ -249,7 +270,8 @@ def _typed(p: dict[str, Any]) -> dict[str, Any]:
     if p["variant_regimes"] is None:
         p["variant_regimes"] = list(p["regimes"])
     for key in ("test", "regimes", "methods", "models", "lo_models", "fast", "lo_methods", "variant_regimes",
-                "ablation_models", "prob_models", "points_models", "points_methods", "seed_models", "select_models"):
+                "ablation_models", "prob_models", "points_models", "points_methods", "seed_models", "select_models",
+                "seed_ablation_models"):
         if not isinstance(p[key], list):
             raise RlsacError(f"folds.{key} must be a list, got {p[key]!r}")
         p[key] = [check_value(f"folds.{key}", v, str) for v in p[key]]

@@ -355,6 +355,57 @@ def test_other_training_seeds_train_with_the_models_recipe_and_their_seed():
     assert folds.split_seed("rlsac-s12") == ("rlsac", 12) and folds.split_seed("rlsac-nosnn") == ("rlsac-nosnn", None)
 
 
+def test_variant_rows_of_seeded_models_are_rows_per_seed():
+    """Issue #27: with seed_ablation_models every variant row of a seeded model (-lo, -fast, -prob, the ablation
+    models) is a row per seed in the variant regimes, on that seed's checkpoint; a variant of an unseeded model is
+    refused, since its per-seed stages would have no model."""
+    p = folds.protocol({"folds": {"models": ["rlsac"], "ablation_models": ["rlsac-trainmax"],
+                                  "train": {"rlsac": {}, "rlsac-trainmax": {"sac": {"train_sampling": "max"}}},
+                                  "seeds": [2], "seed_models": ["rlsac"], "seed_ablation_models": ["rlsac-trainmax"],
+                                  "lo_models": ["rlsac"], "fast": ["rlsac"], "prob_models": ["rlsac-trainmax"],
+                                  "variant_regimes": ["hard"]}})
+    hard, easy = folds.rows(p, "castle", "hard"), folds.rows(p, "castle", "easy")
+    ck = Path("checkpoints/folds/hard/castle")
+    assert hard["rlsac-lo-s2"] == {**hard["rlsac-lo"], "checkpoint": ck / "rlsac-s2.pt"}
+    assert hard["rlsac-fast-s2"]["fast"] and hard["rlsac-fast-s2"]["checkpoint"] == ck / "rlsac-s2.pt"
+    assert hard["rlsac-trainmax-prob-s2"]["sampling"] == "prob"
+    assert hard["rlsac-trainmax-prob-s2"]["checkpoint"] == ck / "rlsac-trainmax-s2.pt"
+    assert hard["rlsac-trainmax-s2"]["checkpoint"] == ck / "rlsac-trainmax-s2.pt"
+    assert not {"rlsac-lo-s2", "rlsac-trainmax-s2", "rlsac-fast-s2"} & set(easy) and "rlsac-s2" in easy
+    assert folds.derived_models(p)["rlsac-trainmax-s2"] == {"recipe": "rlsac-trainmax", "points": None, "seed": 2}
+    assert folds.split_seed("rlsac-trainmax-prob-s2") == ("rlsac-trainmax-prob", 2)
+    with pytest.raises(RlsacError, match=r"folds.prob_models \['rlsac-trainmax'\]: with folds.seeds every one"):
+        folds.protocol({"folds": {"models": ["rlsac"], "ablation_models": ["rlsac-trainmax"],
+                                  "train": {"rlsac": {}, "rlsac-trainmax": {}}, "seeds": [2], "seed_models": ["rlsac"],
+                                  "prob_models": ["rlsac-trainmax"]}})
+
+
+def test_table3_and_the_lo_arm_take_their_variants_over_seeds(tmp_path):
+    """Table 3's variants with seeds are set against the full model over its seeds in Table 3 (not against Table 2's
+    controls), and a same-LO row with seeds against the same-LO rows only."""
+    ev = tmp_path / "eval"
+    for fold in ("a", "b"):
+        _write_errors(ev, "hard", fold, "rlsac", 100, [0.5] * 4, [0.5] * 4)
+        _write_errors(ev, "hard", fold, "rlsac-s1", 100, [0.5, 0.5, 20.0, 20.0], [0.5] * 4)
+        _write_errors(ev, "hard", fold, "uniform", 100, [0.5, 20.0] * 2, [0.5, 20.0] * 2)
+        _write_errors(ev, "hard", fold, "rlsac-nodesc", 100, [20.0] * 4, [0.5] * 4)
+        _write_errors(ev, "hard", fold, "rlsac-nodesc-s1", 100, [20.0] * 4, [0.5, 0.5, 0.5, 0.6])
+        _write_errors(ev, "hard", fold, "rlsac-lo", 100, [0.4] * 4, [0.5] * 4)
+        _write_errors(ev, "hard", fold, "rlsac-lo-s1", 100, [0.4] * 4, [20.0] * 4)
+        _write_errors(ev, "hard", fold, "uniform-lo", 100, [0.5] * 4, [0.5, 20.0] * 2)
+    fold_table.build(ev, tmp_path / "out", tmp_path / "rec")
+    t2 = (tmp_path / "out" / "table2_folds.md").read_text().split("### Across training seeds", 1)[1]
+    assert "rlsac-nodesc" not in t2 and fold_table.NAMES["rlsac-nodesc"] not in t2
+    lo = [x for x in t2.splitlines() if fold_table.NAMES["rlsac-lo"] + " (2 seeds)" in x]
+    assert [c.strip() for c in lo[0].split("|")[1:-1]][2] == fold_table.NAMES["uniform-lo"] and len(lo) == 1
+    t3 = (tmp_path / "out" / "table3_folds.md").read_text().split("#### Across training seeds (100 iterations", 1)[1]
+    line = next(x for x in t3.splitlines() if "rlsac-nodesc (2 seeds)" in x)
+    cells = [c.strip() for c in line.split("|")[1:-1]]
+    assert cells[1:3] == ["rlsac-nodesc (2 seeds)", "rlsac (2 seeds)"]
+    assert cells[3] == "0.000 ± 0.000" and cells[4].startswith("-0.750")  # R: none against the full seeds' 0.75
+    assert cells[6] == "1.000 ± 0.000" and cells[7].startswith("+0.000")  # t: every pair within both
+
+
 def test_table_e_rows_of_other_training_seeds_read_their_own_checkpoints():
     """Issue #27 on Table E: essential.seeds adds rows rlsac-s<seed>, each with the essential_train_seed stage's
     checkpoint; seed 0 is the model itself, so the list starts at 1."""

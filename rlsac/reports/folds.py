@@ -345,6 +345,13 @@ def _control_section(res, regime: str, budgets, folds) -> str:
 # the comparisons of the across-seed section (issue #27): the paper recipe (against its variants with seeds: both
 # sides resampled), the controls, then the strongest rows of each arm
 SEED_CONTROLS = ("rlsac", "uniform", "guided", "ransac", "prosac", "magsac", "degensac", "poselib")
+# a same-LO row is set against the same-LO arm only (like for like, issue #26)
+SEED_CONTROLS_LO = ("rlsac-lo", "ransac-lo", "uniform-lo", "guided-lo")
+
+
+def seed_controls(model: str) -> tuple[str, ...]:
+    """The controls of ``model`` in the across-seed section: its own arm's."""
+    return SEED_CONTROLS_LO if arm(model) == "same LO" else SEED_CONTROLS
 
 
 def seed_runs(res: dict[tuple[str, str, int], pd.DataFrame], regime: str) -> dict[str, list[str]]:
@@ -393,12 +400,15 @@ def _seed_section(res, regime: str, budgets) -> str:
     (pairs within their test building), and the probability of improvement (metrics.seed_bootstrap_maa)."""
     rows = []
     seeded = seed_runs(res, regime)
+    table3_only = set(TABLE3_ROWS.values()) - {REFERENCE}  # set against the full model in Table 3's own section
     for model, runs in seeded.items():
+        if model in table3_only:
+            continue
         for it in budgets:
             frames = [res.get((regime, m, it)) for m in runs]
             if any(df is None for df in frames):
                 continue
-            for control in SEED_CONTROLS:
+            for control in seed_controls(model):
                 controls = seeded.get(control, [control])
                 cs = [res.get((regime, m, it)) for m in controls]
                 if control == model or any(c is None for c in cs):
@@ -504,6 +514,39 @@ def _n_study(res: dict[tuple[str, str, int], pd.DataFrame], it: int, recs: dict[
             + t.to_markdown(index=False, disable_numparse=True) + "\n")
 
 
+def _table3_seeds(res: dict[tuple[str, str, int], pd.DataFrame], it: int) -> str:
+    """Issue #27 on Table 3: every variant with other training seeds against the full model over its seeds: seed mean
+    ± SD, the difference of seed means with a 95% interval that resamples seeds and pairs, P(improvement)."""
+    from rlsac.reports import paper
+
+    seeded = seed_runs(res, TABLE3_REGIME)
+    labels = {TABLE3_ROWS[v]: label for _, label, v, _ in paper.TABLE3 if v in TABLE3_ROWS}
+    full = seeded.get(REFERENCE, [REFERENCE])
+    rows = []
+    for m in dict.fromkeys(TABLE3_ROWS.values()):
+        if m == REFERENCE or m not in seeded:
+            continue
+        row = {"variant": labels.get(m, m), "row": f"{m} ({len(seeded[m])} seeds)",
+               "full": f"{REFERENCE} ({len(full)} seed{'s' if len(full) > 1 else ''})"}
+        for col, name in (("err_R", "R"), ("err_t", "t")):
+            got = seed_comparison(res, seeded, TABLE3_REGIME, m, REFERENCE, it, col)
+            if got is None:
+                continue
+            st = got[0]
+            row[f"{name} (mean ± SD)"] = f"{st['mean_a']:.3f} ± {st['sd_a']:.3f}"
+            row[f"{name} − full"] = f"{st['diff']:+.3f} [{st['lo']:+.3f}, {st['hi']:+.3f}]"
+            row[f"P(improve) {name}"] = f"{st['p_improve']:.2f}"
+        rows.append(row)
+    if not rows:
+        return ""
+    return (f"#### Across training seeds ({it} iterations; issue #27)\n\n"
+            "Each variant over all its training seeds against the full model over its own: `mean ± SD` over seeds of "
+            f"the pooled mAA@10°, `− full` the difference of seed means with a 95% interval ({N_BOOT} draws: seeds "
+            "with replacement, then test pairs within each building, the same pairs for both rows), `P(improve)` the "
+            "probability that a random seed of the variant beats one of the full model on a random test building.\n\n"
+            + pd.DataFrame(rows).to_markdown(index=False, disable_numparse=True) + "\n")
+
+
 def table3(res: dict[tuple[str, str, int], pd.DataFrame], out_dir: Path,
            recs: dict[tuple[str, str], dict] | None = None) -> list[str]:
     """Write table3_folds.{md,csv} from the fold results when the hard regime has RLSAC and an ablation row:
@@ -539,11 +582,13 @@ def table3(res: dict[tuple[str, str, int], pd.DataFrame], out_dir: Path,
         md.append(f"### {it} iterations\n\n" + t.drop(columns="iterations").to_markdown(index=False,
                                                                                          disable_numparse=True) + "\n")
         md.append(_n_study(res, it, recs or {}))
+        md.append(_table3_seeds(res, it))
     n = len(res[(TABLE3_REGIME, REFERENCE, budgets[-1])])
     head = ("# Table 3 (folds): ablations of RLSAC on the leave-one-building-out benchmark\n\n"
             f"The paper's ablations as rows of Table 2 (folds), `{TABLE3_REGIME}` regime, {n} test pairs pooled over "
             f"the folds (one pair = {1 / max(n, 1):.4f} mAA). Every model is trained per fold with the full model's "
-            "recipe and budget (params.yaml `folds.train`), one training seed; every row's threshold and pre-filter "
+            "recipe and budget (params.yaml `folds.train`); the rows show each model's first training seed, and the "
+            "across-seed tables under each budget count all of them; every row's threshold and pre-filter "
             "are tuned on its fold's validation pairs. `− full`: paired difference to the full model (probabilistic "
             f"sampling in training, max in testing, descriptors, N = {FULL_POINTS}) with its 95% interval ({N_BOOT} "
             "bootstrap resamples over pairs). (c): the fold data prepared again with N points per pair (drawn from "
