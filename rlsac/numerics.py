@@ -74,9 +74,14 @@ def mode() -> str:
     return os.environ.get(ENV, "").strip() or DEFAULT_MODE
 
 
+_LIBS = ("torch", "numpy", "cv2")  # the libraries that read their pin when they load
+_APPLIED: dict = {"mode": None, "preloaded": []}  # what apply_pins found at `import rlsac`
+
+
 def apply_pins() -> None:
     """In the portable mode, set every pin the user has not set (``import rlsac`` calls this first thing). An
-    unknown mode sets nothing; ``check_mode`` reports it."""
+    unknown mode sets nothing; ``check_mode`` reports it, and a library loaded before this call."""
+    _APPLIED.update(mode=mode(), preloaded=[lib for lib in _LIBS if lib in sys.modules])
     if mode() == "portable":
         for k, v in pins().items():
             os.environ.setdefault(k, v)
@@ -94,13 +99,11 @@ def check_mode() -> str:
             k, v = off[0]
             raise RlsacError(f"{ENV}=portable needs {k}={v} (it is {os.environ.get(k)}); unset it or use "
                              f"{ENV}=native")
-        if "torch" in sys.modules:
-            import torch
-
-            level = torch.backends.cpu.get_cpu_capability()
-            if level not in ("AVX2", "DEFAULT"):
-                raise RlsacError(f"{ENV}=portable: torch was loaded before rlsac and runs ATen at {level}; "
-                                 f"import rlsac first")
+        # a library loaded before the pins keeps the code paths it chose (its bytes would be this CPU's)
+        late = _APPLIED["preloaded"] if _APPLIED["mode"] == "portable" else [lib for lib in _LIBS if lib in sys.modules]
+        if late:
+            raise RlsacError(f"{ENV}=portable: {', '.join(late)} loaded before rlsac set the pins, and keeps the "
+                             f"code paths it chose; import rlsac first, or set {ENV} before Python starts")
     return m
 # MKL's verbose line names its code branch: "... for Intel(R) 64 architecture <branch>, Lnx ..."
 _MKL_LINE = re.compile(r"for Intel\(R\) 64 architecture (.*?), Lnx")

@@ -34,6 +34,17 @@ def probe(mode: str) -> dict:
     return json.loads(r.stdout)
 
 
+def test_a_library_loaded_before_rlsac_is_refused_in_the_portable_mode():
+    code = "import numpy, rlsac; from rlsac import numerics; numerics.check_mode()"
+    env = {k: v for k, v in os.environ.items() if k not in numerics.pins()}
+    r = subprocess.run([sys.executable, "-c", code], env={**env, numerics.ENV: "portable"}, capture_output=True,
+                       text=True)
+    assert r.returncode == 1 and "RLSAC_NUMERICS=portable: numpy loaded before rlsac set the pins" in r.stderr
+    ok = subprocess.run([sys.executable, "-c", code.replace("import numpy, rlsac", "import rlsac, numpy")],
+                        env={**env, numerics.ENV: "portable"}, capture_output=True, text=True)
+    assert ok.returncode == 0, ok.stderr
+
+
 def test_portable_mode_pins_every_library_before_it_loads():
     p = probe("portable")
     assert p["env"] == numerics.pins()
@@ -53,14 +64,10 @@ def test_a_mode_that_cannot_take_is_a_user_error(monkeypatch):
     monkeypatch.setenv(numerics.ENV, "portable")
     for k, v in numerics.pins().items():
         monkeypatch.setenv(k, v)
-    # this process loaded torch natively: where that is not AVX2, the pins came too late to take
-    import torch
-
-    if torch.backends.cpu.get_cpu_capability() not in ("AVX2", "DEFAULT"):
-        with pytest.raises(RlsacError, match="torch was loaded before rlsac and runs ATen at AVX512"):
-            numerics.check_mode()
-    else:
-        assert numerics.check_mode() == "portable"
+    # a process started native that loaded torch and numpy then: the pins come too late to take
+    monkeypatch.setitem(numerics._APPLIED, "mode", "native")
+    with pytest.raises(RlsacError, match="torch, numpy.* loaded before rlsac set the pins"):
+        numerics.check_mode()
     r = CliRunner().invoke(cli, ["verify", "--platform"], env={"MKL_CBWR": "AVX2"})
     assert_user_error(r, "RLSAC_NUMERICS=portable needs MKL_CBWR=COMPATIBLE (it is AVX2)")
 

@@ -1087,6 +1087,7 @@ def test_second_sigterm_stops_at_once_ends_run_killed_and_leaves_no_temporary_fi
 
 KILL_DURING_SAVE = """
 import os, signal, sys
+import rlsac  # first: its numeric pins before torch loads
 import torch
 real_save, saves = torch.save, []
 def save(obj, f, *a, **k):
