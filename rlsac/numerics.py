@@ -89,7 +89,7 @@ def apply_pins() -> None:
 
 def check_mode() -> str:
     """The mode, after checking it: RlsacError for an unknown one, or for a portable process whose pins did not
-    take (a user value that contradicts one, or torch loaded before rlsac at another ATen level)."""
+    take (a user value that contradicts one, or torch, numpy or OpenCV loaded before ``import rlsac`` set them)."""
     m = mode()
     if m not in MODES:
         raise RlsacError(f"{ENV}={m}: one of {', '.join(MODES)}")
@@ -105,6 +105,8 @@ def check_mode() -> str:
             raise RlsacError(f"{ENV}=portable: {', '.join(late)} loaded before rlsac set the pins, and keeps the "
                              f"code paths it chose; import rlsac first, or set {ENV} before Python starts")
     return m
+
+
 # MKL's verbose line names its code branch: "... for Intel(R) 64 architecture <branch>, Lnx ..."
 _MKL_LINE = re.compile(r"for Intel\(R\) 64 architecture (.*?), Lnx")
 _PROBE = "import torch; torch.ones(64, 64) @ torch.ones(64, 64)"
