@@ -474,12 +474,21 @@ def test_table_refuses_an_n_row_run_on_other_data(tmp_path):
     ("rlsac-s2", "checkpoints/folds/hard/fountain/rlsac-s2.pt", True),
     ("rlsac", "scratch/mine.pt", True),  # a checkpoint outside the pipeline's layout: told by its method only
     ("rlsac-s1", "/abs/repo/checkpoints/essential/hard/fountain-s1.pt", True),
+    # issue #27: a seeded model's variant rows are <row>-s<seed>, on that seed's checkpoint
+    ("rlsac-lo-s2", "checkpoints/folds/hard/fountain/rlsac-s2.pt", True),
+    ("rlsac-lo-s2", "checkpoints/folds/hard/fountain/rlsac-s3.pt", False),
+    ("rlsac-lo-s2", "checkpoints/folds/hard/fountain/rlsac.pt", False),
+    ("rlsac-fast-s2", "checkpoints/folds/hard/fountain/rlsac-s2.pt", True),
+    ("rlsac-trainmax-prob-s1", "checkpoints/folds/hard/fountain/rlsac-trainmax-s1.pt", True),
+    ("rlsac-trainmax-prob-s1", "checkpoints/folds/hard/fountain/rlsac-trainmax.pt", False),
 ])
 def test_a_models_cell_must_hold_the_checkpoint_its_folder_names(tmp_path, row, ckpt, ok):
     cell = tmp_path / row / "i100"
     cell.mkdir(parents=True)
-    method = "rlsac-lo" if row.endswith("-lo") else "rlsac"
-    (cell / "config.json").write_text(json.dumps({"method": method, "iterations": 100, "checkpoint": ckpt}))
+    method = "rlsac-lo" if "-lo" in row else "rlsac"
+    sampling = "prob" if "-prob" in row else "max"
+    (cell / "config.json").write_text(json.dumps({"method": method, "iterations": 100, "checkpoint": ckpt,
+                                                  "sampling": sampling}))
     assert folds.checkpoint_model(folds.checkpoint("hard", "fountain", "rlsac-s3", "essential")) == "rlsac-s3"
     assert folds.checkpoint_model(folds.checkpoint("hard", "fountain", "rlsac-nosnn")) == "rlsac-nosnn"
     assert folds.checkpoint_model("scratch/ess.pt") is None

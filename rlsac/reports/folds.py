@@ -98,7 +98,7 @@ def _check_cell(path: Path, name: str, iterations: int) -> None:
         conf = json.loads(f.read_text())
     except (OSError, ValueError):
         raise RlsacError(f"{f}: unreadable") from None
-    from rlsac.folds import checkpoint_model, split_points
+    from rlsac.folds import checkpoint_model, seed_name, split_points, split_seed
 
     base, points = split_points(name)  # Table 3 (c)'s <row>-n<N>: the row of that name on the data with N points
     if points is not None:
@@ -112,7 +112,11 @@ def _check_cell(path: Path, name: str, iterations: int) -> None:
     ckpt = model or Path(path).stem
     spec = METHODS.get(method)
     prob = conf.get("sampling") == "prob"  # Table 3 (b)'s <model>-prob rows: probabilistic test-time sampling
-    names = (f"{ckpt}-prob",) if prob else (ckpt, f"{ckpt}-lo", f"{ckpt}-fast")
+    variants = ("-prob",) if prob else ("", "-lo", "-fast")
+    names = tuple(f"{ckpt}{v}" for v in variants)
+    base, seed = split_seed(ckpt)
+    if seed is not None:  # issue #27: the variant rows of another training seed are <row>-s<seed>
+        names += tuple(seed_name(f"{base}{v}", seed) for v in variants if v)
     if spec is not None and spec.checkpoint and model is not None:  # the pipeline's checkpoint names the row
         ok = name in names
     else:  # a checkpoint of one's own (any name) can only be told by its method
