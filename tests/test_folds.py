@@ -524,7 +524,8 @@ def test_folds_command_end_to_end(imported, tmp_path, monkeypatch):
                             "rlsac-trainmax": {"sac": {"train_sampling": "max"}}},
                   "iterations": [15], "seed": 0, "fast": ["rlsac"],
                   "points": [30], "points_models": ["rlsac"], "points_methods": ["uniform"],
-                  "seeds": [1], "seed_models": ["rlsac"], "select_models": ["rlsac"], "select_iterations": [15]},
+                  "seeds": [1], "seed_models": ["rlsac", "rlsac-ws"], "select_models": ["rlsac"],
+                  "select_iterations": [15]},
         "essential": {"regime": "hard", "methods": ["ransac", "usac"], "iterations": [15]},
         "tuning": {"iterations": 15, "threshold_px": [1.0, 2.0], "prefilter": [0.9, 1.0], "extend": 0,
                    "guide_temperature": [0.1], "lo_sigma_scale": [0.5], "sets_per_step": [2], "confidence": [0.99]},
@@ -608,10 +609,11 @@ def test_folds_command_end_to_end(imported, tmp_path, monkeypatch):
         conf = json.loads((tmp_path / f"reports/eval/folds/hard/fountain/{m}/i15/config.json").read_text())
         assert tuned["data"] == "data/folds/hard-n30/fountain/val.h5" and conf["data_attrs"]["n_points"] == 30
     for m in ("uniform", "ransac", "rlsac", "rlsac-ws", "rlsac-ws-lo", "rlsac-fast", "ransac-lo", "guided-lo",
-              "rlsac-trainmax", "rlsac-prob", "rlsac-n30", "uniform-n30", "rlsac-s1"):
+              "rlsac-trainmax", "rlsac-prob", "rlsac-n30", "uniform-n30", "rlsac-s1",
+              "rlsac-ws-lo-s1", "rlsac-fast-s1", "rlsac-prob-s1"):  # issue #27: the variant rows per seed too
         s = json.loads((tmp_path / f"reports/eval/folds/hard/fountain/{m}/i15/summary.json").read_text())
         assert s["n_instances"] == 8 and s["iterations"] == 15
-        assert ("lo" in s) == m.endswith("-lo")
+        assert ("lo" in s) == ("-lo" in m)
     r = run.invoke(cli, ["table", "--which", "folds", "--no-tracking"])
     assert r.exit_code == 0, r.output
     md = (tmp_path / "reports/table2_folds.md").read_text()
