@@ -42,7 +42,8 @@ from rlsac import numerics
 BIN = Path(sys.executable).parent
 ROOT = Path.cwd()
 
-PORTABLE = {**numerics.PINS, numerics.OPENCV_PIN[0]: numerics.OPENCV_PIN[1]}  # the portable mode's pins
+# every variable a pin sets: none is inherited from the caller's environment, so each row sets only its own
+PINNED = (*numerics.PINS, numerics.OPENCV_PIN[0], numerics.ENV)
 NUMPY_AVX512 = numerics.PINS["NPY_DISABLE_CPU_FEATURES"]
 OPENCV_AVX512 = numerics.OPENCV_PIN[1]
 SETTINGS = {
@@ -53,8 +54,9 @@ SETTINGS = {
     "numpy-v3": {"NPY_DISABLE_CPU_FEATURES": NUMPY_AVX512},
     "opencv-avx2": {"OPENCV_CPU_DISABLE": OPENCV_AVX512},
     "onednn-avx2": {"ONEDNN_MAX_CPU_ISA": "AVX2"},
-    "portable": dict(PORTABLE),
-    "portable+mkl-intel": {**PORTABLE, "@shim": "1"},
+    # the portable mode itself: rlsac sets its pins (rlsac.numerics.pins) when it is imported
+    "portable": {"@mode": "portable"},
+    "portable+mkl-intel": {"@mode": "portable", "@shim": "1"},
 }
 FOLD = "data/folds/hard/fountain"
 # workload -> (inputs linked into the scratch folder, argv after `rlsac`, outputs hashed)
@@ -115,10 +117,9 @@ def run(workload: str, setting: dict, shim: str | None, tmp: Path) -> tuple[str,
     for rel in inputs:
         (work / rel).parent.mkdir(parents=True, exist_ok=True)
         (work / rel).symlink_to(ROOT / rel)
-    env = {k: v for k, v in os.environ.items() if k not in PORTABLE and k not in ("LD_PRELOAD", numerics.ENV)}
+    env = {k: v for k, v in os.environ.items() if k not in PINNED and k != "LD_PRELOAD"}
     env.update({k: v for k, v in setting.items() if not k.startswith("@")})
-    # rlsac sets the pins itself in its portable mode; every other row runs native, whatever the record's mode
-    env[numerics.ENV] = "portable" if all(setting.get(k) == v for k, v in PORTABLE.items()) else "native"
+    env[numerics.ENV] = setting.get("@mode", "native")  # every other row runs native, whatever the record's mode
     env.update(OMP_NUM_THREADS="1", MLFLOW_TRACKING_URI=f"sqlite:///{work}/mlflow.db", CI="true")
     if "@shim" in setting:
         env["LD_PRELOAD"] = shim

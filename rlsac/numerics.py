@@ -20,6 +20,7 @@ under the mode of the record.
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import platform
@@ -57,11 +58,17 @@ PINS = {
 OPENCV_PIN = ("OPENCV_CPU_DISABLE", _OPENCV_AVX512)
 
 
-def _has_avx512() -> bool:
+@functools.cache
+def _cpuinfo() -> str:
+    """/proc/cpuinfo ('' where there is none): read once, by the pins and by the platform's description."""
     try:
-        return " avx512f" in Path("/proc/cpuinfo").read_text()
+        return Path("/proc/cpuinfo").read_text()
     except OSError:
-        return False
+        return ""
+
+
+def _has_avx512() -> bool:
+    return " avx512f" in _cpuinfo()
 
 
 def pins() -> dict[str, str]:
@@ -139,12 +146,9 @@ def mkl_branch() -> str:
 
 def cpu_vendor() -> str:
     """'GenuineIntel', 'AuthenticAMD', ... from /proc/cpuinfo; platform.processor() elsewhere."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("vendor_id"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
+    for line in _cpuinfo().splitlines():
+        if line.startswith("vendor_id"):
+            return line.split(":", 1)[1].strip()
     return platform.processor() or "unknown"
 
 
