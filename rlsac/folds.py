@@ -213,6 +213,18 @@ def split_points(row: str) -> tuple[str, int | None]:
     return (base, int(n)) if base and n.isdigit() else (row, None)
 
 
+def variants(out: dict[str, dict[str, Any]], p: dict[str, Any], fold: str, trained: str, task: str, run,
+             ablation: list[str]) -> None:
+    """Add to ``out`` the variant rows of one training run of each model (``run``: a model's or a row's name -> the
+    name of that run's, e.g. <name>-s<seed>): <model>-lo, <model>-fast, the ablation models, <model>-prob."""
+    out.update({run(f"{m}-lo"): {"method": f"{model_method(p, m)}-lo",
+                                 "checkpoint": checkpoint(trained, fold, run(m), task)} for m in p["lo_models"]})
+    out.update({run(f"{m}-fast"): {**out[run(m)], "fast": True} for m in p["fast"]})
+    out.update({run(m): {"method": model_method(p, m), "checkpoint": checkpoint(trained, fold, run(m), task)}
+                for m in ablation})
+    out.update({run(f"{m}-prob"): {**out[run(m)], "sampling": "prob"} for m in p.get("prob_models", [])})
+
+
 def rows(p: dict[str, Any], fold: str, regime: str | None = None) -> dict[str, dict[str, Any]]:
     """Every row of the fold benchmark in ``regime`` (None: any) -> {method (evaluate's), checkpoint (RLSAC rows),
     fast (the -fast variant), knobs (the settings tuned after threshold x pre-filter, rlsac.tune)}; the variant rows
@@ -225,24 +237,13 @@ def rows(p: dict[str, Any], fold: str, regime: str | None = None) -> dict[str, d
         trained, fold, seed_name(m, s), task)} for s in p.get("seeds", []) for m in p.get("seed_models", [])})
     if regime is None or regime in p.get("variant_regimes", p["regimes"]):
         out.update({m: {"method": m, "checkpoint": None} for m in p.get("lo_methods", [])})
-        out.update({f"{m}-lo": {"method": f"{model_method(p, m)}-lo", "checkpoint": checkpoint(trained, fold, m, task)}
-                    for m in p["lo_models"]})
-        out.update({f"{m}-fast": {**out[m], "fast": True} for m in p["fast"]})
-        out.update({m: {"method": model_method(p, m), "checkpoint": checkpoint(trained, fold, m, task)}
-                    for m in p.get("ablation_models", [])})
-        out.update({f"{m}-prob": {**out[m], "sampling": "prob"} for m in p.get("prob_models", [])})
+        variants(out, p, fold, trained, task, lambda m: m, p.get("ablation_models", []))
         for n in p.get("points", []):  # Table 3 (c): each row on the data with N points, a model trained on it
             out.update({points_name(r, n): {**out[r], "points": int(n), "checkpoint": checkpoint(
                 trained, fold, points_name(r, n), task) if out[r]["checkpoint"] else None}
                 for r in p.get("points_methods", []) + p.get("points_models", [])})
         for s in p.get("seeds", []):  # issue #27: every variant row of a model (all seeded), per training seed
-            out.update({seed_name(m, s): {"method": model_method(p, m), "checkpoint": checkpoint(
-                trained, fold, seed_name(m, s), task)} for m in p.get("seed_ablation_models", [])})
-            out.update({seed_name(f"{m}-lo", s): {"method": f"{model_method(p, m)}-lo", "checkpoint": checkpoint(
-                trained, fold, seed_name(m, s), task)} for m in p["lo_models"]})
-            out.update({seed_name(f"{m}-fast", s): {**out[seed_name(m, s)], "fast": True} for m in p["fast"]})
-            out.update({seed_name(f"{m}-prob", s): {**out[seed_name(m, s)], "sampling": "prob"}
-                        for m in p.get("prob_models", [])})
+            variants(out, p, fold, trained, task, lambda m, s=s: seed_name(m, s), p.get("seed_ablation_models", []))
     for r in out.values():
         r.setdefault("fast", False)
         r.setdefault("points", None)
