@@ -398,6 +398,12 @@ def seed_comparison(res, seeded: dict[str, list[str]], regime: str, model: str, 
             err.shape[1])
 
 
+def _seed_cells(s: dict) -> tuple[str, str, str]:
+    """The cells of one seed-aware comparison (metrics.seed_bootstrap_maa's dict): the model's seed mean ± SD, the
+    difference of seed means with its 95% interval, P(improvement)."""
+    return (f"{s['mean_a']:.3f} ± {s['sd_a']:.3f}", _ci((s["diff"], s["lo"], s["hi"])), f"{s['p_improve']:.2f}")
+
+
 def _seed_section(res, regime: str, budgets) -> str:
     """Issue #27: every model trained with several seeds against each control at every budget: the seed mean and
     seed-to-seed SD of its pooled mAA, the difference of seed means with a 95% interval that resamples seeds and pairs
@@ -424,10 +430,11 @@ def _seed_section(res, regime: str, budgets) -> str:
                     if got is None:
                         continue
                     s = got[0]
-                    row[f"model {name} (mean ± SD)"] = f"{s['mean_a']:.3f} ± {s['sd_a']:.3f}"
+                    mean_sd, diff, p_improve = _seed_cells(s)
+                    row[f"model {name} (mean ± SD)"] = mean_sd
                     row[f"control {name}"] = f"{s['mean_b']:.3f}" + (f" ± {s['sd_b']:.3f}" if len(cs) > 1 else "")
-                    row[f"{name}: model − control"] = f"{s['diff']:+.3f} [{s['lo']:+.3f}, {s['hi']:+.3f}]"
-                    row[f"P(improve) {name}"] = f"{s['p_improve']:.2f}"
+                    row[f"{name}: model − control"] = diff
+                    row[f"P(improve) {name}"] = p_improve
                 rows.append(row)
     if not rows:
         return ""
@@ -536,10 +543,7 @@ def _table3_seeds(res: dict[tuple[str, str, int], pd.DataFrame], it: int) -> str
             got = seed_comparison(res, seeded, TABLE3_REGIME, m, REFERENCE, it, col)
             if got is None:
                 continue
-            st = got[0]
-            row[f"{name} (mean ± SD)"] = f"{st['mean_a']:.3f} ± {st['sd_a']:.3f}"
-            row[f"{name} − full"] = f"{st['diff']:+.3f} [{st['lo']:+.3f}, {st['hi']:+.3f}]"
-            row[f"P(improve) {name}"] = f"{st['p_improve']:.2f}"
+            row[f"{name} (mean ± SD)"], row[f"{name} − full"], row[f"P(improve) {name}"] = _seed_cells(got[0])
         rows.append(row)
     if not rows:
         return ""
