@@ -80,6 +80,12 @@ CLAIMS: tuple[Claim, ...] = (
           "README, reports/folds.md", "folds", "hard", 1000, "rlsac-n300", "rlsac", "better", ("R",)),
     Claim("Table 3 (c): with N = 300 the policy is below uniform sets on the same points in t (hard, 1k)",
           "README, reports/folds.md", "folds", "hard", 1000, "rlsac-n300", "uniform-n300", "worse", ("t",)),
+    # issue #29's question on the folds, written down before the record had NG-RANSAC's fold test numbers: the paper
+    # positions RLSAC's sequential sampler against NG-RANSAC's one-shot learned sampler; both learned, both seeded
+    *(Claim(f"RLSAC (sequential RL sampler) is above NG-RANSAC (one-shot learned sampler){lo} (hard, {budget})",
+            "the paper's positioning; reports/peers.md", "folds", "hard", it, f"rlsac{arm}", f"ngransac{arm}", "better")
+      for it, budget in ((1000, "1k"), (100, "100 iterations"))
+      for arm, lo in (("", ""), ("-lo", ", both with the same LO"))),
     Claim("Table E: RLSAC is above the uniform control in R (essential matrix, 1k)", "README", "essential", "hard",
           1000, "rlsac", "uniform", "better", ("R",)),
     Claim("Table E: RLSAC is below OpenCV's PROSAC (essential matrix, 1k)", "README", "essential", "hard", 1000,
