@@ -7,6 +7,7 @@ failing command never leaves a half-written output behind.
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import json
 import os
 import tempfile
@@ -33,12 +34,54 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     umask = os.umask(0)
     os.umask(umask)
     os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; outputs get the usual permissions
+    pending = _PENDING.get()
     try:
         yield tmp
+        if pending is not None:  # all_or_nothing: renamed with the block's other outputs when it ends
+            pending.append((tmp, path))
+            return
         os.replace(tmp, path)
     finally:
-        if tmp.exists():
+        if tmp.exists() and (tmp, path) not in (pending or ()):
             tmp.unlink()
+
+
+_PENDING: contextvars.ContextVar[list[tuple[Path, Path]] | None] = contextvars.ContextVar("pending", default=None)
+
+
+@contextlib.contextmanager
+def all_or_nothing() -> Iterator[None]:
+    """A command that writes several outputs: every ``atomic_path`` write inside the block is renamed into place when
+    the block ends without an error, after checking that no target is a folder; on an error none is (the temporary
+    files go), so a command that fails half-way leaves every output as it was. Inside the block ``staged(path)`` is
+    where a file written earlier in it can be read."""
+    if _PENDING.get() is not None:  # nested: the outer block decides
+        yield
+        return
+    pending: list[tuple[Path, Path]] = []
+    token = _PENDING.set(pending)
+    try:
+        yield
+        in_the_way = next((path for _, path in pending if path.is_dir()), None)
+        if in_the_way is not None:
+            raise RlsacError(f"cannot write {in_the_way}: a folder of that name is in the way")
+        for tmp, path in pending:
+            os.replace(tmp, path)
+    finally:
+        _PENDING.reset(token)
+        for tmp, _ in pending:
+            if tmp.exists():
+                tmp.unlink()
+
+
+def staged(path: str | os.PathLike) -> Path:
+    """Where ``path``'s content is now: the temporary file of its latest write in the current ``all_or_nothing``
+    block, else ``path`` itself."""
+    path = Path(path)
+    for tmp, target in reversed(_PENDING.get() or []):
+        if target == path:
+            return tmp
+    return path
 
 
 def check_writable(path: str | os.PathLike, what: str = "output", folder: bool = False) -> Path:

@@ -616,6 +616,9 @@ def test_folds_command_end_to_end(imported, tmp_path, monkeypatch):
         assert ("lo" in s) == ("-lo" in m)
     r = run.invoke(cli, ["table", "--which", "folds", "--no-tracking"])
     assert r.exit_code == 0, r.output
+    # metrics.json takes the pooled numbers from folds_iterations.csv, written earlier in the same all-or-nothing set
+    pooled = json.loads((tmp_path / "reports/metrics.json").read_text())["folds"]["hard"]
+    assert set(pooled["rlsac"]) == {"i15"} and 0 <= pooled["rlsac"]["i15"]["mAA_R"] <= 1
     md = (tmp_path / "reports/table2_folds.md").read_text()
     assert "8 test pairs pooled over 1 folds" in md and "| same LO " in md
     t3 = (tmp_path / "reports/table3_folds.md").read_text()  # Table 3 on the folds, each variant against the full model

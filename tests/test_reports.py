@@ -231,3 +231,23 @@ def test_table1_ngransac_row_over_its_seeds(tree):
     # seed means: Ours 0.95, NG-RANSAC 0.7: +0.25 over two seeds each
     assert rows["Ours − NG-RANSAC"][2:5] == ["2 vs 2", "0.950 ± 0.071", "0.700 ± 0.141"]
     assert rows["Ours − NG-RANSAC"][5].startswith("+0.250 [")
+
+
+def test_cli_table_failing_half_way_leaves_every_table_as_it_was(tree, monkeypatch):
+    """rlsac table writes its outputs as one set (io.all_or_nothing): a failure after Table 1 was built (here the
+    claims) writes none of them, and the tables already there keep their bytes."""
+    from rlsac.errors import RlsacError
+    from rlsac.reports import claims
+
+    out = tree / "out"
+    out.mkdir()
+    (out / "table1_lines.md").write_text("the record's table\n")
+
+    def broken(*args, **kwargs):
+        raise RlsacError("a claim's rows could not be read")
+
+    monkeypatch.setattr(claims, "build", broken)
+    r = CliRunner().invoke(cli, ["table", "--which", "all", "--eval-root", "ev", "--out-dir", "out", "--no-tracking"])
+    assert r.exit_code == 2 and "error: a claim's rows could not be read" in r.output, r.output
+    assert sorted(p.name for p in out.iterdir()) == ["table1_lines.md"]
+    assert (out / "table1_lines.md").read_text() == "the record's table\n"

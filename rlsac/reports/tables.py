@@ -22,7 +22,7 @@ import numpy as np
 import pandas as pd
 
 from rlsac.errors import RlsacError
-from rlsac.io import atomic_path, write_json, write_text
+from rlsac.io import all_or_nothing, atomic_path, staged, write_json, write_text
 from rlsac.metrics import paired_bootstrap_maa
 from rlsac.reports import paper
 
@@ -492,7 +492,7 @@ def metrics(eval_root: str | Path = "reports/eval", out_dir: str | Path = "repor
             out["ablation"][v] = {k: _get(s, k) for k in fkeys}
     # the fold benchmark's pooled numbers (Table 2 folds, Table E), from the CSVs the folds tables wrote just before
     for key, stem in (("folds", "folds_iterations"), ("essential", "essential_iterations")):
-        csv = Path(out_dir) / f"{stem}.csv"
+        csv = staged(Path(out_dir) / f"{stem}.csv")  # written just before, in the same all_or_nothing block
         if csv.is_file():
             for row in pd.read_csv(csv).itertuples():
                 out.setdefault(key, {}).setdefault(row.regime, {}).setdefault(row.method, {})[f"i{row.iterations}"] = {
@@ -525,7 +525,7 @@ def build(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
     if which != "selection" and not eval_root.is_dir():  # else every cell would be written as missing, over the record
         raise RlsacError(f"--eval-root {eval_root}: no such folder (the evaluation summaries of the tables)")
     in_the_way = sorted(p for p in out_dir.glob("*") if p.is_dir() and p.suffix in (".md", ".csv", ".tex", ".json"))
-    if in_the_way:  # a folder named like a table file: the write would fail after the others were written
+    if in_the_way:  # a folder named like a table file, refused before any work (all_or_nothing also refuses it, late)
         raise RlsacError(f"cannot write the tables into {out_dir}: {in_the_way[0]} is a folder")
     builders = {"1": table1, "2": table2, "3": table3}
     files: list[str] = []
@@ -545,42 +545,43 @@ def build(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
     with start_run("reports", f"table {which}", params={"which": which, "eval_root": str(eval_root),
                                                         "out_dir": str(out_dir)},
                    tags={"command": "table"}, enabled=track) as run:
-        for key in ("1", "2", "3", "iterations", "folds", "essential", "claims", "selection"):
-            # "all" = the pipeline's tables; 2, 3 and iterations (the retired 87-pair split) by name only
-            if which != key and not (which == "all" and key in ALL):
-                continue
-            if key in ("folds", "essential"):  # Tables 2 (folds) and E on the leave-one-building-out folds
-                from rlsac.reports import folds
+        with all_or_nothing():  # a failure half-way (a bad record, a folder in the way) leaves every table as it was
+            for key in ("1", "2", "3", "iterations", "folds", "essential", "claims", "selection"):
+                # "all" = the pipeline's tables; 2, 3 and iterations (the retired 87-pair split) by name only
+                if which != key and not (which == "all" and key in ALL):
+                    continue
+                if key in ("folds", "essential"):  # Tables 2 (folds) and E on the leave-one-building-out folds
+                    from rlsac.reports import folds
 
-                extra = {} if key == "folds" else {"sub": "essential", "stem": "tableE_essential",
-                                                   "iterations_stem": "essential_iterations",
-                                                   "head": folds.TABLE_E_HEAD}
-                extra["tuning"] = Path(out_dir) / "tuning" / ("fundamental" if key == "folds" else "essential")
-                got = folds.build(eval_root, out_dir, Path(out_dir) / "folds" / "data", **extra)
-                files += got["files"]
-                missing += got["missing"]
-                continue
-            if key == "claims":  # issue #27: every claim of the README against its seed-aware interval
-                from rlsac.reports import claims
+                    extra = {} if key == "folds" else {"sub": "essential", "stem": "tableE_essential",
+                                                       "iterations_stem": "essential_iterations",
+                                                       "head": folds.TABLE_E_HEAD}
+                    extra["tuning"] = Path(out_dir) / "tuning" / ("fundamental" if key == "folds" else "essential")
+                    got = folds.build(eval_root, out_dir, Path(out_dir) / "folds" / "data", **extra)
+                    files += got["files"]
+                    missing += got["missing"]
+                    continue
+                if key == "claims":  # issue #27: every claim of the README against its seed-aware interval
+                    from rlsac.reports import claims
 
-                got = claims.build(eval_root, out_dir)
-                files += got["files"]
-                missing += [f"claim: {c}" for c in got["missing"]]
-                continue
-            if key == "selection":  # issue #27, item 3: the records of the fold_select stages
-                from rlsac.reports import selection
+                    got = claims.build(eval_root, out_dir)
+                    files += got["files"]
+                    missing += [f"claim: {c}" for c in got["missing"]]
+                    continue
+                if key == "selection":  # issue #27, item 3: the records of the fold_select stages
+                    from rlsac.reports import selection
 
-                files += selection.build(Path(out_dir) / "selection", out_dir, "checkpoints")["files"]
-                continue
-            if key == "iterations":
-                df = iterations_csv(eval_root, out_dir)
-                files.append(df.attrs["path"])
-            else:
-                df = builders[key](eval_root, out_dir)
-                files += list(df.attrs["files"].values())
-            missing += df.attrs["missing"]
-        metrics(eval_root, out_dir)
-        files.append(str(out_dir / "metrics.json"))
+                    files += selection.build(Path(out_dir) / "selection", out_dir, "checkpoints")["files"]
+                    continue
+                if key == "iterations":
+                    df = iterations_csv(eval_root, out_dir)
+                    files.append(df.attrs["path"])
+                else:
+                    df = builders[key](eval_root, out_dir)
+                    files += list(df.attrs["files"].values())
+                missing += df.attrs["missing"]
+            metrics(eval_root, out_dir)
+            files.append(str(out_dir / "metrics.json"))
         for f in files:
             run.artifact(f)
     return {"which": which, "files": ", ".join(files), "n_missing": len(missing), "missing": missing,
