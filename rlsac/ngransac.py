@@ -7,10 +7,12 @@ weights, RANSAC draws its minimal sets from them, and the network learns from th
 * Test time (``estimate``): our batched ``rlsac.baselines.ransac`` with every minimal set drawn from p without
   replacement (``rlsac.sampling.weighted_minimal_sets``): the same budget, scoring, LO arm and final refit as
   ``ransac``, which is its uniform control.
-* Training (``loss``): per pair K minimal sets drawn from p, each scored by its loss l_k: ``inliers`` (self-
-  supervised, - the inlier ratio of the set's hypothesis at the task's threshold) or ``pose`` (supervised, the
-  task's ground-truth error, clipped at its mAA limit and divided by it); the gradient of the expected loss,
-  mean_k (l_k - b) grad log p(set_k), with the baseline b = mean_k l_k (the paper's variance reduction).
+* Training (``loss``): per pair K samples, each a hypothesis pool H_k of M minimal sets drawn from p (one RANSAC
+  run: its hypothesis with the most inliers is the one selected); the sample's loss l_k is that of the selected
+  hypothesis: ``inliers`` (self-supervised, - its inlier ratio at the task's threshold) or ``pose`` (supervised, the
+  task's ground-truth error, clipped at its mAA limit and divided by it). The gradient of the expected loss is the
+  paper's, mean_k (l_k - b) grad log p(H_k), log p(H_k) = sum of its sets' log-probabilities, with the baseline
+  b = mean_k l_k (the paper's variance reduction). M = 1 (an option, not the paper's) scores each set alone.
 * ``train``: Adam, ``rlsac train --method ngransac``; validation and model selection as RLSAC's (``rlsac.train``:
   the fold's validation pairs only, the same selection signals); the checkpoint format is ``rlsac.checkpoint``'s
   with kind "ngransac".
@@ -37,7 +39,11 @@ class NGRansacConf:
 
     steps: int = 200  # Adam updates
     batch_size: int = 8  # training pairs per update, drawn at random (seeded)
-    samples: int = 16  # K minimal sets per pair and update (the baseline is their mean loss)
+    # K samples per pair and update (the baseline is their mean loss) and M minimal sets per sample (its hypothesis
+    # pool: one RANSAC run, the loss its best hypothesis's): the authors' training script's defaults (ngransac_train_
+    # e2e.py: samplecount 4, hyps 16; the paper does not give them). M = 1 scores each set alone: not the paper's
+    samples: int = 4
+    hypotheses: int = 16
     # Adam's learning rate: the paper fine-tunes a network initialised on inlier labels (a small rate); ours starts
     # from its random initialisation, whose logits are nearly equal (a probe on one fold's validation pairs, 150
     # updates: 1e-4 barely moved them, 3e-3 was unstable)
@@ -46,8 +52,8 @@ class NGRansacConf:
     # against the ground truth (task.errors; clipped at the task's mAA limit, divided by it)
     signal: str = "inliers"
 
-    ranges = {"steps": "[1, inf)", "batch_size": "[1, inf)", "samples": "[2, inf)", "lr": "(0, inf)",
-              "signal": SIGNALS}
+    ranges = {"steps": "[1, inf)", "batch_size": "[1, inf)", "samples": "[2, inf)", "hypotheses": "[1, inf)",
+              "lr": "(0, inf)", "signal": SIGNALS}
 
 
 def network(task, policy_conf):
@@ -83,27 +89,44 @@ def estimate(task, net, batch: dict, iterations: int, generator: torch.Generator
 
 
 def set_losses(task, batch: dict, idx: torch.Tensor, signal: str) -> torch.Tensor:
-    """The loss of each sampled minimal set's hypothesis (no gradient).
+    """The loss of each sampled minimal set's hypothesis (no gradient): ``pool_losses`` with pools of one set.
+    idx (B, K, m) -> (B, K)."""
+    return pool_losses(task, batch, idx[:, :, None], signal)
 
-    batch: coords (B, N, d), mask (B, N) (+ the ground truth ``task.errors`` reads for "pose"), idx (B, K, m)
-    -> (B, K): "inliers": - inlier count / valid points (a degenerate set: 0); "pose": the task's error (the
+
+def pool_losses(task, batch: dict, idx: torch.Tensor, signal: str) -> torch.Tensor:
+    """The loss of each hypothesis pool (no gradient): RANSAC on the pool's M minimal sets selects the hypothesis with
+    the most inliers (the first on a tie), and the pool's loss is the selected hypothesis's.
+
+    batch: coords (B, N, d), mask (B, N) (+ the ground truth ``task.errors`` reads for "pose"), idx (B, K, M, m)
+    -> (B, K): "inliers": - inlier count / valid points (a pool of degenerate sets: 0); "pose": the task's error (the
     largest of its error components, e.g. max(err_R, err_t)) clipped at ``task.maa_limit_deg`` and divided by it,
-    in [0, 1] (a degenerate set: 1)."""
+    in [0, 1] (a pool of degenerate sets: 1)."""
     from rlsac.lo import score_sets
     from rlsac.sampling import gather_points
 
     if signal not in SIGNALS:
         raise RlsacError(f"ngransac signal must be one of {', '.join(SIGNALS)}, got {signal!r}")
+    if idx.dim() != 4:
+        raise ValueError(f"pool_losses: idx (B, K, M, m) expected, got {tuple(idx.shape)}")
     coords, mask = batch["coords"], batch["mask"]
-    B, K = idx.shape[:2]
+    B, K, M, m = idx.shape
     with torch.no_grad():
-        hyps, valid, res, count = score_sets(task, gather_points(coords, idx), coords, mask)  # (B, K, ...)
+        hyps, valid, res, count = score_sets(task, gather_points(coords, idx.reshape(B, K * M, m)), coords, mask)
+        count = count.masked_fill(~valid, -1).view(B, K, M)  # a degenerate set is never selected over a valid one
+        best = count.argmax(-1)  # (B, K): torch.argmax returns the first maximum
+        flat = (torch.arange(K, device=best.device) * M + best).view(B, K)  # the selected set, in (B, K * M)
+        chosen_valid = valid.gather(1, flat)
         if signal == "inliers":
-            ratio = count.to(coords.dtype) / mask.sum(-1, keepdim=True).clamp_min(1).to(coords.dtype)
-            return -ratio.masked_fill(~valid, 0.0)
-        inl = (res <= task.threshold) & mask[:, None] & valid[..., None]
-        errs = task.errors(hyps.flatten(0, 1).cpu().numpy(), valid.flatten().cpu().numpy(),
-                           inl.flatten(0, 1).cpu().numpy(), repeat_rows(batch, K))
+            ratio = count.gather(-1, best[..., None])[..., 0].clamp_min(0).to(coords.dtype)
+            ratio = ratio / mask.sum(-1, keepdim=True).clamp_min(1).to(coords.dtype)
+            return -ratio.masked_fill(~chosen_valid, 0.0)
+        pick = flat.flatten()
+        rows = torch.arange(B, device=flat.device).repeat_interleave(K)
+        hyp, res = hyps[rows, pick], res[rows, pick]  # (B * K, ...) selected hypotheses and their residuals
+        inl = (res <= task.threshold) & mask.repeat_interleave(K, 0) & chosen_valid.flatten()[:, None]
+        errs = task.errors(hyp.cpu().numpy(), chosen_valid.flatten().cpu().numpy(), inl.cpu().numpy(),
+                           repeat_rows(batch, K))
         err = np.max(np.stack([np.asarray(e, np.float64) for e in errs.values()]), axis=0)
         limit = float(getattr(task, "maa_limit_deg", 1.0))
         loss = np.minimum(np.nan_to_num(err, nan=limit), limit) / limit
@@ -124,23 +147,26 @@ def repeat_rows(batch: dict, k: int) -> dict:
     return out
 
 
-def loss(task, net, batch: dict, samples: int, signal: str, generator: torch.Generator | None = None
-         ) -> tuple[torch.Tensor, torch.Tensor]:
-    """NG-RANSAC's surrogate objective on a batch and the sampled sets' mean task loss.
+def loss(task, net, batch: dict, samples: int, signal: str, generator: torch.Generator | None = None,
+         hypotheses: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
+    """NG-RANSAC's surrogate objective on a batch and the samples' mean task loss.
 
     batch: coords (B, N, d), mask (B, N), the task's features -> (objective (), mean loss ()): K = ``samples``
-    minimal sets per pair drawn from the network's p; objective = mean_{b,k} (l_bk - mean_k l_bk) log p(set_bk),
-    whose gradient is the paper's estimate of the gradient of the expected loss E_{set ~ p}[l(set)]."""
+    hypothesis pools of M = ``hypotheses`` minimal sets per pair drawn from the network's p, each pool's loss l that of
+    its selected hypothesis (``pool_losses``); objective = mean_{b,k} (l_bk - mean_k l_bk) log p(H_bk), log p(H) the
+    sum over its sets, whose gradient is the paper's estimate of the gradient of the expected loss E_{H ~ p}[l(H)]."""
     from rlsac.sampling import set_log_prob, weighted_minimal_sets
 
     mask = batch["mask"]
     if int(mask.sum(-1).min()) < task.sample_size:
         raise RlsacError(f"ngransac: a pair has fewer than {task.sample_size} valid points")
     logits = logits_of(net, task, batch)  # (B, N)
-    idx = weighted_minimal_sets(logits, mask, task.sample_size, samples, generator)  # (B, K, m)
-    losses = set_losses(task, batch, idx, signal)  # (B, K)
-    advantage = losses - losses.mean(-1, keepdim=True)  # the baseline: the pair's mean loss over its K sets
-    return (advantage * set_log_prob(logits, mask, idx)).mean(), losses.mean()
+    B, K, M = logits.shape[0], samples, hypotheses
+    idx = weighted_minimal_sets(logits, mask, task.sample_size, K * M, generator)  # (B, K * M, m)
+    losses = pool_losses(task, batch, idx.view(B, K, M, -1), signal)  # (B, K)
+    advantage = losses - losses.mean(-1, keepdim=True)  # the baseline: the pair's mean loss over its K samples
+    log_p = set_log_prob(logits, mask, idx).view(B, K, M).sum(-1)  # log p(H_k): the pool's sets drawn independently
+    return (advantage * log_p).mean(), losses.mean()
 
 
 def payload(net, conf: dict, in_channels: int, step: int, val: dict, selection: str, history: list) -> dict:
@@ -200,7 +226,7 @@ def train(conf, track: bool = True) -> dict:
         t0 = time.time()
         for step in range(1, ng.steps + 1):
             rows = torch.randint(0, n_pairs, (min(ng.batch_size, n_pairs),), generator=gen, device=gen.device)
-            objective, mean_loss = loss(task, net, _rows(data, rows.cpu()), ng.samples, ng.signal, gen)
+            objective, mean_loss = loss(task, net, _rows(data, rows.cpu()), ng.samples, ng.signal, gen, ng.hypotheses)
             opt.zero_grad(set_to_none=True)
             objective.backward()
             opt.step()

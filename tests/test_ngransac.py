@@ -68,17 +68,18 @@ def inlier_mass(net, task, batch) -> float:
 
 
 # ------------------------------------------------------------------------------ the gradient
-@pytest.mark.parametrize("signal", ["inliers", "pose"])
-def test_one_update_raises_the_probability_of_the_true_inliers(signal):
+@pytest.mark.parametrize("signal,hypotheses", [("inliers", 1), ("pose", 1), ("inliers", 4), ("pose", 4)])
+def test_one_update_raises_the_probability_of_the_true_inliers(signal, hypotheses):
     """Toy problem, known optimum: free per-point logits, uniform at the start; the loss is lowest for sets of true
     inliers (the line's consensus), so one step along the estimated gradient of the expected loss (score function
-    with the mean-loss baseline) must raise the total probability of the true inliers, in every instance."""
+    with the mean-loss baseline) must raise the total probability of the true inliers, in every instance: with sets
+    scored alone (M = 1) and with the paper's hypothesis pools (M = 4, each pool's loss its best hypothesis's)."""
     task = LineTask()
     batch = line_batch(seed=11, n=4, rate=0.6)
     net = FreeLogits(*batch["mask"].shape)
     before = inlier_mass(net, task, batch)
-    objective, mean_loss = ngransac.loss(task, net, batch, samples=256, signal=signal,
-                                         generator=torch.Generator().manual_seed(0))
+    objective, mean_loss = ngransac.loss(task, net, batch, samples=256 // hypotheses, signal=signal,
+                                         generator=torch.Generator().manual_seed(0), hypotheses=hypotheses)
     objective.backward()
     truth = task.true_inliers(batch)
     with torch.no_grad():
@@ -91,6 +92,43 @@ def test_one_update_raises_the_probability_of_the_true_inliers(signal):
     per_row = (p * truth).sum(-1)
     assert after > before + 0.02 and bool((per_row > truth.float().mean(-1)).all()), (before, after, per_row)
     assert (-1.0 <= float(mean_loss) <= 0.0) if signal == "inliers" else (0.0 <= float(mean_loss) <= 1.0)
+
+
+def test_a_pool_takes_the_loss_of_its_hypothesis_with_the_most_inliers():
+    """The paper's sample is one RANSAC run: a pool of an outlier set and a true-inlier set has the inlier set's loss
+    (whichever comes first), a pool of two outlier sets the better one's; the pool's log-probability in ``loss`` is
+    the sum of its sets' (the objective rebuilt from the same draws)."""
+    task = LineTask()
+    rng = np.random.default_rng(0)
+    x = rng.uniform(0, 10, 10)
+    on_line = np.stack([x, 0.5 * x + 1], -1)
+    coords = np.concatenate([on_line, rng.uniform(0, 10, (10, 2))])[None].astype(np.float32)
+    normal = np.array([-0.5, 1.0]) / np.hypot(0.5, 1.0)
+    batch = {"coords": torch.from_numpy(coords), "mask": torch.ones(1, 20, dtype=torch.bool),
+             "line": np.array([[*normal, -normal[1]]])}
+    inlier_set, out_a, out_b = [int(x.argmin()), int(x.argmax())], [10, 11], [12, 13]
+    for signal in ("inliers", "pose"):
+        alone = ngransac.set_losses(task, batch, torch.tensor([[inlier_set, out_a, out_b]]), signal)[0]
+        assert float(alone[0]) < float(alone[1]) and float(alone[0]) < float(alone[2])
+        pools = torch.tensor([[[out_a, inlier_set], [inlier_set, out_a], [out_a, out_b]]])  # (1, K=3, M=2, 2)
+        got = ngransac.pool_losses(task, batch, pools, signal)[0]
+        counts = {"a": float(alone[1]), "b": float(alone[2])}
+        assert float(got[0]) == float(got[1]) == float(alone[0]), (signal, got, alone)
+        if signal == "inliers":  # the better of two outlier sets: the lower loss (more inliers)
+            assert float(got[2]) == min(counts.values())
+    # the inlier set spans the true line exactly: its loss is minus the share of points within the threshold of it
+    near = np.abs(coords[0] @ normal - normal[1]) <= task.threshold
+    assert near[:10].all() and float(ngransac.pool_losses(task, batch, pools, "inliers")[0, 0]) == pytest.approx(
+        -near.mean(), abs=1e-6)
+    net = FreeLogits(1, 20)
+    with torch.no_grad():
+        net.logits.copy_(torch.linspace(-1, 1, 20))
+    objective, mean_loss = ngransac.loss(task, net, batch, 3, "inliers", torch.Generator().manual_seed(7), 5)
+    idx = weighted_minimal_sets(net.logits.detach(), batch["mask"], 2, 15, torch.Generator().manual_seed(7))
+    losses = ngransac.pool_losses(task, batch, idx.view(1, 3, 5, 2), "inliers")
+    log_p = set_log_prob(net.logits.detach(), batch["mask"], idx).view(1, 3, 5).sum(-1)
+    assert float(objective.detach()) == pytest.approx(float(((losses - losses.mean()) * log_p).mean()), abs=1e-6)
+    assert float(mean_loss) == pytest.approx(float(losses.mean()), abs=1e-7)
 
 
 def test_set_log_prob_is_the_law_of_the_draws():
