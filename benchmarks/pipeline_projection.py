@@ -3,12 +3,17 @@
     python benchmarks/pipeline_projection.py                          # the paper profile, recorded group means
     python benchmarks/pipeline_projection.py --times pipeline.json    # an `rlsac pipeline` run's MLflow artifact
     python benchmarks/pipeline_projection.py --times times.json --workers 1,2,4
+    python benchmarks/pipeline_projection.py --from-mlflow sqlite:///mlflow.db --groups   # a record's measured cost
 
 Reads the pipeline's DAG from DVC (``--repo``, nothing is hashed or run) and a time per stage: ``--times`` is
 either the ``pipeline.json`` artifact an ``rlsac pipeline`` run logs to MLflow (its dependencies and each stage's
 seconds) or a JSON object ``{stage address or fnmatch pattern: seconds}`` (an exact address wins over a pattern,
 then the first matching pattern). Without ``--times``: ``RECORDED``, the per-stage means of the stage times the
-README records for a run from scratch (group totals over 2 cores, ``OMP_NUM_THREADS=1``).
+README records for a run from scratch (group totals over 2 cores, ``OMP_NUM_THREADS=1``). ``--from-mlflow URI``: the
+times every ``rlsac pipeline`` run of that MLflow store logged as its stages ended (metrics ``stage_s/<address>``, an
+interrupted run's included; the latest run's time of a stage wins), over several sittings; a stage with no time takes
+its group's mean (the group: the address before ``@``), and the output says how many were measured.
+``--groups``: also a Markdown table of the stage time per group (stages, total, mean, range): issue #27's cost table.
 
 Prints the total stage time (the wall time on one worker), the critical path (the wall time on unlimited
 workers) and, for each N of ``--workers``, the wall time of list scheduling on the DAG: whenever a worker is
@@ -153,6 +158,53 @@ def projection(deps: dict[str, list[str]], times: dict[str, float], workers: lis
             "wall_s": {n: list_schedule(deps, times, n) for n in workers}}
 
 
+def group_of(address: str) -> str:
+    """A stage's group: its foreach name (``fold_eval@hard-castle-rlsac`` -> ``fold_eval``), else itself."""
+    return address.split("@", 1)[0]
+
+
+def mlflow_times(uri: str, deps: dict[str, list[str]]) -> dict[str, float]:
+    """{address: seconds} of the stages of ``deps`` that a pipeline run of the MLflow store ``uri`` timed (its metric
+    ``stage_s/<address>``, logged as the stage ended); of several runs, the latest's."""
+    from mlflow.tracking import MlflowClient
+
+    from rlsac.pipeline import _metric_name
+
+    client = MlflowClient(uri)
+    exp = client.get_experiment_by_name("pipeline")
+    if exp is None:
+        raise SystemExit(f"error: {uri}: no pipeline runs (experiment 'pipeline')")
+    names = {_metric_name(a): a for a in deps}
+    out: dict[str, float] = {}
+    runs = client.search_runs([exp.experiment_id], order_by=["attributes.start_time ASC"], max_results=50000)
+    for run in runs:  # oldest first: a later run's time of a stage replaces an earlier one's
+        out.update({names[k]: float(v) for k, v in run.data.metrics.items() if k in names})
+    return out
+
+
+def fill_by_group(deps: dict[str, list[str]], measured: dict[str, float]) -> dict[str, float]:
+    """Every stage's time: its measured one, else its group's mean; SystemExit when a group has no measured stage."""
+    groups: dict[str, list[float]] = {}
+    for a, t in measured.items():
+        groups.setdefault(group_of(a), []).append(t)
+    missing = sorted({group_of(a) for a in deps if a not in measured and group_of(a) not in groups})
+    if missing:
+        raise SystemExit(f"error: no measured stage in {len(missing)} group(s), e.g. {missing[0]}")
+    return {a: measured[a] if a in measured else sum(groups[group_of(a)]) / len(groups[group_of(a)]) for a in deps}
+
+
+def group_table(deps: dict[str, list[str]], measured: dict[str, float]) -> str:
+    """Markdown: per group of the DAG, its stages, how many were measured, and their total, mean and range (s)."""
+    rows = []
+    for g in sorted({group_of(a) for a in deps}):
+        stages = [a for a in deps if group_of(a) == g]
+        t = [measured[a] for a in stages if a in measured]
+        cells = (f"{sum(t):.0f} | {sum(t) / len(t):.1f} | {min(t):.1f}-{max(t):.1f}" if t else "– | – | –")
+        rows.append(f"| `{g}` | {len(stages)} | {len(t)} | {cells} |")
+    return ("| group | stages | measured | total (s) | mean (s) | range (s) |\n| --- | --- | --- | --- | --- | --- |\n"
+            + "\n".join(rows))
+
+
 def _hours(s: float) -> str:
     return f"{s:.0f} s ({s / 3600:.2f} h)"
 
@@ -162,15 +214,25 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--repo", default=".", help="The DVC repository whose DAG is used [default: .].")
     ap.add_argument("--times", help="pipeline.json of an rlsac pipeline run, or {stage or pattern: seconds} "
                                     "[default: RECORDED, the README's recorded stage times].")
+    ap.add_argument("--from-mlflow", metavar="URI", help="The stage times the rlsac pipeline runs of this MLflow "
+                                                         "store logged (e.g. sqlite:///mlflow.db).")
+    ap.add_argument("--groups", action="store_true", help="Also print the stage time per group (Markdown).")
     ap.add_argument("--workers", default="1,2,8,32", help="Comma-separated worker counts [default: 1,2,8,32].")
     ap.add_argument("--json", action="store_true", help="Print the result as JSON.")
     args = ap.parse_args(argv)
     workers = [int(n) for n in args.workers.split(",")]
     if any(n < 1 for n in workers):
         raise SystemExit("error: --workers: every count must be at least 1")
+    if args.times and args.from_mlflow:
+        raise SystemExit("error: --times and --from-mlflow are two sources of times: give one")
     table = RECORDED
     deps = None
-    if args.times:
+    measured = None
+    if args.from_mlflow:
+        deps = load_dag(args.repo)
+        measured = mlflow_times(args.from_mlflow, deps)
+        table = fill_by_group(deps, measured)
+    elif args.times:
         data = json.loads(Path(args.times).read_text())
         if "results" in data and "deps" in data:  # an rlsac pipeline artifact: the stages it ran
             table = {a: r["seconds"] for a, r in data["results"].items() if r.get("seconds") is not None}
@@ -180,14 +242,20 @@ def main(argv: list[str] | None = None) -> None:
     if deps is None:
         deps = load_dag(args.repo)
     p = projection(deps, stage_times(deps, table), workers)
+    if measured is not None:
+        p["measured"] = len(measured)
     if args.json:
         json.dump(p, sys.stdout, indent=1)
         print()
         return
     print(f"{p['n_stages']} stages; total stage time {_hours(p['total_s'])}; "
           f"critical path {_hours(p['critical_path_s'])}: {' -> '.join(p['critical_path'])}")
+    if measured is not None:
+        print(f"measured {len(measured)} of {p['n_stages']} stages; the others at their group's mean")
     for n, s in p["wall_s"].items():
         print(f"{n:>3} workers: wall {_hours(s)}")
+    if args.groups:
+        print("\n" + group_table(deps, measured if measured is not None else stage_times(deps, table)))
 
 
 if __name__ == "__main__":

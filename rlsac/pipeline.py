@@ -337,6 +337,9 @@ def pipeline(options: dict[str, Any], track: bool = True) -> dict:
             def progress(r: dict) -> None:
                 bar.set_postfix_str(f"{r['status']} {r['stage']}", refresh=False)
                 bar.update(1)
+                if r.get("seconds") is not None and r["status"] != "skipped":  # logged as each stage ends, so an
+                    # interrupted run keeps the times of what it finished (benchmarks/stage_times.py reads them)
+                    run.metrics({_metric_name(r["stage"]): r["seconds"]})
 
             try:
                 results = schedule(plan, o, ray, progress) if plan["todo"] else {}
@@ -352,9 +355,6 @@ def pipeline(options: dict[str, Any], track: bool = True) -> dict:
         counts = {s: sum(r["status"] == s for r in results.values()) for s in STATUSES}
         run.metrics({f"n_{k.replace(' ', '_')}": v for k, v in counts.items()})
         run.metrics({"wall_s": wall, "workers": workers})
-        # stage wall times go to MLflow only, never into committed files
-        run.metrics({"stage_s/" + re.sub(r"[^\w.\- /]", "_", a): r["seconds"]
-                     for a, r in results.items() if r.get("seconds") is not None and r["status"] != "skipped"})
         if track:
             import tempfile
 
@@ -364,6 +364,12 @@ def pipeline(options: dict[str, Any], track: bool = True) -> dict:
                 run.artifact(path)
     return {**base, "dry_run": False, "results": results, "counts": counts, "wall_s": wall, "workers": workers,
             "run_id": run.run_id}
+
+
+def _metric_name(stage: str) -> str:
+    """The MLflow metric of a stage's wall time (stage wall times go to MLflow only, never into committed files):
+    ``stage_s/<address>``, the characters MLflow refuses replaced by ``_``."""
+    return "stage_s/" + re.sub(r"[^\w.\- /]", "_", stage)
 
 
 def _names(items: list[str], width: int = 110) -> str:

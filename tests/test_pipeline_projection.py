@@ -47,3 +47,33 @@ def test_longest_path_first():
     assert proj.list_schedule(at_start, {"x": 1, "y": 1, "z": 1, "w": 3}, 2) == 4.0
     later = {"a": [], "p": ["a"], "p2": ["a"], "q": ["a"], "r": ["q"]}  # q, p at 1; r, p2 at 2 -> 5 (p, p2 first: 6)
     assert proj.list_schedule(later, {"a": 1, "p": 1, "p2": 1, "q": 1, "r": 3}, 2) == 5.0
+
+
+def test_times_from_the_pipeline_runs_of_an_mlflow_store(tmp_path, monkeypatch, capsys):
+    """--from-mlflow: each stage's time as the pipeline runs logged it (stage_s/<address>, the latest run's wins, an
+    interrupted run's count), the unmeasured stages at their group's mean, and the cost table per group."""
+    import mlflow
+
+    uri = f"sqlite:///{tmp_path / 'm.db'}"
+    deps = {"t@1": [], "t@2": [], "t@3": [], "e@1": ["t@1"], "e@2": ["t@2"], "e@3": ["t@3"], "tables": ["e@1"]}
+    client = mlflow.MlflowClient(uri)
+    exp = client.create_experiment("pipeline", artifact_location=str(tmp_path / "art"))
+    first = {"stage_s/t_1": 10.0, "stage_s/e_1": 3.0}  # then a later run times t@1 again
+    later = {"stage_s/t_1": 12.0, "stage_s/t_2": 14.0, "stage_s/e_2": 5.0, "stage_s/tables": 1.0}
+    for start, metrics in ((1000, first), (2000, later)):
+        run = client.create_run(exp, start_time=start)
+        for k, v in metrics.items():
+            client.log_metric(run.info.run_id, k, v)
+        client.set_terminated(run.info.run_id, "KILLED")
+    measured = proj.mlflow_times(uri, deps)
+    assert measured == {"t@1": 12.0, "t@2": 14.0, "e@1": 3.0, "e@2": 5.0, "tables": 1.0}
+    full = proj.fill_by_group(deps, measured)
+    assert full["t@3"] == 13.0 and full["e@3"] == 4.0
+    with pytest.raises(SystemExit, match="no measured stage in 1 group"):
+        proj.fill_by_group({**deps, "x@1": []}, measured)
+    table = proj.group_table(deps, measured)
+    assert "| `t` | 3 | 2 | 26 | 13.0 | 12.0-14.0 |" in table and "| `tables` | 1 | 1 | 1 | 1.0 | 1.0-1.0 |" in table
+    monkeypatch.setattr(proj, "load_dag", lambda repo: deps)
+    proj.main(["--from-mlflow", uri, "--workers", "1", "--groups"])
+    out = capsys.readouterr().out
+    assert "measured 5 of 7 stages" in out and "total stage time 52 s" in out and "| `e` | 3 | 2 | 8 |" in out

@@ -279,3 +279,26 @@ def test_joins_a_ray_cluster_by_address(tmp_path):
             os.killpg(head.pid, signal.SIGKILL)
             head.wait()
         log.close()
+
+
+def test_an_interrupted_run_keeps_the_times_of_the_stages_it_finished(tmp_path, monkeypatch):
+    """Stage times go to MLflow as each stage ends (benchmarks/stage_times.py reads them): a pipeline interrupted
+    after one stage (a long record stopped at the end of a sitting) still has that stage's time in its run."""
+    import mlflow
+
+    from rlsac import pipeline as pipeline_module
+
+    repo = make_repo(tmp_path / "repo", {"a": TOY["a"], "b": TOY["b"]})
+
+    def interrupted(plan, o, ray_module, progress):
+        progress({"stage": plan["todo"][0], "status": "done", "seconds": 1.5})
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(pipeline_module, "schedule", interrupted)
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
+    r = CliRunner().invoke(cli, ["pipeline", "--repo", str(repo)])
+    assert r.exit_code != 0
+    runs = mlflow.MlflowClient(uri).search_runs(
+        [mlflow.MlflowClient(uri).get_experiment_by_name("pipeline").experiment_id])
+    assert len(runs) == 1 and runs[0].data.metrics.get("stage_s/a") == 1.5, runs[0].data.metrics
