@@ -1,7 +1,8 @@
 """Every command the README (and experiments/README.md) shows, and every example in the ``--help`` texts, is
 accepted as written: ``rlsac`` commands by the CLI parser, their ``--set KEY=VALUE`` overrides by the
 configuration they override, ``dvc`` commands by DVC's parser with real stage names, ``mlflow`` commands by
-MLflow's. Nothing heavy is run; the fresh-clone line is checked against what CI installs.
+MLflow's. Nothing heavy is run; the fresh-clone line is checked against what CI installs. Every 95% interval the
+README and reports/peers.md quote is one the generated tables hold.
 """
 
 from __future__ import annotations
@@ -331,3 +332,37 @@ if __name__ == "__main__":  # print what is checked
     for doc in DOCS:
         for _line, argv in block_commands(doc.read_text()):
             print(doc.name, shlex.join(argv), file=sys.stdout)
+
+
+# ------------------------------------------------------------------------------------ quoted intervals
+INTERVAL = re.compile(r"([+\-−]?\d\.\d{3}) \[([+\-−]?\d\.\d{3}), ([+\-−]?\d\.\d{3})\]")
+# the pages that quote the pipeline's results by hand, and the generated files they quote from (`rlsac table`)
+QUOTING = [ROOT / "README.md", ROOT / "reports" / "peers.md"]
+
+
+def quoted_intervals(text: str) -> set[tuple[float, float, float]]:
+    """Every `d [lo, hi]` of a text (3 decimals, either minus sign, across line breaks), as rounded numbers."""
+    def number(s: str) -> float:
+        return round(float(s.replace("−", "-")), 3) + 0.0  # + 0.0: -0.000 and +0.000 are one number
+
+    return {tuple(number(x) for x in m) for m in INTERVAL.findall(" ".join(text.split()))}
+
+
+def generated_intervals(reports: Path) -> set[tuple[float, float, float]]:
+    files = sorted(reports.glob("table*.md")) + [reports / "claims.md", reports / "selection.md"]
+    return set().union(*(quoted_intervals(f.read_text()) for f in files if f.is_file()))
+
+
+@pytest.mark.parametrize("doc", QUOTING, ids=lambda p: p.name)
+def test_every_quoted_interval_is_one_of_the_generated_tables(doc):
+    """A number the README or a hand-written report quotes with its 95% interval is one that `rlsac table` wrote
+    (reports/table*.md, claims.md, selection.md): no interval computed by hand, none left from an earlier record."""
+    stale = sorted(quoted_intervals(doc.read_text()) - generated_intervals(ROOT / "reports"))
+    assert not stale, f"{doc.name}: {len(stale)} interval(s) in no generated table, e.g. {stale[:3]}"
+
+
+def test_interval_check_finds_a_stale_quote(tmp_path):
+    (tmp_path / "table2_folds.md").write_text("| −0.050 [−0.075, −0.027] | +0.000 [-0.021,\n +0.021] |")
+    assert generated_intervals(tmp_path) == {(-0.05, -0.075, -0.027), (0.0, -0.021, 0.021)}
+    quoted = quoted_intervals("loses in t (−0.050 [−0.073,\n  −0.025]); R −0.000 [−0.021, +0.021]")
+    assert quoted - generated_intervals(tmp_path) == {(-0.05, -0.073, -0.025)}
