@@ -12,7 +12,8 @@ then the first matching pattern). Without ``--times``: ``RECORDED``, the per-sta
 README records for a run from scratch (group totals over 2 cores, ``OMP_NUM_THREADS=1``). ``--from-mlflow URI``: the
 times every ``rlsac pipeline`` run of that MLflow store logged as its stages ended (metrics ``stage_s/<address>``, an
 interrupted run's included; the latest run's time of a stage wins), over several sittings; a stage with no time takes
-its group's mean (the group: the address before ``@``), and the output says how many were measured.
+its group's mean (the group: the address before ``@``), and the output says how many were measured; with
+``--fallback-recorded`` a group none of whose stages was measured takes ``RECORDED``'s times (and is named).
 ``--groups``: also a Markdown table of the stage time per group (stages, total, mean, range): issue #27's cost table.
 
 Prints the total stage time (the wall time on one worker), the critical path (the wall time on unlimited
@@ -43,6 +44,10 @@ RECORDED = {
     "fold_train_ablation@*": 60, "essential_train@*": 70, "eval_lines_ours@*": 14,
     "eval_lines_generalisation@*": 14, "eval_lines_ransac@*": 3, "eval_lines_oracle@*": 3,
     "fold_tune*": 36.5, "fold_eval*": 29, "essential_tune*": 67, "essential_eval*": 22, "tables": 30, "figures": 25,
+    # issue #29's and #27's later groups (README "Measured stage times": NG-RANSAC on lines 38 stages in 595 s wall on
+    # two workers, a line replay 303-450 s); the ablation models' seeds take their base group's
+    "train_lines_ngransac*": 30, "eval_lines_ngransac*": 3, "select_lines_seed@*": 375,
+    "fold_train_ablation_seed@*": 60,
 }
 
 
@@ -163,9 +168,11 @@ def group_of(address: str) -> str:
     return address.split("@", 1)[0]
 
 
-def mlflow_times(uri: str, deps: dict[str, list[str]]) -> dict[str, float]:
+def mlflow_times(uri: str, deps: dict[str, list[str]], repo: str | os.PathLike | None = None) -> dict[str, float]:
     """{address: seconds} of the stages of ``deps`` that a pipeline run of the MLflow store ``uri`` timed (its metric
-    ``stage_s/<address>``, logged as the stage ended); of several runs, the latest's."""
+    ``stage_s/<address>``, logged as the stage ended); of several runs, the latest's. ``repo``: only the runs of that
+    DVC repository (their param ``repo``; a store may hold the quick profile's runs, whose stages have the same
+    names)."""
     from mlflow.tracking import MlflowClient
 
     from rlsac.pipeline import _metric_name
@@ -177,20 +184,31 @@ def mlflow_times(uri: str, deps: dict[str, list[str]]) -> dict[str, float]:
     names = {_metric_name(a): a for a in deps}
     out: dict[str, float] = {}
     runs = client.search_runs([exp.experiment_id], order_by=["attributes.start_time ASC"], max_results=50000)
+    root = None if repo is None else str(Path(repo).resolve())
     for run in runs:  # oldest first: a later run's time of a stage replaces an earlier one's
+        if root is not None and run.data.params.get("repo") != root:
+            continue
         out.update({names[k]: float(v) for k, v in run.data.metrics.items() if k in names})
     return out
 
 
-def fill_by_group(deps: dict[str, list[str]], measured: dict[str, float]) -> dict[str, float]:
-    """Every stage's time: its measured one, else its group's mean; SystemExit when a group has no measured stage."""
+def fill_by_group(deps: dict[str, list[str]], measured: dict[str, float],
+                  fallback: dict[str, float] | None = None) -> dict[str, float]:
+    """Every stage's time: its measured one, else its group's mean, else (a group with no measured stage, e.g. one
+    that ran before stage times were logged as they ended) ``fallback``'s (``stage_times``); SystemExit when such a
+    group has no fallback."""
     groups: dict[str, list[float]] = {}
     for a, t in measured.items():
         groups.setdefault(group_of(a), []).append(t)
-    missing = sorted({group_of(a) for a in deps if a not in measured and group_of(a) not in groups})
-    if missing:
-        raise SystemExit(f"error: no measured stage in {len(missing)} group(s), e.g. {missing[0]}")
-    return {a: measured[a] if a in measured else sum(groups[group_of(a)]) / len(groups[group_of(a)]) for a in deps}
+    unmeasured = {a: deps[a] for a in deps if group_of(a) not in groups}
+    if unmeasured and fallback is None:
+        first = sorted({group_of(a) for a in unmeasured})
+        raise SystemExit(f"error: no measured stage in {len(first)} group(s), e.g. {first[0]} (--fallback-recorded "
+                         "takes RECORDED's times for them)")
+    out = stage_times(unmeasured, fallback) if unmeasured else {}
+    out.update({a: measured[a] if a in measured else sum(groups[group_of(a)]) / len(groups[group_of(a)])
+                for a in deps if a not in out})
+    return out
 
 
 def group_table(deps: dict[str, list[str]], measured: dict[str, float]) -> str:
@@ -217,6 +235,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--from-mlflow", metavar="URI", help="The stage times the rlsac pipeline runs of this MLflow "
                                                          "store logged (e.g. sqlite:///mlflow.db).")
     ap.add_argument("--groups", action="store_true", help="Also print the stage time per group (Markdown).")
+    ap.add_argument("--fallback-recorded", action="store_true", help="With --from-mlflow: a group with no measured "
+                                                                     "stage takes RECORDED's times.")
     ap.add_argument("--workers", default="1,2,8,32", help="Comma-separated worker counts [default: 1,2,8,32].")
     ap.add_argument("--json", action="store_true", help="Print the result as JSON.")
     args = ap.parse_args(argv)
@@ -230,8 +250,8 @@ def main(argv: list[str] | None = None) -> None:
     measured = None
     if args.from_mlflow:
         deps = load_dag(args.repo)
-        measured = mlflow_times(args.from_mlflow, deps)
-        table = fill_by_group(deps, measured)
+        measured = mlflow_times(args.from_mlflow, deps, args.repo)
+        table = fill_by_group(deps, measured, RECORDED if args.fallback_recorded else None)
     elif args.times:
         data = json.loads(Path(args.times).read_text())
         if "results" in data and "deps" in data:  # an rlsac pipeline artifact: the stages it ran
@@ -251,7 +271,9 @@ def main(argv: list[str] | None = None) -> None:
     print(f"{p['n_stages']} stages; total stage time {_hours(p['total_s'])}; "
           f"critical path {_hours(p['critical_path_s'])}: {' -> '.join(p['critical_path'])}")
     if measured is not None:
-        print(f"measured {len(measured)} of {p['n_stages']} stages; the others at their group's mean")
+        fell_back = sorted({group_of(a) for a in deps} - {group_of(a) for a in measured})
+        print(f"measured {len(measured)} of {p['n_stages']} stages; the others at their group's mean"
+              + (f", groups with none measured at RECORDED's times: {', '.join(fell_back)}" if fell_back else ""))
     for n, s in p["wall_s"].items():
         print(f"{n:>3} workers: wall {_hours(s)}")
     if args.groups:

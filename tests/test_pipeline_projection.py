@@ -60,20 +60,24 @@ def test_times_from_the_pipeline_runs_of_an_mlflow_store(tmp_path, monkeypatch, 
     exp = client.create_experiment("pipeline", artifact_location=str(tmp_path / "art"))
     first = {"stage_s/t_1": 10.0, "stage_s/e_1": 3.0}  # then a later run times t@1 again
     later = {"stage_s/t_1": 12.0, "stage_s/t_2": 14.0, "stage_s/e_2": 5.0, "stage_s/tables": 1.0}
-    for start, metrics in ((1000, first), (2000, later)):
+    other = {"stage_s/t_1": 99.0}  # a run of another repository (the quick profile's stages have the same names)
+    for start, metrics, repo in ((1000, first, tmp_path), (2000, later, tmp_path), (3000, other, tmp_path / "q")):
         run = client.create_run(exp, start_time=start)
+        client.log_param(run.info.run_id, "repo", str(repo))
         for k, v in metrics.items():
             client.log_metric(run.info.run_id, k, v)
         client.set_terminated(run.info.run_id, "KILLED")
-    measured = proj.mlflow_times(uri, deps)
+    measured = proj.mlflow_times(uri, deps, tmp_path)
+    assert proj.mlflow_times(uri, deps)["t@1"] == 99.0  # without a repository: every run, the latest wins
     assert measured == {"t@1": 12.0, "t@2": 14.0, "e@1": 3.0, "e@2": 5.0, "tables": 1.0}
     full = proj.fill_by_group(deps, measured)
     assert full["t@3"] == 13.0 and full["e@3"] == 4.0
     with pytest.raises(SystemExit, match="no measured stage in 1 group"):
         proj.fill_by_group({**deps, "x@1": []}, measured)
+    assert proj.fill_by_group({**deps, "x@1": []}, measured, {"x@*": 7.0})["x@1"] == 7.0  # a group run earlier
     table = proj.group_table(deps, measured)
     assert "| `t` | 3 | 2 | 26 | 13.0 | 12.0-14.0 |" in table and "| `tables` | 1 | 1 | 1 | 1.0 | 1.0-1.0 |" in table
     monkeypatch.setattr(proj, "load_dag", lambda repo: deps)
-    proj.main(["--from-mlflow", uri, "--workers", "1", "--groups"])
+    proj.main(["--from-mlflow", uri, "--workers", "1", "--groups", "--repo", str(tmp_path)])
     out = capsys.readouterr().out
     assert "measured 5 of 7 stages" in out and "total stage time 52 s" in out and "| `e` | 3 | 2 | 8 |" in out
