@@ -175,13 +175,13 @@ def mlflow_times(uri: str, deps: dict[str, list[str]], repo: str | os.PathLike |
     names)."""
     from mlflow.tracking import MlflowClient
 
-    from rlsac.pipeline import _metric_name
+    from rlsac.pipeline import stage_metric
 
     client = MlflowClient(uri)
     exp = client.get_experiment_by_name("pipeline")
     if exp is None:
         raise SystemExit(f"error: {uri}: no pipeline runs (experiment 'pipeline')")
-    names = {_metric_name(a): a for a in deps}
+    names = {stage_metric(a): a for a in deps}
     out: dict[str, float] = {}
     runs = client.search_runs([exp.experiment_id], order_by=["attributes.start_time ASC"], max_results=50000)
     root = None if repo is None else str(Path(repo).resolve())

@@ -114,12 +114,11 @@ def pool_losses(task, batch: dict, idx: torch.Tensor, signal: str) -> torch.Tens
     with torch.no_grad():
         hyps, valid, res, count = score_sets(task, gather_points(coords, idx.reshape(B, K * M, m)), coords, mask)
         count = count.masked_fill(~valid, -1).view(B, K, M)  # a degenerate set is never selected over a valid one
-        best = count.argmax(-1)  # (B, K): torch.argmax returns the first maximum
-        flat = (torch.arange(K, device=best.device) * M + best).view(B, K)  # the selected set, in (B, K * M)
+        best_count, best = count.max(-1)  # (B, K): max over a dim returns the first maximum's index
+        flat = torch.arange(K, device=best.device) * M + best  # the selected set, in (B, K * M)
         chosen_valid = valid.gather(1, flat)
         if signal == "inliers":
-            ratio = count.gather(-1, best[..., None])[..., 0].clamp_min(0).to(coords.dtype)
-            ratio = ratio / mask.sum(-1, keepdim=True).clamp_min(1).to(coords.dtype)
+            ratio = best_count.clamp_min(0).to(coords.dtype) / mask.sum(-1, keepdim=True).clamp_min(1).to(coords.dtype)
             return -ratio.masked_fill(~chosen_valid, 0.0)
         pick = flat.flatten()
         rows = torch.arange(B, device=flat.device).repeat_interleave(K)

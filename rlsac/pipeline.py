@@ -338,8 +338,8 @@ def pipeline(options: dict[str, Any], track: bool = True) -> dict:
                 bar.set_postfix_str(f"{r['status']} {r['stage']}", refresh=False)
                 bar.update(1)
                 if r.get("seconds") is not None and r["status"] != "skipped":  # logged as each stage ends, so an
-                    # interrupted run keeps the times of what it finished (benchmarks/stage_times.py reads them)
-                    run.metrics({_metric_name(r["stage"]): r["seconds"]})
+                    # interrupted run keeps the times of what it finished (pipeline_projection.py --from-mlflow)
+                    run.metrics({stage_metric(r["stage"]): r["seconds"]})
 
             try:
                 results = schedule(plan, o, ray, progress) if plan["todo"] else {}
@@ -366,7 +366,7 @@ def pipeline(options: dict[str, Any], track: bool = True) -> dict:
             "run_id": run.run_id}
 
 
-def _metric_name(stage: str) -> str:
+def stage_metric(stage: str) -> str:
     """The MLflow metric of a stage's wall time (stage wall times go to MLflow only, never into committed files):
     ``stage_s/<address>``, the characters MLflow refuses replaced by ``_``."""
     return "stage_s/" + re.sub(r"[^\w.\- /]", "_", stage)
