@@ -35,14 +35,16 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     os.umask(umask)
     os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; outputs get the usual permissions
     pending = _PENDING.get()
+    handed_over = False  # to the all_or_nothing block, which renames or removes it
     try:
         yield tmp
         if pending is not None:  # all_or_nothing: renamed with the block's other outputs when it ends
             pending.append((tmp, path))
+            handed_over = True
             return
         os.replace(tmp, path)
     finally:
-        if tmp.exists() and (tmp, path) not in (pending or ()):
+        if not handed_over and tmp.exists():
             tmp.unlink()
 
 
