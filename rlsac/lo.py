@@ -152,7 +152,7 @@ def score(task: Task, conf: LOConf, res: torch.Tensor, mask: torch.Tensor) -> to
         return (1.0 - (r2 / t2).clamp(max=1.0)).masked_fill(~finite, 0.0).sum(-1)
     a0, a1, two_sigma2, xk = _magsac_constants(task, conf, t2)
     x = (r2 / two_sigma2).clamp(max=xk)
-    rho_max = _magsac_loss(torch.full((1,), xk, dtype=torch.float64), a0, a1, xk)
+    rho_max = _magsac_loss(torch.full((1,), xk, dtype=torch.float64, device=res.device), a0, a1, xk)
     return (1.0 - _magsac_loss(x, a0, a1, xk) / rho_max).masked_fill(~finite, 0.0).sum(-1)
 
 

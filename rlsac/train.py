@@ -224,12 +224,15 @@ class _TrainingRun:
         if not self.state_path.is_file():
             raise RlsacError(f"{self.state_path}: nothing to resume from")
         st = load_torch(self.state_path, self.device, "training state")
+        saved_on = st.get("generator_device", self.device.type)  # states written before the key: their own device
+        if saved_on != self.device.type:  # a torch generator's stream is device-specific: it cannot carry across
+            raise RlsacError(f"{self.state_path}: written by a run on {saved_on}; resume it with --device {saved_on}")
         try:
             agent.load_state_dict(st["agent"])
             for name in ("q_opt", "actor_opt", "alpha_opt"):
                 getattr(agent, name).load_state_dict(st[name])
             self.start, self.best, self.history = st["step"], {"score": -1.0, **st["best"]}, st.get("history", [])
-            self.gen.set_state(st["generator"].to(self.gen.device) if self.device.type == "cpu" else st["generator"])
+            self.gen.set_state(st["generator"].cpu())  # a generator's state is a CPU byte tensor on every device
             if st.get("buffer") is not None:
                 self.buffer = ReplayBuffer(self.conf.sac.buffer_size, data["mask"].shape[1], self.task.sample_size,
                                            self.device)
@@ -277,6 +280,7 @@ class _TrainingRun:
             torch.save({"agent": agent.state_dict(), "q_opt": agent.q_opt.state_dict(),
                         "actor_opt": agent.actor_opt.state_dict(), "alpha_opt": agent.alpha_opt.state_dict(),
                         "step": step, "best": self.best, "history": self.history, "generator": self.gen.get_state(),
+                        "generator_device": self.gen.device.type,
                         "buffer": self.buffer.state_dict() if self.buffer is not None else None,
                         "kept_actor": self.kept, "mlflow_run_id": self.mlflow_id, "conf": self.conf_dict}, tmp)
         self.saved.update(step=step, after_signal=bool(self.stop is not None and self.stop.signum))

@@ -298,3 +298,13 @@ def test_trigger_minimal_optimises_every_new_best_minimal_hypothesis():
     assert out["best"].lo_calls.item() == 1 and out["minimal"].lo_calls.item() == 2
     raw = score(LINE, LOConf(score="msac"), res, mask[:, None])[0]
     assert out["minimal"].raw.item() == pytest.approx(raw.max().item()) and raw[1] == raw.max()
+
+
+@pytest.mark.parametrize("name", SCORES)
+def test_score_makes_its_tensors_on_the_residuals_device(name):
+    """Every tensor score() makes is on the residuals' device. CI has no GPU: the meta device stands in for cuda
+    (an operation that mixes a meta tensor with a CPU one of more than zero dimensions raises, as cuda's does)."""
+    res = torch.tensor([[0.0, 0.5, 5.0, float("inf")]], device="meta")
+    mask = torch.ones(1, 4, dtype=torch.bool, device="meta")
+    out = score(LINE, LOConf(enabled=True, score=name), res, mask)
+    assert out.device.type == "meta" and out.shape == (1,)

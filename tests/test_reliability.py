@@ -982,7 +982,7 @@ def reference(resume_data, tmp_path_factory):
     agent, step = _weights(d / "m.state.pt", "agent")
     kept, kept_step = _weights(d / "m.pt", "actor")
     assert step == 40 and 0 < kept_step <= 40
-    return {"agent": agent, "kept": kept, "kept_step": kept_step}
+    return {"agent": agent, "kept": kept, "kept_step": kept_step, "dir": d}
 
 
 def _runs():
@@ -1126,6 +1126,25 @@ def test_sigkill_during_a_save_then_resume_is_exact_and_closes_the_run(workdir, 
     _assert_resumed_exactly(workdir, reference)
     runs = _runs()
     assert [x.info.run_id for x in runs] == [run_id] and runs[0].info.status == "FINISHED"
+
+
+def test_a_state_written_on_another_device_is_refused_by_name(workdir, resume_data, reference):
+    """A torch generator's stream is device-specific: a cuda run's state does not resume on cpu (nor the reverse).
+    The error names the device to resume on, before any work; the state file is left as it was."""
+    import shutil
+
+    import torch
+
+    (workdir / "ck").mkdir()
+    shutil.copy(reference["dir"] / "m.pt", workdir / "ck/m.pt")
+    st = torch.load(reference["dir"] / "m.state.pt", weights_only=False)
+    assert st["generator_device"] == "cpu"
+    torch.save({**st, "generator_device": "cuda"}, workdir / "ck/m.state.pt")
+    before = (workdir / "ck/m.state.pt").read_bytes()
+    r = CliRunner().invoke(cli, _train_argv(resume_data, "ck/m.pt", "--resume", "--no-tracking"))
+    assert r.exit_code == 2 and r.stderr.strip() == ("error: ck/m.state.pt: written by a run on cuda; resume it with "
+                                                     "--device cuda"), r.output
+    assert (workdir / "ck/m.state.pt").read_bytes() == before
 
 
 def test_failed_run_records_its_error(workdir):

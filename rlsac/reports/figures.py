@@ -159,13 +159,39 @@ def _load_policy(path: str | None, task_name: str, device: str):
     return actor, task, env_conf(conf), ""
 
 
-def _episode(task, batch, actor, env, gen: torch.Generator) -> list[dict]:
-    """One episode per batch row: per step minimal_set (B, m), hyp, inliers (B, N), count (B,)."""
+def _on_actor_device(actor, batch: dict, seed: int) -> tuple[dict, torch.Generator]:
+    """The batch's tensors and a seeded generator on the actor's device (option ``device``): the rollout runs
+    there, the figure is drawn from CPU copies of its output (``_to_cpu``)."""
+    dev = next(actor.parameters()).device
+    return ({k: v.to(dev) if torch.is_tensor(v) else v for k, v in batch.items()},
+            torch.Generator(device=dev).manual_seed(seed))
+
+
+def _to_cpu(x):
+    if torch.is_tensor(x):
+        return x.cpu()
+    if isinstance(x, dict):
+        return {k: _to_cpu(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return [_to_cpu(v) for v in x]
+    return x
+
+
+def _rlsac_rollout(task, batch, actor, env, seed: int, iterations: int) -> dict:
+    """rlsac_estimate with record=True on the actor's device, its output on the CPU."""
+    from rlsac.rollout import rlsac_estimate
+
+    on_dev, gen = _on_actor_device(actor, batch, seed)
+    return _to_cpu(rlsac_estimate(task, on_dev, actor, iterations=iterations, env_conf=env, generator=gen,
+                                  record=True))
+
+
+def _episode(task, batch, actor, env, seed: int) -> list[dict]:
+    """One episode per batch row: per step minimal_set (B, m), hyp, inliers (B, N), count (B,); CPU tensors."""
     steps = env.steps_per_episode
     if actor is not None:
-        from rlsac.rollout import rlsac_estimate
-
-        return rlsac_estimate(task, batch, actor, iterations=steps, env_conf=env, generator=gen, record=True)["steps"]
+        return _rlsac_rollout(task, batch, actor, env, seed, steps)["steps"]
+    gen = torch.Generator().manual_seed(seed)
     from rlsac.lo import score_sets
     from rlsac.sampling import gather_points, uniform_minimal_sets
 
@@ -273,12 +299,11 @@ def plot_line_steps(o: dict[str, Any], out_dir: Path, setup: dict[str, Any] | No
     rate = float(attrs.get("outlier_rate", float("nan")))
     source = f"{path.name} (seed {attrs['seed']})" if "seed" in attrs else path.name
     size = float(attrs.get("picture_size", 10.0))
-    gen = torch.Generator().manual_seed(int(o["seed"]))
     n = len(data["points"])
     if su["index"] is None:
         cand = min(n, 64)
         batch = lines.to_batch(data, slice(0, cand))
-        steps = _episode(task, batch, actor, psi, gen)
+        steps = _episode(task, batch, actor, psi, int(o["seed"]))
         err = np.stack([metrics.line_angle_deg(s["hyp"].numpy()[:, :2], batch["line"][:, :2]) for s in steps], 1)
         score = np.where(err[:, -1] < 0.5, err[:, 0] - err[:, -1], -np.inf)
         idx = int(np.argmax(score)) if np.isfinite(score).any() else 0
@@ -287,7 +312,7 @@ def plot_line_steps(o: dict[str, Any], out_dir: Path, setup: dict[str, Any] | No
     else:
         idx = su["index"]
         batch = lines.to_batch(data, slice(idx, idx + 1))
-        steps = _episode(task, batch, actor, psi, gen)
+        steps = _episode(task, batch, actor, psi, int(o["seed"]))
         pick = f"#{su['rows'][idx]}"
     pts, gt = data["points"][idx], data["line"][idx]
     shown = _pick_steps(len(steps), o["line_steps"])
@@ -476,12 +501,9 @@ def check_inputs(o: dict[str, Any]) -> list[str]:
 
 def plot_fundamental_pair(o: dict[str, Any], out_dir: Path, setup: tuple | None = None) -> tuple[list[str], str]:
     data, attrs, i, batch, actor, task, psi, images, notes = setup or _fundamental_setup(o)
-    gen = torch.Generator().manual_seed(int(o["seed"]))
     iters = int(o["fundamental_iterations"])
     if actor is not None:
-        from rlsac.rollout import rlsac_estimate
-
-        out = rlsac_estimate(task, batch, actor, iterations=iters, env_conf=psi, generator=gen, record=True)
+        out = _rlsac_rollout(task, batch, actor, psi, int(o["seed"]), iters)
         counts = torch.stack([s["count"] for s in out["steps"]])  # (T, R): first maximum = the env's best
         t, r = divmod(int(torch.argmax(counts.flatten())), counts.shape[1])
         minimal = out["steps"][t]["minimal_set"][r].numpy()
@@ -492,6 +514,7 @@ def plot_fundamental_pair(o: dict[str, Any], out_dir: Path, setup: tuple | None 
         from rlsac.sampling import gather_points, uniform_minimal_sets
 
         # plain RANSAC written out, so that the minimal set shown is the one behind the estimate
+        gen = torch.Generator().manual_seed(int(o["seed"]))
         idx = uniform_minimal_sets(batch["mask"], task.sample_size, iters, gen)[0]  # (iters, m)
         hyps, valid, _, cnt = score_sets(task, gather_points(batch["coords"], idx[None]), batch["coords"],
                                          batch["mask"])
@@ -520,8 +543,7 @@ def plot_fundamental_pair(o: dict[str, Any], out_dir: Path, setup: tuple | None 
 
 def plot_fundamental_steps(o: dict[str, Any], out_dir: Path, setup: tuple | None = None) -> tuple[list[str], str]:
     data, attrs, i, batch, actor, task, psi, images, notes = setup or _fundamental_setup(o)
-    gen = torch.Generator().manual_seed(int(o["seed"]))
-    steps = _episode(task, batch, actor, psi, gen)
+    steps = _episode(task, batch, actor, psi, int(o["seed"]))
     shown = _pick_steps(len(steps), o["fundamental_steps"])
     canvas, tf1, tf2 = _canvas(images, data, i)
     cols = 2 if len(shown) > 1 else 1
