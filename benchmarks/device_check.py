@@ -1,9 +1,13 @@
 """The ``--device cuda`` paths, run end to end on a machine with a GPU (the tests never need one: CI has none).
 
-Two steps:
+Two checks, each made of two steps (the data here, where the full data is; the run on the GPU machine):
 
-    python benchmarks/device_check.py make-data --out .devcheck     # here: small h5 subsets of the real data
-    python benchmarks/device_check.py run --data .devcheck --out OUT # on the GPU machine
+    python benchmarks/device_check.py make-data --out .devcheck         # small h5 subsets of the real data
+    python benchmarks/device_check.py run --data .devcheck --out OUT    # every path on cuda and cpu (below)
+    python benchmarks/device_check.py make-speed-data --out .devcheck   # full-size test files, committed models
+    python benchmarks/device_check.py speed --data .devcheck --out OUT  # wall time at the recipes' sizes
+
+Results: reports/device.md.
 
 ``run`` calls the CLI (``python -c "from rlsac.cli import main; main()" ...``, no MLflow) for every torch command,
 on cuda and on cpu side by side, and checks:
@@ -57,6 +61,80 @@ def make_data(out: Path, pairs: tuple[int, int, int]) -> None:
                 if "n_pairs" in src.attrs:
                     dst.attrs["n_pairs"] = min(n, len(src["coords"]))
             print(f"wrote {out / f'{name}_{split}.h5'}")
+
+
+def make_speed_data(out: Path, pairs: int) -> None:
+    """For ``speed``: the whole 0.7 line test file, the first ``pairs`` test pairs of the hard castle fold, and the
+    committed models that evaluate them (the 0.7 line model, castle's RLSAC seed 1)."""
+    import shutil
+
+    import h5py
+
+    out.mkdir(parents=True, exist_ok=True)
+    shutil.copy("data/lines/test_o0.7.h5", out / "speed_lines_test.h5")
+    with h5py.File("data/folds/hard/castle/test.h5") as src, h5py.File(out / "speed_fold_test.h5", "w") as dst:
+        for key, ds in src.items():
+            dst[key] = ds[:pairs]
+        for k, v in src.attrs.items():
+            dst.attrs[k] = v
+        dst.attrs["n_pairs"] = min(pairs, len(src["coords"]))
+    shutil.copy("checkpoints/line_o0.7.pt", out / "speed_line.pt")
+    shutil.copy("checkpoints/folds/hard/castle/rlsac-s1.pt", out / "speed_fold.pt")
+    print(f"wrote the speed files into {out}")
+
+
+def main_speed(data: Path, out: Path, device: str) -> int:
+    """Wall time of the recipes' sizes on ``device`` and on cpu (one CPU thread), each arm alone on its core(s):
+    a training step with the line / F recipe's batch (num_envs, batch_size), and evaluation of committed models on
+    1000 lines and on many castle pairs at the paper's budgets."""
+    out.mkdir(parents=True, exist_ok=True)
+    logs = out / "logs"
+    logs.mkdir(exist_ok=True)
+    line_rec = {"threads": 1, "val_instances": 50, "val_every": 100, "ckpt_every": 1000, "sac.total_steps": 200,
+                "sac.num_envs": 32, "sac.batch_size": 64, "sac.learning_starts": 64}
+    f_rec = {"threads": 1, "val_instances": 8, "val_iterations": 50, "val_every": 100, "ckpt_every": 1000,
+             "sac.total_steps": 100, "sac.num_envs": 16, "sac.batch_size": 32, "sac.learning_starts": 32}
+    jobs = []
+    for dev in (device, "cpu"):
+        jobs.append((("train line recipe, 200 steps", dev),
+                     train_argv("line", "rlsac", data, out / f"l-{dev}.pt", dev, line_rec)))
+        jobs.append((("train F recipe, 100 steps", dev),
+                     train_argv("fundamental", "rlsac", data, out / f"f-{dev}.pt", dev, f_rec)))
+        for bs in (256, 1000):
+            jobs.append(((f"evaluate lines 1000 x 150 it, batch {bs}", dev),
+                         ["evaluate", "--task", "line", "--method", "rlsac", "--checkpoint",
+                          str(data / "speed_line.pt"), "--data", str(data / "speed_lines_test.h5"),
+                          "--iterations", "150", "--batch-size", str(bs),
+                          "--device", dev, "--out-dir", str(out / f"el-{bs}-{dev}"), "--no-tracking"] + PARAMS))
+        jobs.append((("evaluate F castle pairs x 1000 it", dev),
+                     ["evaluate", "--task", "fundamental", "--method", "rlsac", "--checkpoint",
+                      str(data / "speed_fold.pt"), "--data", str(data / "speed_fold_test.h5"), "--iterations", "1000",
+                      "--device", dev, "--out-dir", str(out / f"ef-{dev}"), "--no-tracking"] + PARAMS))
+    def do(job):
+        return job[0], run_cli(job[1], logs / ("-".join(job[0]).replace(" ", "_").replace(",", "") + ".log"))
+
+    # the GPU's jobs one at a time (alone on the GPU), the CPU's side by side (one core each)
+    with ThreadPoolExecutor(1) as gpu, ThreadPoolExecutor(len(jobs)) as cpu:
+        futures = [(gpu if j[0][1] == device and device != "cpu" else cpu).submit(do, j) for j in jobs]
+        done = dict(f.result() for f in futures)
+    failed = 0
+    print(f"\n{'':45s} {device:>9s} {'cpu':>9s}  ratio   mAA {device} / cpu")
+    for (what, dev), _ in jobs:
+        if dev != device:
+            continue
+        (rc, wall, last), (rc2, wall2, last2) = done[(what, dev)], done[(what, "cpu")]
+        failed += rc != 0 or rc2 != 0
+        sums = [summary(out / d) for d in _eval_dirs(what, dev)] if what.startswith("evaluate") else []
+        maa = " / ".join(f"{x['mAA']:.3f}" if x else "-" for x in sums)
+        print(f"{what:45s} {wall:8.1f}s {wall2:8.1f}s  {wall / wall2:5.2f}   {maa} {last or ''} {last2 or ''}")
+    return 1 if failed else 0
+
+
+def _eval_dirs(what: str, dev: str) -> list[str]:
+    if "lines" in what:
+        bs = what.rsplit(" ", 1)[1]
+        return [f"el-{bs}-{dev}", f"el-{bs}-cpu"]
+    return [f"ef-{dev}", "ef-cpu"]
 
 
 class Checks:
@@ -274,6 +352,14 @@ def main() -> None:
     m = sub.add_parser("make-data")
     m.add_argument("--out", type=Path, default=Path(".devcheck"))
     m.add_argument("--pairs", type=int, nargs=3, default=(48, 16, 24), metavar=("TRAIN", "VAL", "TEST"))
+    ms = sub.add_parser("make-speed-data")
+    ms.add_argument("--out", type=Path, default=Path(".devcheck"))
+    ms.add_argument("--pairs", type=int, default=160)
+    sp = sub.add_parser("speed")
+    sp.add_argument("--data", type=Path, default=Path(".devcheck"))
+    sp.add_argument("--out", type=Path, required=True)
+    sp.add_argument("--device", default="cuda")
+    sp.add_argument("--params", default="params.yaml")
     r = sub.add_parser("run")
     r.add_argument("--data", type=Path, default=Path(".devcheck"))
     r.add_argument("--out", type=Path, required=True)
@@ -284,6 +370,11 @@ def main() -> None:
     a = ap.parse_args()
     if a.cmd == "make-data":
         make_data(a.out, tuple(a.pairs))
+    elif a.cmd == "make-speed-data":
+        make_speed_data(a.out, a.pairs)
+    elif a.cmd == "speed":
+        PARAMS[1] = a.params
+        sys.exit(main_speed(a.data, a.out, a.device))
     else:
         PARAMS[1] = a.params
         sys.exit(main_run(a.data, a.out, a.device, a.workers, dict(zip(("line", "fundamental", "essential"),
