@@ -18,7 +18,8 @@ on cuda and on cpu side by side, and checks:
 - a cpu-trained checkpoint evaluates on cuda and a cuda-trained one on cpu;
 - ``train --resume`` on cuda after a SIGTERM finishes at the full step count; resuming cuda's state on cpu either
   works or is one ``error:`` line with exit 2;
-- ``plot`` with device=cuda writes its figure.
+- ``plot`` with device=cuda writes its figure;
+- ``select`` (the checkpoint-selection replay) and ``calibrate-lines`` run on cuda.
 
 It prints one line per job (exit code, wall seconds, mAA) and the cuda/cpu wall-time ratio per command, both
 arms measured in this run on the same machine, each process on one CPU thread. Exit status 1 if a check fails.
@@ -277,6 +278,8 @@ def main_run(data: Path, out: Path, device: str, workers: int, iterations: dict)
                                           f"(gap {gap:.4f}, at most {MAX_GAP}{ref})")
 
     resume_check(checks, data, out, device, logs)
+    select_check(checks, data, out, device, logs, iterations["line"])
+    calibrate_check(checks, out, device, logs)
     plot_check(checks, data, out, device, logs)
 
     print("\nwall time, cuda / cpu (one CPU thread each, both measured here):", flush=True)
@@ -333,6 +336,36 @@ def resume_check(checks: Checks, data: Path, out: Path, device: str, logs: Path)
     text = (logs / "resume-cross.log").read_text()
     expected = rc == 0 if device == "cpu" else (rc == 2 and last.endswith(f"resume it with --device {device}"))
     checks.expect(expected and "Traceback" not in text, f"resume of a {device} state on cpu: exit {rc} {last}")
+
+
+def select_check(checks: Checks, data: Path, out: Path, device: str, logs: Path, iterations: int) -> None:
+    """``rlsac select`` replays a line model's training on each device and tests every validated actor. The replay
+    must give the kept actor's committed mAA: exact on cpu; on cuda, where training is not bit-exact, either the
+    same or one error line that says the replay differs (never a wrong table)."""
+    for dev in (device, "cpu"):
+        ck = out / "ck" / f"line-rlsac-{dev}.pt"
+        argv = ["select", "--checkpoint", str(ck), "--data", str(data / "lines_test.h5"), "--kept-eval",
+                str(out / "eval" / f"line-rlsac-ckpt-{dev}-{dev}"), "--out", str(out / "select" / f"line-{dev}"),
+                "--iterations", str(iterations), "--device", dev, "--no-tracking"] + PARAMS
+        rc, wall, last = run_cli(argv, logs / f"select-{dev}.log")
+        text = (logs / f"select-{dev}.log").read_text()
+        wrote = (out / "select" / f"line-{dev}.csv").is_file()
+        ok = (rc == 0 and wrote) or (dev != "cpu" and rc == 2 and last.startswith("error:") and not wrote)
+        checks.expect(ok and "Traceback" not in text, f"select on {dev}: exit {rc}, {wall:.1f} s, wrote {wrote} {last}")
+
+
+def calibrate_check(checks: Checks, out: Path, device: str, logs: Path) -> None:
+    """``rlsac calibrate-lines`` (the README's main job, our RANSAC on fresh lines) on both devices."""
+    rows = {}
+    for dev in (device, "cpu"):
+        stem = out / "calibrate" / f"cal-{dev}"
+        argv = ["calibrate-lines", "--n-instances", "200", "--n-seeds", "2", "--out", str(stem), "--device", dev,
+                "--no-tracking"] + PARAMS
+        rc, wall, last = run_cli(argv, logs / f"calibrate-{dev}.log")
+        rows[dev] = stem.with_suffix(".csv").read_text() if stem.with_suffix(".csv").is_file() else None
+        checks.expect(rc == 0 and rows[dev] is not None, f"calibrate-lines on {dev}: exit {rc}, {wall:.1f} s {last}")
+    if device != "cpu" and all(rows.values()):
+        print(f"info  calibrate-lines csv, {device}:\n{rows[device]}info  cpu:\n{rows['cpu']}")
 
 
 def plot_check(checks: Checks, data: Path, out: Path, device: str, logs: Path) -> None:
