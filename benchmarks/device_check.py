@@ -45,22 +45,27 @@ CLI = [sys.executable, "-c", "from rlsac.cli import main; main()"]
 MAX_GAP = 0.15
 
 
+def _head(src_path: str, dst_path: Path, n: int) -> None:
+    """The first ``n`` rows of every dataset of an h5 file, its attributes kept (n_pairs, if any, counted again)."""
+    import h5py
+
+    with h5py.File(src_path) as src, h5py.File(dst_path, "w") as dst:
+        for key, ds in src.items():
+            dst[key] = ds[:n]
+        for k, v in src.attrs.items():
+            dst.attrs[k] = v
+        if "n_pairs" in src.attrs:
+            dst.attrs["n_pairs"] = min(n, len(src["coords"]))
+
+
 def make_data(out: Path, pairs: tuple[int, int, int]) -> None:
     """The first ``pairs`` (train, val, test) pairs of the hard entry fold and the first 400 / 100 / 200 lines
     at outlier rate 0.7, as h5 files in ``out``."""
-    import h5py
-
     out.mkdir(parents=True, exist_ok=True)
     sources = {"fold": ("data/folds/hard/entry/{}.h5", pairs), "lines": ("data/lines/{}_o0.7.h5", (400, 100, 200))}
     for name, (pattern, counts) in sources.items():
         for split, n in zip(("train", "val", "test"), counts, strict=True):
-            with h5py.File(pattern.format(split)) as src, h5py.File(out / f"{name}_{split}.h5", "w") as dst:
-                for key, ds in src.items():
-                    dst[key] = ds[:n]
-                for k, v in src.attrs.items():
-                    dst.attrs[k] = v
-                if "n_pairs" in src.attrs:
-                    dst.attrs["n_pairs"] = min(n, len(src["coords"]))
+            _head(pattern.format(split), out / f"{name}_{split}.h5", n)
             print(f"wrote {out / f'{name}_{split}.h5'}")
 
 
@@ -69,16 +74,9 @@ def make_speed_data(out: Path, pairs: int) -> None:
     committed models that evaluate them (the 0.7 line model, castle's RLSAC seed 1)."""
     import shutil
 
-    import h5py
-
     out.mkdir(parents=True, exist_ok=True)
     shutil.copy("data/lines/test_o0.7.h5", out / "speed_lines_test.h5")
-    with h5py.File("data/folds/hard/castle/test.h5") as src, h5py.File(out / "speed_fold_test.h5", "w") as dst:
-        for key, ds in src.items():
-            dst[key] = ds[:pairs]
-        for k, v in src.attrs.items():
-            dst.attrs[k] = v
-        dst.attrs["n_pairs"] = min(pairs, len(src["coords"]))
+    _head("data/folds/hard/castle/test.h5", out / "speed_fold_test.h5", pairs)
     shutil.copy("checkpoints/line_o0.7.pt", out / "speed_line.pt")
     shutil.copy("checkpoints/folds/hard/castle/rlsac-s1.pt", out / "speed_fold.pt")
     print(f"wrote the speed files into {out}")
@@ -184,8 +182,9 @@ NG_SETS = {"threads": 1, "val_instances": 8, "val_iterations": 50, "val_every": 
 
 
 def summary(out_dir: Path) -> dict | None:
-    f = out_dir / "summary.json"
-    return json.loads(f.read_text()) if f.is_file() else None
+    from rlsac.reports.tables import read_summary
+
+    return read_summary(out_dir / "summary.json")
 
 
 def main_run(data: Path, out: Path, device: str, workers: int, iterations: dict) -> int:
@@ -301,8 +300,9 @@ def resume_check(checks: Checks, data: Path, out: Path, device: str, logs: Path)
     argv = train_argv("line", "rlsac", data, ck, device, sets)
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     whole_ck = out / "resume-whole" / "m.pt"  # the same run uninterrupted, beside it: is the resume exact there?
+    whole_log = open(logs / "resume-whole.log", "w")  # noqa: SIM115 - closed once the run ends, below
     whole = subprocess.Popen(CLI + train_argv("line", "rlsac", data, whole_ck, device, sets),
-                             stdout=open(logs / "resume-whole.log", "w"), stderr=subprocess.STDOUT, env=env)
+                             stdout=whole_log, stderr=subprocess.STDOUT, env=env)
     with open(logs / "resume-first.log", "w") as log:
         p = subprocess.Popen(CLI + argv, stdout=log, stderr=subprocess.STDOUT, env=env)
         state = ck.with_suffix(".state.pt")
@@ -316,7 +316,9 @@ def resume_check(checks: Checks, data: Path, out: Path, device: str, logs: Path)
     rc, wall, last = run_cli(argv + ["--resume"], logs / "resume-second.log")
     final = torch.load(state, weights_only=False, map_location="cpu")["step"] if state.is_file() else None
     checks.expect(rc == 0 and final == 400, f"resume on {device}: stopped at {stopped}, resumed to {final}, exit {rc}")
-    if whole.wait() == 0 and rc == 0:
+    whole_rc = whole.wait()
+    whole_log.close()
+    if whole_rc == 0 and rc == 0:
         a = torch.load(state, weights_only=False, map_location="cpu")["agent"]
         b = torch.load(whole_ck.with_suffix(".state.pt"), weights_only=False, map_location="cpu")["agent"]
         same = all(torch.equal(a[k], b[k]) for k in a)

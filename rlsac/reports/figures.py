@@ -159,14 +159,6 @@ def _load_policy(path: str | None, task_name: str, device: str):
     return actor, task, env_conf(conf), ""
 
 
-def _on_actor_device(actor, batch: dict, seed: int) -> tuple[dict, torch.Generator]:
-    """The batch's tensors and a seeded generator on the actor's device (option ``device``): the rollout runs
-    there, the figure is drawn from CPU copies of its output (``_to_cpu``)."""
-    dev = next(actor.parameters()).device
-    return ({k: v.to(dev) if torch.is_tensor(v) else v for k, v in batch.items()},
-            torch.Generator(device=dev).manual_seed(seed))
-
-
 def _to_cpu(x):
     if torch.is_tensor(x):
         return x.cpu()
@@ -178,12 +170,14 @@ def _to_cpu(x):
 
 
 def _rlsac_rollout(task, batch, actor, env, seed: int, iterations: int) -> dict:
-    """rlsac_estimate with record=True on the actor's device, its output on the CPU."""
+    """rlsac_estimate with record=True on the actor's device (option ``device``: the batch and a seeded generator
+    go there), its output on the CPU, where the figure is drawn."""
     from rlsac.rollout import rlsac_estimate
 
-    on_dev, gen = _on_actor_device(actor, batch, seed)
-    return _to_cpu(rlsac_estimate(task, on_dev, actor, iterations=iterations, env_conf=env, generator=gen,
-                                  record=True))
+    dev = next(actor.parameters()).device
+    on_dev = {k: v.to(dev) if torch.is_tensor(v) else v for k, v in batch.items()}
+    return _to_cpu(rlsac_estimate(task, on_dev, actor, iterations=iterations, env_conf=env,
+                                  generator=torch.Generator(device=dev).manual_seed(seed), record=True))
 
 
 def _episode(task, batch, actor, env, seed: int) -> list[dict]:
