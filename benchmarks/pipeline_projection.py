@@ -14,6 +14,10 @@ times every ``rlsac pipeline`` run of that MLflow store logged as its stages end
 interrupted run's included; the latest run's time of a stage wins), over several sittings; a stage with no time takes
 its group's mean (the group: the address before ``@``), and the output says how many were measured; with
 ``--fallback-recorded`` a group none of whose stages was measured takes ``RECORDED``'s times (and is named).
+``--from-logs DIR`` (with ``--from-mlflow``): a stage no run logged takes the span of its log under DIR
+(``logs/pipeline``: created when the stage started, last written when it ended; GNU ``stat``'s birth time), for the
+stages of runs that were killed before their times reached MLflow; a span over ``LOG_OUTLIER`` times its group's
+median is a log a later run rewrote (its birth time is the first run's) and is left out.
 ``--groups``: also a Markdown table of the stage time per group (stages, total, mean, range): issue #27's cost table.
 
 Prints the total stage time (the wall time on one worker), the critical path (the wall time on unlimited
@@ -192,6 +196,36 @@ def mlflow_times(uri: str, deps: dict[str, list[str]], repo: str | os.PathLike |
     return out
 
 
+LOG_OUTLIER = 5.0  # a log span this many times its group's median spans two runs of the stage, not one
+
+
+def log_times(log_dir: str | os.PathLike, deps: dict[str, list[str]]) -> dict[str, float]:
+    """{address: seconds} of the stages of ``deps`` with a log ``<address>.log`` under ``log_dir``: from the log's
+    birth (the stage started) to its last write (it ended), spans over ``LOG_OUTLIER`` times their group's median
+    left out. SystemExit when the file system does not report birth times."""
+    import subprocess
+
+    files = {a: Path(log_dir) / (a + ".log") for a in deps}
+    files = {a: f for a, f in files.items() if f.is_file()}
+    if not files:
+        return {}
+    r = subprocess.run(["stat", "-c", "%W %Y", *map(str, files.values())], capture_output=True, text=True)
+    lines = r.stdout.splitlines()
+    if r.returncode or len(lines) != len(files):
+        raise SystemExit(f"error: {log_dir}: stat failed: {r.stderr.strip()[:200]}")
+    spans = {}
+    for a, line in zip(files, lines, strict=True):
+        born, written = (int(x) for x in line.split())
+        if born <= 0:
+            raise SystemExit(f"error: {log_dir}: the file system reports no birth time (needed by --from-logs)")
+        spans[a] = float(written - born)
+    groups: dict[str, list[float]] = {}
+    for a, t in spans.items():
+        groups.setdefault(group_of(a), []).append(t)
+    median = {g: sorted(v)[len(v) // 2] for g, v in groups.items()}
+    return {a: t for a, t in spans.items() if t <= LOG_OUTLIER * max(median[group_of(a)], 1.0)}
+
+
 def fill_by_group(deps: dict[str, list[str]], measured: dict[str, float],
                   fallback: dict[str, float] | None = None) -> dict[str, float]:
     """Every stage's time: its measured one, else its group's mean, else (a group with no measured stage, e.g. one
@@ -234,6 +268,8 @@ def main(argv: list[str] | None = None) -> None:
                                     "[default: RECORDED, the README's recorded stage times].")
     ap.add_argument("--from-mlflow", metavar="URI", help="The stage times the rlsac pipeline runs of this MLflow "
                                                          "store logged (e.g. sqlite:///mlflow.db).")
+    ap.add_argument("--from-logs", metavar="DIR", help="With --from-mlflow: the stages no run logged take their "
+                                                       "stage log's span (e.g. logs/pipeline).")
     ap.add_argument("--groups", action="store_true", help="Also print the stage time per group (Markdown).")
     ap.add_argument("--fallback-recorded", action="store_true", help="With --from-mlflow: a group with no measured "
                                                                      "stage takes RECORDED's times.")
@@ -243,6 +279,8 @@ def main(argv: list[str] | None = None) -> None:
     workers = [int(n) for n in args.workers.split(",")]
     if any(n < 1 for n in workers):
         raise SystemExit("error: --workers: every count must be at least 1")
+    if args.from_logs and not args.from_mlflow:
+        raise SystemExit("error: --from-logs fills in what --from-mlflow lacks: give both")
     if args.times and args.from_mlflow:
         raise SystemExit("error: --times and --from-mlflow are two sources of times: give one")
     table = RECORDED
@@ -251,6 +289,8 @@ def main(argv: list[str] | None = None) -> None:
     if args.from_mlflow:
         deps = load_dag(args.repo)
         measured = mlflow_times(args.from_mlflow, deps, args.repo)
+        if args.from_logs:
+            measured = {**log_times(args.from_logs, deps), **measured}
         table = fill_by_group(deps, measured, RECORDED if args.fallback_recorded else None)
     elif args.times:
         data = json.loads(Path(args.times).read_text())

@@ -81,3 +81,28 @@ def test_times_from_the_pipeline_runs_of_an_mlflow_store(tmp_path, monkeypatch, 
     proj.main(["--from-mlflow", uri, "--workers", "1", "--groups", "--repo", str(tmp_path)])
     out = capsys.readouterr().out
     assert "measured 5 of 7 stages" in out and "total stage time 52 s" in out and "| `e` | 3 | 2 | 8 |" in out
+
+
+def test_times_from_stage_logs(tmp_path, monkeypatch, capsys):
+    """--from-logs: a stage without an MLflow time takes its log's span (birth to last write); a span far above its
+    group's (a log a later run rewrote) is left out; MLflow's time wins where both exist."""
+    import os
+    import subprocess
+
+    spans = {"t@1": 10, "t@2": 12, "t@3": 200, "e@1": 4}  # t@3: over LOG_OUTLIER x the median 12
+    for a, span in spans.items():
+        f = tmp_path / f"{a}.log"
+        f.write_text("dvc output\n")
+        born = int(subprocess.run(["stat", "-c", "%W", str(f)], capture_output=True, text=True).stdout)
+        if born <= 0:
+            pytest.skip("this file system reports no birth time")
+        os.utime(f, (born + span, born + span))
+    deps = {"t@1": [], "t@2": [], "t@3": [], "e@1": ["t@1"], "x": []}
+    assert proj.log_times(tmp_path, deps) == {"t@1": 10.0, "t@2": 12.0, "e@1": 4.0}
+    monkeypatch.setattr(proj, "load_dag", lambda repo: deps)
+    monkeypatch.setattr(proj, "mlflow_times", lambda uri, d, repo: {"t@2": 13.0, "x": 1.0})
+    proj.main(["--from-mlflow", "u", "--from-logs", str(tmp_path), "--workers", "1", "--groups"])
+    out = capsys.readouterr().out
+    assert "measured 4 of 5 stages" in out and "| `t` | 3 | 2 | 23 | 11.5 |" in out  # t@3 at the group mean
+    with pytest.raises(SystemExit, match="give both"):
+        proj.main(["--from-logs", str(tmp_path)])
