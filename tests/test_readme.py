@@ -337,7 +337,7 @@ if __name__ == "__main__":  # print what is checked
 # ------------------------------------------------------------------------------------ quoted intervals
 INTERVAL = re.compile(r"([+\-−]?\d\.\d{3}) \[([+\-−]?\d\.\d{3}), ([+\-−]?\d\.\d{3})\]")
 # the pages that quote the pipeline's results by hand, and the generated files they quote from (`rlsac table`)
-QUOTING = [ROOT / "README.md", ROOT / "reports" / "peers.md"]
+QUOTING = [ROOT / "README.md", ROOT / "reports" / "peers.md", ROOT / "reports" / "folds.md"]
 
 
 def quoted_intervals(text: str) -> set[tuple[float, float, float]]:
