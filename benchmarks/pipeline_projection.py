@@ -8,8 +8,8 @@
 Reads the pipeline's DAG from DVC (``--repo``, nothing is hashed or run) and a time per stage: ``--times`` is
 either the ``pipeline.json`` artifact an ``rlsac pipeline`` run logs to MLflow (its dependencies and each stage's
 seconds) or a JSON object ``{stage address or fnmatch pattern: seconds}`` (an exact address wins over a pattern,
-then the first matching pattern). Without ``--times``: ``RECORDED``, the per-stage means of the stage times the
-README records for a run from scratch (group totals over 2 cores, ``OMP_NUM_THREADS=1``). ``--from-mlflow URI``: the
+then the first matching pattern). Without ``--times``: ``RECORDED``, the per-stage means of the portable record's stage
+times per group (``reports/cost.md``; 2 cores, ``OMP_NUM_THREADS=1``). ``--from-mlflow URI``: the
 times every ``rlsac pipeline`` run of that MLflow store logged as its stages ended (metrics ``stage_s/<address>``, an
 interrupted run's included; the latest run's time of a stage wins), over several sittings; a stage with no time takes
 its group's mean (the group: the address before ``@``), and the output says how many were measured; with
@@ -36,22 +36,29 @@ import os
 import sys
 from pathlib import Path
 
-# Seconds per stage from the README's "Measured stage times for a run from scratch": a group's total over its count,
-# or the middle of its recorded range; the fold seed grid's stages (issue #27) take their base group's, the line and
-# Table E seed stages their own means (an `rlsac pipeline --workers 2` run, DVC's own work included).
+# Seconds per stage: each group's mean stage time in the portable record (reports/cost.md: an `rlsac pipeline
+# --workers 2` run's MLflow times and stage logs, 2 cores, DVC's own work included); `tables` and `figures` as recorded
+# before (their stages had not run when this was taken)
 RECORDED = {
-    "calibrate_lines": 40, "lines_data@*": 0.7, "import_scenes": 119, "fold_data@*": 29, "fold_data_points@*": 29,
-    "train_lines@*": 940, "train_lines_seed@*": 596, "eval_lines_ours_seed@*": 29,
-    "eval_lines_generalisation_seed@*": 27, "essential_train_seed@*": 75, "essential_tune_seed@*": 117,
-    "essential_eval_seed@*": 67, "fold_train@*": 115,
-    "fold_train_seed@*": 115, "fold_train_points@*": 115, "fold_select*": 153,
-    "fold_train_ablation@*": 60, "essential_train@*": 70, "eval_lines_ours@*": 14,
-    "eval_lines_generalisation@*": 14, "eval_lines_ransac@*": 3, "eval_lines_oracle@*": 3,
-    "fold_tune*": 36.5, "fold_eval*": 29, "essential_tune*": 67, "essential_eval*": 22, "tables": 30, "figures": 25,
-    # issue #29's and #27's later groups (README "Measured stage times": NG-RANSAC on lines 38 stages in 595 s wall on
-    # two workers, a line replay 303-450 s); the ablation models' seeds take their base group's
-    "train_lines_ngransac*": 30, "eval_lines_ngransac*": 3, "select_lines_seed@*": 375,
-    "fold_train_ablation_seed@*": 60,
+    "calibrate_lines": 3.2, "essential_eval@*": 20.9, "essential_eval_rlsac@*": 77.0,
+    "essential_eval_seed@*": 70.2, "essential_train@*": 95.0, "essential_train_seed@*": 88.6,
+    "essential_tune@*": 24.2, "essential_tune_rlsac@*": 180.0, "essential_tune_seed@*": 163.2,
+    "eval_lines_generalisation@*": 47.3, "eval_lines_generalisation_seed@*": 38.5, "eval_lines_ngransac@*": 23.6,
+    "eval_lines_ngransac_seed@*": 23.0, "eval_lines_oracle@*": 22.3, "eval_lines_ours@*": 39.2,
+    "eval_lines_ours_seed@*": 41.2, "eval_lines_ransac@*": 20.7, "figures": 25.0, "fold_data@*": 2.5,
+    "fold_data_points@*": 2.4, "fold_eval@*": 15.5, "fold_eval_ablation@*": 104.7,
+    "fold_eval_ablation_seed@*": 143.3, "fold_eval_fast@*": 27.4, "fold_eval_fast_seed@*": 28.8,
+    "fold_eval_lo@*": 125.9, "fold_eval_lo_seed@*": 116.1, "fold_eval_lomethod@*": 58.6, "fold_eval_model@*": 77.2,
+    "fold_eval_points_method@*": 41.4, "fold_eval_points_model@*": 119.5, "fold_eval_prob@*": 97.5,
+    "fold_eval_prob_seed@*": 98.2, "fold_eval_seed@*": 61.4, "fold_select@*": 183.9, "fold_select_seed@*": 184.3,
+    "fold_train@*": 111.9, "fold_train_ablation@*": 95.8, "fold_train_ablation_seed@*": 96.4,
+    "fold_train_points@*": 83.4, "fold_train_seed@*": 97.1, "fold_tune@*": 18.4, "fold_tune_ablation@*": 83.5,
+    "fold_tune_ablation_seed@*": 109.2, "fold_tune_fast@*": 135.9, "fold_tune_fast_seed@*": 100.8,
+    "fold_tune_lo@*": 80.0, "fold_tune_lo_seed@*": 84.9, "fold_tune_lomethod@*": 86.5, "fold_tune_model@*": 52.2,
+    "fold_tune_points_method@*": 35.2, "fold_tune_points_model@*": 66.8, "fold_tune_prob@*": 61.8,
+    "fold_tune_prob_seed@*": 58.8, "fold_tune_seed@*": 60.9, "import_scenes": 5.9, "lines_data@*": 2.7,
+    "select_lines_seed@*": 340.3, "tables": 30.0, "train_lines@*": 405.6, "train_lines_ngransac@*": 53.6,
+    "train_lines_ngransac_seed@*": 56.4, "train_lines_seed@*": 401.4,
 }
 
 
