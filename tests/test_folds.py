@@ -395,6 +395,7 @@ def test_table3_and_the_lo_arm_take_their_variants_over_seeds(tmp_path):
         _write_errors(ev, "hard", fold, "uniform-lo", 100, [0.5] * 4, [0.5, 20.0] * 2)
     fold_table.build(ev, tmp_path / "out", tmp_path / "rec")
     t2 = (tmp_path / "out" / "table2_folds.md").read_text().split("### Across training seeds", 1)[1]
+    t2 = t2.split("### Across training seeds, per test building", 1)[0]
     assert "rlsac-nodesc" not in t2 and fold_table.NAMES["rlsac-nodesc"] not in t2
     lo = [x for x in t2.splitlines() if fold_table.NAMES["rlsac-lo"] + " (2 seeds)" in x]
     assert [c.strip() for c in lo[0].split("|")[1:-1]][2] == fold_table.NAMES["uniform-lo"] and len(lo) == 1
@@ -447,6 +448,32 @@ def test_fold_table_across_seeds_resamples_seeds_and_keeps_them_out_of_the_main_
     line = next(x for x in md.splitlines() if x.count("(2 seeds)") == 2)
     cells = [c.strip() for c in line.split("|")[1:-1]]
     assert cells[3] == "1.000 ± 0.000" and cells[4] == "0.500 ± 0.707" and cells[5].startswith("+0.500")
+
+
+def test_fold_table_across_seeds_per_test_building(tmp_path):
+    """Issue #29: the across-seed comparison within each test building at the largest budget. Building a: both rlsac
+    seeds solve every pair, uniform none (+1, whatever is resampled); building b: one seed solves all, the other none,
+    uniform all (-0.5, the interval from -1 to 0 as the seeds are drawn). t: everyone solves building a's pairs."""
+    ev = tmp_path / "eval"
+    for it in (10, 100):
+        far = 20.0 if it == 100 else 0.0  # at 10 iterations all rows tie: the section must show 100's
+        _write_errors(ev, "hard", "a", "rlsac", it, [0.0] * 4, [0.0] * 4)
+        _write_errors(ev, "hard", "a", "rlsac-s1", it, [0.0] * 4, [0.0] * 4)
+        _write_errors(ev, "hard", "a", "uniform", it, [far] * 4, [0.0] * 4)
+        _write_errors(ev, "hard", "b", "rlsac", it, [0.0] * 4, [0.0] * 4)
+        _write_errors(ev, "hard", "b", "rlsac-s1", it, [far] * 4, [far] * 4)
+        _write_errors(ev, "hard", "b", "uniform", it, [0.0] * 4, [0.0] * 4)
+    fold_table.build(ev, tmp_path / "out", tmp_path / "rec")
+    md = (tmp_path / "out" / "table2_folds.md").read_text()
+    section = md.split("### Across training seeds, per test building (100 iterations)", 1)[1]
+    assert "Pairs per building: a 4, b 4" in section
+    head = next(x for x in section.splitlines() if x.startswith("| model"))
+    line = next(x for x in section.splitlines() if fold_table.NAMES["uniform"] in x)
+    cells = dict(zip([c.strip() for c in head.split("|")[1:-1]], [c.strip() for c in line.split("|")[1:-1]],
+                     strict=True))
+    assert cells["model"] == fold_table.NAMES["rlsac"] + " (2 seeds)"
+    assert cells["a R"] == "+1.000 [+1.000, +1.000]" and cells["a t"] == "+0.000 [+0.000, +0.000]"
+    assert cells["b R"] == "-0.500 [-1.000, +0.000]" and cells["b t"] == "-0.500 [-1.000, +0.000]"
 
 
 def test_table_refuses_an_n_row_run_on_other_data(tmp_path):

@@ -285,6 +285,7 @@ def build(eval_root: str | Path = "reports/eval", out_dir: str | Path = "reports
         seeds = _seed_section(everything, regime, budgets)
         if seeds:  # a table without models of several seeds (Table E) gets no empty section
             md.append(seeds)
+            md.append(_seed_building_section(everything, regime, budgets[-1]))
         if tuning is not None:
             md.append(_tuning_section(Path(tuning), regime, methods, folds))
     if recs:
@@ -381,11 +382,12 @@ def _aligned(frames: list[pd.DataFrame], col: str) -> tuple[np.ndarray, np.ndarr
     return np.stack([df.loc[common, col].to_numpy(np.float64) for df in keyed]), keyed[0].loc[common, "fold"].to_numpy()
 
 
-def seed_comparison(res, seeded: dict[str, list[str]], regime: str, model: str, control: str, it: int, col: str
-                    ) -> tuple[dict[str, float], int] | None:
+def seed_comparison(res, seeded: dict[str, list[str]], regime: str, model: str, control: str, it: int, col: str,
+                    building: str | None = None) -> tuple[dict[str, float], int] | None:
     """``model`` − ``control`` in column ``col`` at ``it`` iterations, each row over its training seeds (``seeded``:
-    ``seed_runs``; a row without other seeds is one run), on the pairs every run has -> (metrics.seed_bootstrap_maa's
-    result, the number of pairs), or None when a run or common pairs are missing."""
+    ``seed_runs``; a row without other seeds is one run), on the pairs every run has (``building``: only that test
+    building's) -> (metrics.seed_bootstrap_maa's result, the number of pairs), or None when a run or common pairs
+    are missing."""
     from rlsac.metrics import seed_bootstrap_maa
 
     runs, controls = seeded.get(model, [model]), seeded.get(control, [control])
@@ -394,6 +396,10 @@ def seed_comparison(res, seeded: dict[str, list[str]], regime: str, model: str, 
     if got is None:
         return None
     err, fold = got
+    if building is not None:
+        err, fold = err[:, fold == building], fold[fold == building]
+        if not err.shape[1]:
+            return None
     return (seed_bootstrap_maa(err[:len(runs)], err[len(runs):], LIMIT, strata=fold, n_boot=N_BOOT, seed=0),
             err.shape[1])
 
@@ -404,27 +410,35 @@ def _seed_cells(s: dict) -> tuple[str, str, str]:
     return (f"{s['mean_a']:.3f} ± {s['sd_a']:.3f}", _ci((s["diff"], s["lo"], s["hi"])), f"{s['p_improve']:.2f}")
 
 
+def _seed_controls_at(res, seeded: dict[str, list[str]], regime: str, model: str, it: int) -> list[str]:
+    """The controls a model with several seeds is set against at ``it`` iterations in the across-seed sections: its
+    arm's (``seed_controls``) with results for every seed; none for a Table 3 variant (set against the full model in
+    Table 3's own section) or when a seed of the model lacks results."""
+    if model in set(TABLE3_ROWS.values()) - {REFERENCE} or any(res.get((regime, m, it)) is None
+                                                                for m in seeded[model]):
+        return []
+    return [c for c in seed_controls(model) if c != model
+            and all(res.get((regime, m, it)) is not None for m in seeded.get(c, [c]))]
+
+
+def _seed_labels(seeded: dict[str, list[str]], model: str, control: str) -> dict[str, str]:
+    """The model and control cells of an across-seed row: each row's name and, with several, its number of seeds."""
+    n = len(seeded.get(control, [control]))
+    return {"model": f"{NAMES.get(model, model)} ({len(seeded[model])} seeds)",
+            "control": NAMES.get(control, control) + (f" ({n} seeds)" if n > 1 else "")}
+
+
 def _seed_section(res, regime: str, budgets) -> str:
     """Issue #27: every model trained with several seeds against each control at every budget: the seed mean and
     seed-to-seed SD of its pooled mAA, the difference of seed means with a 95% interval that resamples seeds and pairs
     (pairs within their test building), and the probability of improvement (metrics.seed_bootstrap_maa)."""
     rows = []
     seeded = seed_runs(res, regime)
-    table3_only = set(TABLE3_ROWS.values()) - {REFERENCE}  # set against the full model in Table 3's own section
-    for model, runs in seeded.items():
-        if model in table3_only:
-            continue
+    for model in seeded:
         for it in budgets:
-            frames = [res.get((regime, m, it)) for m in runs]
-            if any(df is None for df in frames):
-                continue
-            for control in seed_controls(model):
-                controls = seeded.get(control, [control])
-                cs = [res.get((regime, m, it)) for m in controls]
-                if control == model or any(c is None for c in cs):
-                    continue
-                row = {"iterations": it, "model": f"{NAMES.get(model, model)} ({len(runs)} seeds)",
-                       "control": NAMES.get(control, control) + (f" ({len(cs)} seeds)" if len(cs) > 1 else "")}
+            for control in _seed_controls_at(res, seeded, regime, model, it):
+                row = {"iterations": it, **_seed_labels(seeded, model, control)}
+                several = len(seeded.get(control, [control])) > 1
                 for col, name in (("err_R", "R"), ("err_t", "t")):
                     got = seed_comparison(res, seeded, regime, model, control, it, col)
                     if got is None:
@@ -432,7 +446,7 @@ def _seed_section(res, regime: str, budgets) -> str:
                     s = got[0]
                     mean_sd, diff, p_improve = _seed_cells(s)
                     row[f"model {name} (mean ± SD)"] = mean_sd
-                    row[f"control {name}"] = f"{s['mean_b']:.3f}" + (f" ± {s['sd_b']:.3f}" if len(cs) > 1 else "")
+                    row[f"control {name}"] = f"{s['mean_b']:.3f}" + (f" ± {s['sd_b']:.3f}" if several else "")
                     row[f"{name}: model − control"] = diff
                     row[f"P(improve) {name}"] = p_improve
                 rows.append(row)
@@ -446,6 +460,34 @@ def _seed_section(res, regime: str, budgets) -> str:
             "random seed beats the control on a random test building (ties one half). Each seed's settings were "
             "tuned on its fold's validation pairs like the first seed's.\n\n"
             + pd.DataFrame(rows).to_markdown(index=False, disable_numparse=True) + "\n")
+
+
+def _seed_building_section(res, regime: str, it: int) -> str:
+    """Issue #29: the across-seed comparisons of ``_seed_section`` at ``it`` iterations (the largest budget) within
+    each test building: the seeds and that building's pairs resampled (metrics.seed_bootstrap_maa on its pairs)."""
+    rows = []
+    seeded = seed_runs(res, regime)
+    buildings = sorted({f for m in seeded for (r, mm, i), df in res.items() if (r, mm, i) == (regime, m, it)
+                        for f in df["fold"].unique()})
+    n_pairs = {}
+    for model in seeded:
+        for control in _seed_controls_at(res, seeded, regime, model, it):
+            row = _seed_labels(seeded, model, control)
+            for b in buildings:
+                for col, name in (("err_R", "R"), ("err_t", "t")):
+                    got = seed_comparison(res, seeded, regime, model, control, it, col, building=b)
+                    row[f"{b} {name}"] = "–" if got is None else _ci((got[0]["diff"], got[0]["lo"], got[0]["hi"]))
+                    if got is not None:
+                        n_pairs[b] = got[1]
+            rows.append(row)
+    if not rows:
+        return ""
+    sizes = ", ".join(f"{b} {n_pairs[b]}" for b in buildings if b in n_pairs)
+    return (f"### Across training seeds, per test building ({it} iterations)\n\n"
+            "The comparisons above within one test building: `model − control` in mAA@10° of the building's pairs, "
+            f"with a 95% interval ({N_BOOT} draws: the seeds with replacement, then that building's pairs). Pairs per "
+            f"building: {sizes}; one pair moves a building's mAA by 1/its pairs, so the small buildings' intervals "
+            "are wide.\n\n" + pd.DataFrame(rows).to_markdown(index=False, disable_numparse=True) + "\n")
 
 
 SHORT = {"guide_temperature": "T", "lo_sigma_scale": "σ", "sets_per_step": "k", "confidence": "conf",
