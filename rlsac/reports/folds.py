@@ -467,8 +467,7 @@ def _seed_building_section(res, regime: str, it: int) -> str:
     each test building: the seeds and that building's pairs resampled (metrics.seed_bootstrap_maa on its pairs)."""
     rows = []
     seeded = seed_runs(res, regime)
-    buildings = sorted({f for m in seeded for (r, mm, i), df in res.items() if (r, mm, i) == (regime, m, it)
-                        for f in df["fold"].unique()})
+    buildings = sorted({f for m in seeded if (regime, m, it) in res for f in res[(regime, m, it)]["fold"].unique()})
     n_pairs = {}
     for model in seeded:
         for control in _seed_controls_at(res, seeded, regime, model, it):
@@ -476,7 +475,7 @@ def _seed_building_section(res, regime: str, it: int) -> str:
             for b in buildings:
                 for col, name in (("err_R", "R"), ("err_t", "t")):
                     got = seed_comparison(res, seeded, regime, model, control, it, col, building=b)
-                    row[f"{b} {name}"] = "–" if got is None else _ci((got[0]["diff"], got[0]["lo"], got[0]["hi"]))
+                    row[f"{b} {name}"] = "–" if got is None else _seed_cells(got[0])[1]
                     if got is not None:
                         n_pairs[b] = got[1]
             rows.append(row)
