@@ -8,6 +8,10 @@ A checkpoint is ``torch.save`` of a dict:
     in_channels  the actor's input channels (the task's data features + the environment's memory)
     step         the training step of this actor; val: its validation metrics; selection: how it was kept
     history      every validation of the run (the learning curve)
+    state_scales the scales of the policy's state features it was trained with (issue #46), in the task's own
+                 units: {"residual_threshold": eps_train}; the environment computes the residual feature with these
+                 at any evaluation threshold. Absent in checkpoints written before the key: those are evaluated
+                 with the residual feature at the evaluation threshold, as the record made them (``state_scales``)
     kind         absent for an RLSAC actor; "ngransac" for NG-RANSAC's sampling network (rlsac.ngransac: the same
                  keys, ``actor`` its weights, ``in_channels`` the task's data features, no environment memory)
 Training state for ``--resume`` (rlsac.train) is a separate file beside it and never read here.
@@ -29,10 +33,31 @@ from rlsac.policy import Actor, PolicyConf
 
 
 def actor_payload(actor: torch.nn.Module, conf: dict[str, Any], in_channels: int, step: int, val: dict,
-                  selection: str, history: list) -> dict[str, Any]:
-    """The checkpoint dict of ``actor`` (its weights copied: later optimiser steps do not change it)."""
-    return {"actor": {k: v.detach().clone() for k, v in actor.state_dict().items()}, "conf": conf,
-            "in_channels": int(in_channels), "step": step, "val": val, "selection": selection, "history": list(history)}
+                  selection: str, history: list, state_scales: dict[str, float] | None = None) -> dict[str, Any]:
+    """The checkpoint dict of ``actor`` (its weights copied: later optimiser steps do not change it);
+    ``state_scales``: the scales of its state features (``training_scales``), stored when given."""
+    payload = {"actor": {k: v.detach().clone() for k, v in actor.state_dict().items()}, "conf": conf,
+               "in_channels": int(in_channels), "step": step, "val": val, "selection": selection,
+               "history": list(history)}
+    if state_scales is not None:
+        payload["state_scales"] = {k: float(v) for k, v in state_scales.items()}
+    return payload
+
+
+def training_scales(task) -> dict[str, float]:
+    """The state scales of a policy trained on ``task``: its inlier threshold is the residual feature's unit."""
+    return {"residual_threshold": float(task.threshold)}
+
+
+def state_scales(path: str | Path, device: str | torch.device = "cpu") -> dict[str, float] | None:
+    """The ``state_scales`` a checkpoint carries (None for one written before the key); RlsacError on a bad value."""
+    scales = read(path, device).get("state_scales")
+    if scales is None:
+        return None
+    eps = scales.get("residual_threshold") if isinstance(scales, dict) else None
+    if not isinstance(eps, (int, float)) or not eps > 0 or eps != eps or eps == float("inf"):
+        raise RlsacError(f"{path}: state_scales.residual_threshold must be a positive number, got {eps!r}")
+    return {"residual_threshold": float(eps)}
 
 
 def to_bytes(payload: dict[str, Any]) -> bytes:

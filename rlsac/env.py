@@ -5,8 +5,11 @@ starts from a uniformly random minimal set; each later minimal set comes from th
 of a row is the instance's data features (N x c) concatenated with three memory features:
 
 * action: +1 for the points of the last minimal set, -1 otherwise;
-* residual: distance to the last hypothesis divided by the inlier threshold, clipped at
-  ``residual_clip`` and scaled to [0, 1] (inliers span [0, 1/clip]; far outliers saturate at 1);
+* residual: distance to the last hypothesis divided by the *state threshold*, clipped at ``residual_clip`` and
+  scaled to [0, 1] (inliers span [0, 1/clip]; far outliers saturate at 1). The state threshold is the one the
+  policy was trained with (a checkpoint's ``state_scales``, issue #46), not the threshold the evaluation scores
+  with: a threshold tuned per fold changes which points count as inliers, never what the policy sees. Without
+  one (training, the controls, a checkpoint from before the key) it is the task's inlier threshold;
 * history: how many times the point has been in a minimal set of this episode.
 
 Reward = inlier ratio of the hypothesis. A minimal set already used for this instance (by any of its
@@ -54,8 +57,13 @@ class EnvConf:
 class SampleConsensusEnv:
     """Batched environment. Call ``reset`` with a batch, then alternate ``choose`` and ``step``."""
 
-    def __init__(self, task: Task, conf: EnvConf, training: bool):
+    def __init__(self, task: Task, conf: EnvConf, training: bool, state_threshold: float | None = None):
+        """state_threshold: the residual scale of the policy's state (in the task's residual unit); None = the
+        task's inlier threshold (the two are one while training)."""
+        if state_threshold is not None and not (math.isfinite(state_threshold) and state_threshold > 0):
+            raise ValueError(f"state_threshold must be a positive number, got {state_threshold!r}")
         self.task, self.conf, self.training = task, conf, training
+        self.state_threshold = float(task.threshold if state_threshold is None else state_threshold)
 
     # ---------------------------------------------------------------- setup
     def reset(self, batch: dict, features: torch.Tensor, episodes: int = 1, budget: int | None = None,
@@ -256,7 +264,7 @@ class SampleConsensusEnv:
         onehot = torch.zeros_like(self.action, dtype=torch.bool).scatter_(1, idx, True)
         a = act[:, None]
         self.action = torch.where(a, onehot.float() * 2 - 1, self.action)
-        r_feat = (res / self.task.threshold).clamp(max=conf.residual_clip) / conf.residual_clip
+        r_feat = (res / self.state_threshold).clamp(max=conf.residual_clip) / conf.residual_clip
         self.residual = torch.where(a, r_feat.masked_fill(~self.mask, 1.0), self.residual)
         self.history = self.history + (onehot & a).float()
 

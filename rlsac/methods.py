@@ -103,7 +103,7 @@ def _guided(o, device, lo=None):
 @register_method("rlsac", "RLSAC", checkpoint=True)
 def _rlsac(o, device, lo=None):
     """The learned sampler of ``o['checkpoint']`` in its own environment."""
-    from rlsac.checkpoint import env_conf, load_actor, task_options
+    from rlsac.checkpoint import env_conf, load_actor, state_scales, task_options
     from rlsac.rollout import rlsac_estimate, with_lo
     from rlsac.tasks import task_for
 
@@ -111,13 +111,18 @@ def _rlsac(o, device, lo=None):
     ckpt_conf = dict(ckpt_conf or {})
     task = task_for(o, task_options(ckpt_conf))
     env = with_lo(env_conf(ckpt_conf, o["steps_per_episode"]), lo)
+    # the policy sees residuals in its training unit, whatever threshold this evaluation scores with (issue #46);
+    # a checkpoint from before state_scales sees them at the evaluation threshold, as the record was made
+    scales = state_scales(o["checkpoint"], device)
+    eps = None if scales is None else scales["residual_threshold"]
 
     def estimate(batch, g):
         return rlsac_estimate(task, batch, actor, o["iterations"], env, sampling=o["sampling"], generator=g,
                               policy_every=o["policy_every"], sets_per_step=o["sets_per_step"],
-                              confidence=o["confidence"])
+                              confidence=o["confidence"], state_threshold=eps)
 
-    return task, estimate, {"steps_per_episode": env.steps_per_episode}
+    extra = {"steps_per_episode": env.steps_per_episode}
+    return task, estimate, extra if eps is None else {**extra, "state_threshold": eps}
 
 
 @register_method("ngransac", "NG-RANSAC (ours, from the paper)", checkpoint=True)

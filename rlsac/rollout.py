@@ -17,7 +17,8 @@ from rlsac.tasks import Task
 def rlsac_estimate(task: Task, batch: dict, actor: Actor | None, iterations: int, env_conf: EnvConf | None = None,
                    sampling: str = "max", generator: torch.Generator | None = None,
                    record: bool = False, reference: bool = False, guide: torch.Tensor | None = None,
-                   policy_every: int = 1, sets_per_step: int = 1, confidence: float = 0.0) -> dict:
+                   policy_every: int = 1, sets_per_step: int = 1, confidence: float = 0.0,
+                   state_threshold: float | None = None) -> dict:
     """Run ceil(iterations / (psi k)) episodes per instance in parallel, at most ``iterations`` hypotheses.
 
     batch: coords (B, N, d), mask (B, N), plus what ``task.features`` needs.
@@ -42,6 +43,8 @@ def rlsac_estimate(task: Task, batch: dict, actor: Actor | None, iterations: int
     all scored, the best of them the step's action; one network call per k hypotheses. 1 = the paper.
     confidence: > 0 stops an instance at RANSAC's termination bound (``SampleConsensusEnv.confident``); 0 = the
     whole budget (the paper). Both not in the paper: speed levers (reports/speed.md).
+    state_threshold: the residual scale of the policy's state (a checkpoint's ``state_scales``); None = the task's
+    inlier threshold (``SampleConsensusEnv``). Scoring and inlier counts always use ``task.threshold``.
     """
     if sampling not in ("max", "prob"):
         raise RlsacError(f"sampling must be 'max' or 'prob', got {sampling!r}")
@@ -57,7 +60,7 @@ def rlsac_estimate(task: Task, batch: dict, actor: Actor | None, iterations: int
         raise RlsacError(f"guide must be (B, N) = {tuple(batch['mask'].shape)} logits without an actor")
     conf = env_conf or EnvConf()
     psi = conf.steps_per_episode
-    env = SampleConsensusEnv(task, conf, training=False)
+    env = SampleConsensusEnv(task, conf, training=False, state_threshold=state_threshold)
     k = int(sets_per_step)
     episodes = math.ceil(iterations / (psi * k))
     feats = task.features(batch)

@@ -58,6 +58,9 @@ def replay(train_opts: dict[str, Any], kept: dict[str, Any], where: Path) -> lis
             torch.equal(same[0]["actor"][k].cpu(), kept["actor"][k].cpu()) for k in kept["actor"]):
         raise RlsacError(f"{train_opts['out']}: the replayed training does not give the kept actor of step "
                          f"{kept.get('step')} (a checkpoint from other options, code or hardware)")
+    if "state_scales" not in kept:  # a checkpoint from before the key: its snapshots are evaluated as it was
+        for s in snaps:
+            s.pop("state_scales", None)
     return snaps
 
 

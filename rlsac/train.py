@@ -257,7 +257,8 @@ class _TrainingRun:
         self.history.append({"step": step, **summ})
         if self.snapshots is not None:
             self.snapshots.append(checkpoint.actor_payload(self.agent.actor, self.conf_dict, in_channels(self.task),
-                                                           step, summ, self.conf.selection, self.history))
+                                                           step, summ, self.conf.selection, self.history,
+                                                           checkpoint.training_scales(self.task)))
         score = summ[selection_score(self.conf.selection)]
         if self.conf.selection != "last" and score > self.best["score"]:
             self.best.update(score=score, step=step, **summ)
@@ -266,7 +267,7 @@ class _TrainingRun:
 
     def save_actor(self, step: int, metrics: dict) -> None:
         self.kept = checkpoint.actor_payload(self.agent.actor, self.conf_dict, in_channels(self.task), step, metrics,
-                                             self.conf.selection, self.history)
+                                             self.conf.selection, self.history, checkpoint.training_scales(self.task))
         checkpoint.write(self.out, self.kept)
 
     def save_state(self, step: int, buf=None) -> None:

@@ -1,0 +1,77 @@
+"""The policy's state is decoupled from the evaluation threshold (issue #46).
+
+A checkpoint carries the residual scale its policy was trained with (``state_scales``); evaluating it at another
+inlier threshold changes which points count as inliers, never the residual feature the policy sees. A checkpoint
+written before the key keeps the record's behaviour (the feature at the evaluation threshold).
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from rlsac import checkpoint
+from rlsac.evaluate import DEFAULTS
+from rlsac.methods import METHODS
+from rlsac.policy import Actor, PolicyConf
+from rlsac.rollout import in_channels
+from rlsac.tasks.fundamental import FundamentalTask
+from tests.test_speed_equivalence import two_view_batch
+
+POLICY = {"k": 8, "widths": [8, 8], "global_width": 8, "head_width": 8, "graph_dims": 4}
+
+
+def _checkpoint(path, scales):
+    torch.manual_seed(0)
+    task = FundamentalTask()
+    actor = Actor(in_channels(task), PolicyConf(**POLICY))
+    conf = {"task": "fundamental", "task_options": {}, "policy": POLICY, "env": {}}
+    checkpoint.write(path, checkpoint.actor_payload(actor, conf, in_channels(task), 1, {}, "last", [], scales))
+    return path
+
+
+def _first_memories(path, threshold_px, monkeypatch):
+    """The memory channels of the policy's first call when the checkpoint is evaluated at ``threshold_px``."""
+    seen = []
+    forward = Actor.forward_memory
+
+    def spy(self, prep, memory):
+        seen.append(memory.clone())
+        return forward(self, prep, memory)
+
+    monkeypatch.setattr(Actor, "forward_memory", spy)
+    o = {**DEFAULTS, "task": "fundamental", "method": "rlsac", "checkpoint": str(path), "iterations": 30,
+         "threshold_px": threshold_px, "steps_per_episode": 15}
+    task, estimate, extra = METHODS["rlsac"].build(o, "cpu")
+    estimate(two_view_batch(2, N=60, seed=3), torch.Generator().manual_seed(7))
+    return task, extra, seen[0]
+
+
+def test_two_evaluation_thresholds_give_the_policy_the_same_state(tmp_path, monkeypatch):
+    path = _checkpoint(tmp_path / "m.pt", checkpoint.training_scales(FundamentalTask()))  # 4 px^2 = 2 px
+    task_a, extra_a, mem_a = _first_memories(path, 0.75, monkeypatch)
+    task_b, extra_b, mem_b = _first_memories(path, 3.0, monkeypatch)
+    assert (task_a.threshold, task_b.threshold) == (0.5625, 9.0)  # the evaluations do score differently
+    assert extra_a["state_threshold"] == extra_b["state_threshold"] == 4.0  # recorded in config.json
+    assert torch.equal(mem_a, mem_b)  # same random first set (same seed): the same state, so the same logits
+    # the residual channel is min(r / 4, 5) / 5 of the training unit: a point at r = 2 px^2 reads 0.1
+    assert 0.0 <= float(mem_a[..., 1].min()) and float(mem_a[..., 1].max()) == 1.0
+
+
+def test_a_checkpoint_from_before_the_key_sees_the_evaluation_threshold(tmp_path, monkeypatch):
+    path = _checkpoint(tmp_path / "old.pt", None)
+    assert "state_scales" not in checkpoint.read(path)
+    _, extra_a, mem_a = _first_memories(path, 0.75, monkeypatch)
+    _, extra_b, mem_b = _first_memories(path, 3.0, monkeypatch)
+    assert "state_threshold" not in extra_a  # its config.json stays as the record wrote it
+    assert not torch.equal(mem_a[..., 1], mem_b[..., 1])  # coupled: the record's behaviour
+    assert torch.equal(mem_a[..., 0], mem_b[..., 0])  # only the residual channel moves
+
+
+def test_training_writes_the_scales_and_a_bad_value_is_refused(tmp_path):
+    assert checkpoint.training_scales(FundamentalTask(threshold=2.25)) == {"residual_threshold": 2.25}
+    bad = _checkpoint(tmp_path / "bad.pt", {"residual_threshold": -1.0})
+    from rlsac.errors import RlsacError
+
+    with pytest.raises(RlsacError, match="residual_threshold must be a positive number"):
+        checkpoint.state_scales(bad)
