@@ -315,6 +315,27 @@ def folds(tracking: bool, **options) -> None:
     click.echo(format_summary(run(options, track=tracking)))
 
 
+
+@cli.command()
+@click.option("--stage", type=click.Choice(["pool", "train", "evaluate"]), required=True,
+              help="pool: the fold's training pairs with the pool's points each (data/scale/<fold>/pool.h5); train: "
+                   "one run of an arm and seed with its step snapshots; evaluate: every snapshot on the fold's test "
+                   "pairs at every budget.")
+@click.option("--arm", help="With train / evaluate: fixed (the training file's points) or redraw (a fresh draw of the "
+                            "pool per episode, images swapped at random).")
+@click.option("--seed", type=int, help="With train / evaluate: a training seed of params.yaml scale.seeds.")
+@click.option("--params", "params", default="params.yaml", show_default=True,
+              help="params.yaml: its scale, folds, fundamental and train.fundamental sections.")
+@click.option("--threads", type=int, default=1, show_default=True, help="torch CPU threads (1 is fastest here).")
+@device_option
+@tracking_option
+def scale(tracking: bool, **options) -> None:
+    """The training-scale study (issue #46): one fold trained at growing scale, two data arms (rlsac.scale)."""
+    from rlsac.scale import format_summary
+    from rlsac.scale import scale as run
+
+    click.echo(format_summary(run(options, track=tracking)))
+
 @cli.command()
 @click.option("--checkpoint", required=True, type=click.Path(dir_okay=False),
               help="An RLSAC checkpoint whose training is replayed (its own options, data and seed).")

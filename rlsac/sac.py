@@ -69,8 +69,14 @@ class SACConf:
 
 
 class ReplayBuffer:
-    def __init__(self, size: int, n: int, m: int, device: torch.device):
+    """``extra``: width of a per-transition record of what the episode drew (rlsac.episodes.RedrawnPairs: the point
+    indices and the swap flag); 0 for fixed pairs, whose instance index says everything."""
+
+    def __init__(self, size: int, n: int, m: int, device: torch.device, extra: int = 0):
         self.size, self.ptr, self.full = size, 0, False
+        self.keys = ("inst", "mem", "mem2", "action", "reward", "done") + (("extra",) if extra else ())
+        if extra:
+            self.extra = torch.zeros((size, extra), dtype=torch.int16, device=device)
         self.inst = torch.zeros(size, dtype=torch.long, device=device)
         self.mem = torch.zeros((size, n, MEMORY_DIM), dtype=torch.float16, device=device)
         self.mem2 = torch.zeros((size, n, MEMORY_DIM), dtype=torch.float16, device=device)
@@ -81,10 +87,12 @@ class ReplayBuffer:
     def __len__(self) -> int:
         return self.size if self.full else self.ptr
 
-    def add(self, inst, mem, mem2, action, reward, done) -> None:
+    def add(self, inst, mem, mem2, action, reward, done, extra=None) -> None:
         k = inst.shape[0]
         idx = (self.ptr + torch.arange(k, device=inst.device)) % self.size
         self.inst[idx], self.mem[idx], self.mem2[idx] = inst, mem.half(), mem2.half()
+        if extra is not None:
+            self.extra[idx] = extra.to(torch.int16)
         self.action[idx], self.reward[idx], self.done[idx] = action, reward, done.float()
         self.full = self.full or self.ptr + k >= self.size
         self.ptr = (self.ptr + k) % self.size
@@ -94,7 +102,7 @@ class ReplayBuffer:
         writes the slice's whole storage (the 100k-row buffer for a few hundred transitions)."""
         n = len(self)
         return {"size": self.size, "ptr": self.ptr, "full": self.full,
-                **{k: getattr(self, k)[:n].cpu().clone() for k in ("inst", "mem", "mem2", "action", "reward", "done")}}
+                **{k: getattr(self, k)[:n].cpu().clone() for k in self.keys}}
 
     def load_state_dict(self, st: dict) -> None:
         n = st["inst"].shape[0]
@@ -102,14 +110,18 @@ class ReplayBuffer:
                 tuple(st["action"].shape[1:]) != tuple(self.action.shape[1:]):
             raise ValueError(f"saved buffer {st['size']} x {tuple(st['mem'].shape[1:])} does not fit "
                              f"{self.size} x {tuple(self.mem.shape[1:])}")
-        for k in ("inst", "mem", "mem2", "action", "reward", "done"):
+        if ("extra" in st) != ("extra" in self.keys):
+            raise ValueError("saved buffer and this training disagree on redrawn episodes (episodes.pool)")
+        for k in self.keys:
             getattr(self, k)[:n] = st[k].to(self.inst.device)
         self.ptr, self.full = int(st["ptr"]), bool(st["full"])
 
     def sample(self, k: int, generator: torch.Generator):
+        """-> inst, mem, mem2, action, reward, done and the episode records (None for fixed pairs) of k transitions."""
         idx = torch.randint(len(self), (k,), generator=generator, device=generator.device).to(self.inst.device)
+        extra = self.extra[idx].long() if "extra" in self.keys else None
         return (self.inst[idx], self.mem[idx].float(), self.mem2[idx].float(), self.action[idx],
-                self.reward[idx], self.done[idx])
+                self.reward[idx], self.done[idx], extra)
 
 
 def masked_policy(logits: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -190,21 +202,22 @@ class SACAgent(torch.nn.Module):
 
 def train_loop(agent: SACAgent, task, data: dict, env_conf: EnvConf, start_step: int, generator: torch.Generator,
                log, validate=None, val_every: int = 500, checkpoint=None, ckpt_every: int = 500,
-               buffer: ReplayBuffer | None = None, stop=None) -> ReplayBuffer:
+               buffer: ReplayBuffer | None = None, stop=None, episodes=None, on_step=None) -> ReplayBuffer:
     """Collect episodes with the actor and update the agent; ``data`` = coords, mask, features (I, ...).
 
     ``log(metrics, step)``, ``validate(step) -> metrics``, ``checkpoint(step, buffer)`` (at the first episode
     end at or after every ``ckpt_every`` steps) and ``stop() -> bool`` (checked after each step; the loop
     checkpoints and returns at the next episode end) are callbacks; ``buffer`` resumes a saved buffer.
     """
+    from rlsac.episodes import FixedPairs
+
     c = agent.conf
-    feats_all, mask_all, coords_all = data["features"], data["mask"], data["coords"]
-    labels_all = data.get("labels")  # ground-truth inliers, only for the supervised warm start
-    graph_all = agent.actor.graph(feats_all, mask_all)  # data features never change: one graph per instance
-    I, N = mask_all.shape
-    device = feats_all.device
+    source = episodes if episodes is not None else FixedPairs(task, data, agent.actor)
+    labels_all = data.get("labels")  # ground-truth inliers, only for the supervised warm start (fixed pairs)
+    I, N = source.n_instances, source.n_points
+    device = data["mask"].device
     if buffer is None:
-        buffer = ReplayBuffer(c.buffer_size, N, task.sample_size, device)
+        buffer = ReplayBuffer(c.buffer_size, N, task.sample_size, device, extra=source.extra_width)
     env = SampleConsensusEnv(task, env_conf, training=True)
     running, t0, n_trans, n_upd, ckpt_due = False, time.time(), 0, 0, False
     ep_return = torch.zeros(c.num_envs, device=device)
@@ -213,34 +226,34 @@ def train_loop(agent: SACAgent, task, data: dict, env_conf: EnvConf, start_step:
     for step in bar:
         if not running:
             inst = torch.randint(I, (c.num_envs,), generator=generator, device=generator.device).to(device)
-            batch = {"coords": coords_all[inst], "mask": mask_all[inst]}
-            state = env.reset(batch, feats_all[inst], episodes=1, generator=generator)
+            batch, feats, graph, drawn = source.draw(inst, generator)
+            state = env.reset(batch, feats, episodes=1, generator=generator)
             ep_return.zero_()
             running = True
         with torch.no_grad():
-            logits = agent.actor(state, env.mask, graph_all[inst])
+            logits = agent.actor(state, env.mask, graph)
         idx = env.select(logits, sample=c.train_sampling == "prob")
         mem = env.memory()
         reward, done, act = env.step(idx)
         if c.bootstrap_truncation:  # stored done = the kappa/varsigma stops only, not the psi cut
             done = done & ((env.same_count >= env_conf.kappa) | (env.no_better >= env_conf.varsigma))
         state = env.state()
-        buffer.add(inst[act], mem[act], env.memory()[act], idx[act], reward[act], done[act])
+        buffer.add(inst[act], mem[act], env.memory()[act], idx[act], reward[act], done[act],
+                   None if drawn is None else drawn[act])
         n_trans += int(act.sum())
         ep_return += reward
         if not env.active.any():
             running = False
             log({"charts/episode_return": ep_return.mean().item(),
                  "charts/episode_length": env.t - 1,
-                 "charts/inlier_ratio": (env.best_count.float() / mask_all[inst].sum(-1)).mean().item()}, step)
+                 "charts/inlier_ratio": (env.best_count.float() / batch["mask"].sum(-1)).mean().item()}, step)
         if len(buffer) >= c.learning_starts:
             for _ in range(c.updates_per_step):
-                b_inst, b_mem, b_mem2, b_a, b_r, b_d = buffer.sample(c.batch_size, generator)
-                x = feats_all[b_inst]
-                m = mask_all[b_inst]
+                b_inst, b_mem, b_mem2, b_a, b_r, b_d, b_extra = buffer.sample(c.batch_size, generator)
+                x, m, b_graph = source.lookup(b_inst, b_extra)
                 warm = labels_all is not None and int(agent.n_updates) < c.warm_start_updates
                 metrics = agent.update(torch.cat([x, b_mem], -1), torch.cat([x, b_mem2], -1), m,
-                                       graph_all[b_inst], b_a, b_r, b_d, labels_all[b_inst] if warm else None)
+                                       b_graph, b_a, b_r, b_d, labels_all[b_inst] if warm else None)
                 metrics["charts/warm_start"] = float(warm)
                 n_upd += 1
             if step % 50 == 0:
@@ -248,6 +261,8 @@ def train_loop(agent: SACAgent, task, data: dict, env_conf: EnvConf, start_step:
                 metrics.update({"charts/transitions_per_s": n_trans / el, "charts/updates_per_s": n_upd / el})
                 log(metrics, step)
                 bar.set_postfix(alpha=f"{metrics['charts/alpha']:.3f}", H=f"{metrics['charts/entropy']:.2f}")
+        if on_step is not None:
+            on_step(step + 1)
         if validate is not None and (step + 1) % val_every == 0:
             log(validate(step + 1), step)
         # A checkpoint waits for the end of the running episode: the loop's whole state is then the agent, the

@@ -27,6 +27,7 @@ from rlsac.config import build, to_dict
 from rlsac.data import n_unusable, read_batch, slice_batch
 from rlsac.devices import resolve_device
 from rlsac.env import EnvConf
+from rlsac.episodes import EpisodeConf, RedrawnPairs, pool_tensors
 from rlsac.errors import Interrupted, RlsacError
 from rlsac.io import atomic_path, check_writable, clean_stale_temps, load_torch
 from rlsac.ngransac import NGRansacConf
@@ -67,11 +68,16 @@ class TrainConf:
     policy: PolicyConf = field(default_factory=PolicyConf)
     sac: SACConf = field(default_factory=SACConf)
     ngransac: NGRansacConf = field(default_factory=NGRansacConf)  # method "ngransac" only
+    # not in the paper (issue #46): episodes redrawn from a pool of each pair's matches, images swapped at random
+    # (rlsac.episodes); the default, no pool, is the record's recipe (the training file's points every episode)
+    episodes: EpisodeConf = field(default_factory=EpisodeConf)
+    # also write the actor of these steps (a scale curve from one run: <out stem>.step<k>.pt beside ``out``)
+    snapshot_steps: list[int] = field(default_factory=list)
 
     # checked by rlsac.config.build for every source (params.yaml, --set); nested sections have their own
     ranges = {"task": TASKS, "method": TRAINED_METHODS, "device": ("auto", "cpu", "cuda"), "seed": "[0, 4294967295]",
               "threads": "[0, inf)", "val_instances": "[1, inf)", "val_iterations": "[1, inf)",
-              "val_every": "[1, inf)", "ckpt_every": "[1, inf)", "selection": SELECTIONS}
+              "val_every": "[1, inf)", "ckpt_every": "[1, inf)", "selection": SELECTIONS, "snapshot_steps": "[1, inf)"}
 
 
 # the sections of one trained method only: a checkpoint stores its own method's (an RLSAC checkpoint's conf, and so its
@@ -79,11 +85,17 @@ class TrainConf:
 OWN_SECTIONS = {"rlsac": ("env", "sac"), "ngransac": ("ngransac",)}
 
 
+# options added after the record, left out of a stored configuration while at their default: the record's
+# checkpoints (and so their bytes) are what they were (rlsac verify --include-train)
+LATER_DEFAULTS = {"episodes": to_dict(EpisodeConf()), "snapshot_steps": []}
+
+
 def stored_conf(conf: TrainConf) -> dict:
     """The configuration a checkpoint and its MLflow run keep: every field but the other methods' sections (and, for
-    RLSAC, the ``method`` key: its default)."""
+    RLSAC, the ``method`` key: its default; ``LATER_DEFAULTS`` at their defaults)."""
     other = {s for m, secs in OWN_SECTIONS.items() if m != conf.method for s in secs}
-    return {k: v for k, v in to_dict(conf).items() if k not in other and not (k == "method" and conf.method == "rlsac")}
+    return {k: v for k, v in to_dict(conf).items() if k not in other and not (k == "method" and conf.method == "rlsac")
+            and not (k in LATER_DEFAULTS and v == LATER_DEFAULTS[k])}
 
 
 def check_params(params: dict) -> None:
@@ -128,6 +140,10 @@ def train(options: dict, track: bool = True, snapshots: list | None = None) -> d
     if device.type != "cpu":
         gen = torch.Generator(device=device).manual_seed(conf.seed)
     agent = SACAgent(in_channels(task), conf.policy, conf.sac).to(device)
+    episodes = None
+    if conf.episodes.pool:  # issue #46: a fresh draw of each pair's pool per episode
+        pool, _ = read_batch(conf.task, conf.episodes.pool, device)
+        episodes = RedrawnPairs(task, pool_tensors(pool, device), agent.actor, conf.episodes.points, conf.episodes.swap)
     for p in (out, state_path):  # left by a process killed while saving
         clean_stale_temps(p)
     run = _TrainingRun(conf, task, agent, gen, val, out, state_path, device)
@@ -143,7 +159,8 @@ def train(options: dict, track: bool = True, snapshots: list | None = None) -> d
         t0 = time.time()
         run.buffer = train_loop(agent, task, data, conf.env, run.start, gen, log=mlflow_run.metrics,
                                 validate=run.validate if val is not None else None, val_every=conf.val_every,
-                                checkpoint=run.save_state, ckpt_every=conf.ckpt_every, buffer=run.buffer, stop=stop)
+                                checkpoint=run.save_state, ckpt_every=conf.ckpt_every, buffer=run.buffer, stop=stop,
+                                episodes=episodes, on_step=run.snapshot if conf.snapshot_steps else None)
         if stop.signum and run.saved["after_signal"] and run.saved["step"] < conf.sac.total_steps:
             raise Interrupted(f"interrupted by {signal.Signals(stop.signum).name} at step {run.saved['step']} of "
                               f"{conf.sac.total_steps}: state saved to {state_path}; continue with --resume",
@@ -234,8 +251,11 @@ class _TrainingRun:
             self.start, self.best, self.history = st["step"], {"score": -1.0, **st["best"]}, st.get("history", [])
             self.gen.set_state(st["generator"].cpu())  # a generator's state is a CPU byte tensor on every device
             if st.get("buffer") is not None:
-                self.buffer = ReplayBuffer(self.conf.sac.buffer_size, data["mask"].shape[1], self.task.sample_size,
-                                           self.device)
+                pool = bool(self.conf.episodes.pool)
+                self.buffer = ReplayBuffer(self.conf.sac.buffer_size,
+                                           self.conf.episodes.points if pool else data["mask"].shape[1],
+                                           self.task.sample_size, self.device,
+                                           extra=self.conf.episodes.points + 1 if pool else 0)
                 self.buffer.load_state_dict(st["buffer"])
         except (KeyError, RuntimeError, ValueError, TypeError) as e:
             raise RlsacError(f"{self.state_path}: does not fit this configuration and data "
@@ -270,6 +290,13 @@ class _TrainingRun:
                                              self.conf.selection, self.history, checkpoint.training_scales(self.task))
         checkpoint.write(self.out, self.kept)
 
+    def snapshot(self, step: int) -> None:
+        """After vector-env step ``step``: the actor of a step in ``snapshot_steps`` -> <out stem>.step<step>.pt."""
+        if step in self.conf.snapshot_steps:
+            checkpoint.write(snapshot_path(self.out, step), checkpoint.actor_payload(
+                self.agent.actor, self.conf_dict, in_channels(self.task), step, {}, "step",
+                self.history, checkpoint.training_scales(self.task)))
+
     def save_state(self, step: int, buf=None) -> None:
         """Everything a resume needs, the kept actor included, in one file: a kill between this write and
         the actor's leaves a pair that --resume repairs from here."""
@@ -297,6 +324,12 @@ class _TrainingRun:
             checkpoint.write(self.out, self.kept)
         self.save_state(steps)
         return final
+
+
+def snapshot_path(out: str | Path, step: int) -> Path:
+    """Where ``snapshot_steps`` writes the actor of ``step``: beside ``out``, <stem>.step<step>.pt."""
+    out = Path(out)
+    return out.with_name(f"{out.stem}.step{int(step)}.pt")
 
 
 SELECTION_KEY = {"inlier_ratio": "charts/val_inlier_ratio", "val_mAA": "charts/val_mAA"}

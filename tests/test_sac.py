@@ -208,7 +208,8 @@ def test_replay_buffer_stores_and_wraps():
         assert torch.equal(buf.mem[j].float(), ref[1][0]) and torch.equal(buf.mem2[j].float(), ref[2][0])
         assert buf.action[j].tolist() == ref[3][0].tolist() and buf.reward[j].item() == pytest.approx(i / 10)
         assert buf.done[j].item() == i % 2
-    inst, mem, mem2, action, reward, done = buf.sample(64, torch.Generator().manual_seed(0))
+    inst, mem, mem2, action, reward, done, extra = buf.sample(64, torch.Generator().manual_seed(0))
+    assert extra is None  # fixed pairs store no episode record
     torch.manual_seed(123)  # draws come from the given generator only
     assert torch.equal(buf.sample(64, torch.Generator().manual_seed(0))[0], inst)
     assert not torch.equal(buf.sample(64, torch.Generator().manual_seed(1))[0], inst)

@@ -1,0 +1,142 @@
+"""``rlsac scale``: is RLSAC starved? One fold of the benchmark trained at growing scale (issue #46).
+
+Stages (params.yaml ``scale``, rlsac.scale_layout):
+  pool      the fold's training pairs prepared again with the pool's size (the hard regime's 1000 lowest-SNN
+            matches per pair, descriptors included): what the redraw arm draws its episodes from;
+  train     one run per (arm, seed): the fold recipe (train.fundamental <- folds.train.rlsac) run for the largest of
+            ``steps``, its actor kept at every step of ``steps`` (the curve's points) and by the recipe's selection;
+            arm ``fixed`` sees the training file's 150 points of a pair in every episode (the record), arm ``redraw``
+            a fresh 150 of the pair's pool per episode with the images swapped at random (rlsac.episodes);
+  evaluate  every kept actor on the fold's test pairs at every budget of ``iterations``, with the inlier threshold
+            and pre-filter tuned on the fold's validation pairs for ``settings_from`` (the uniform control): the
+            policy's state no longer depends on the threshold (checkpoint state_scales), so the sampler-free
+            control's setting scores both alike, and RLSAC - uniform is the sampler alone.
+The test pairs are read once per actor, after training; nothing here chooses anything on them.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+from rlsac import scale_layout as lay
+from rlsac.errors import RlsacError
+
+STAGES = ("pool", "train", "evaluate")
+
+
+def scale(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
+    """Run one stage (``options``: stage, arm, seed, params, device, threads) -> a summary."""
+    from rlsac.config import read_params
+    from rlsac.folds import for_task, protocol
+
+    stage = options.get("stage")
+    if stage not in STAGES:
+        raise RlsacError(f"scale --stage must be one of {', '.join(STAGES)}, got {stage!r}")
+    params = read_params(options.get("params") or "params.yaml")
+    s = lay.protocol(params)
+    p = for_task(protocol(params), params, "fundamental")
+    if s["fold"] not in p["test"] or s["regime"] not in p["regimes"]:
+        raise RlsacError(f"scale.fold {s['fold']!r} / scale.regime {s['regime']!r}: not a fold / regime of params "
+                         "folds")
+    if stage != "pool":
+        arm, seed = options.get("arm"), options.get("seed")
+        if arm not in s["arms"] or seed is None or int(seed) not in s["seeds"]:
+            raise RlsacError(f"scale --stage {stage} needs --arm (one of {', '.join(s['arms'])}) and --seed (one of "
+                             f"{s['seeds']})")
+    if int(options.get("threads") or 0) > 0:
+        import torch
+
+        torch.set_num_threads(int(options["threads"]))
+    t0 = time.time()
+    if stage == "pool":
+        out = make_pool(p, params, s, track)
+    elif stage == "train":
+        out = train_run(p, params, s, options["arm"], int(options["seed"]), options, track)
+    else:
+        out = evaluate_run(p, params, s, options["arm"], int(options["seed"]), options, track)
+    return {"stage": stage, **out, "seconds": round(time.time() - t0, 1)}
+
+
+def make_pool(p: dict, params: dict, s: dict, track: bool) -> dict[str, Any]:
+    """The fold's training pairs (the train holdout of its training buildings) with the pool's points each."""
+    from rlsac.config import section
+    from rlsac.data.tutorial import PrepareConf, prepare
+    from rlsac.folds import split_scenes
+
+    fundamental = section(params, "fundamental")
+    train_scenes, _ = split_scenes(p, s["fold"])
+    conf = PrepareConf(root=fundamental.get("raw", "data/raw/strecha"), split="all", scenes=train_scenes,
+                       n_points=int(s["pool"]), pool=0, holdout="train", val_fraction=float(p["val_fraction"]),
+                       max_pairs_per_scene=int(fundamental.get("max_pairs_per_scene", 0)),
+                       out=str(lay.pool_file(s["fold"])))
+    made = prepare(conf, track=track, progress=False)
+    return {"pool": made["out"], "pairs": made["pairs"]}
+
+
+def train_options(p: dict, params: dict, s: dict, arm: str, seed: int, o: dict) -> dict[str, Any]:
+    """The fold recipe of model rlsac, run to the largest step with its snapshots; the arm's episodes."""
+    from rlsac.config import deep_update
+    from rlsac.folds import train_options as fold_train_options
+
+    base = fold_train_options(p, params, s["regime"], s["fold"], "rlsac",
+                              {"device": o.get("device") or "cpu", "threads": int(o.get("threads") or 1)})
+    steps = s["steps"]
+    extra: dict[str, Any] = {"seed": int(seed), "out": str(lay.run_dir(s["fold"], arm, seed) / "final.pt"),
+                             "sac": {"total_steps": int(steps[-1])}, "snapshot_steps": [int(k) for k in steps],
+                             "val_every": int(s["val_every"]), "ckpt_every": int(steps[-1]),
+                             "run_name": f"train scale {s['fold']} {lay.run_name(arm, seed)}",
+                             "tags": {"command": "scale", "benchmark": "scale", "fold": s["fold"], "arm": arm,
+                                      "seed": str(seed)}}
+    if arm == "redraw":
+        n = int(params.get("fundamental", {}).get("n_points", 150))
+        extra["episodes"] = {"pool": str(lay.pool_file(s["fold"])), "points": n, "swap": True}
+    return deep_update(base, extra)
+
+
+def train_run(p: dict, params: dict, s: dict, arm: str, seed: int, o: dict, track: bool) -> dict[str, Any]:
+    from rlsac.train import train
+
+    opts = train_options(p, params, s, arm, seed, o)
+    if arm == "redraw" and not lay.pool_file(s["fold"]).is_file():
+        raise RlsacError(f"{lay.pool_file(s['fold'])}: no pool file (run `rlsac scale --stage pool` first)")
+    lay.run_dir(s["fold"], arm, seed).mkdir(parents=True, exist_ok=True)
+    summ = train(opts, track=track)
+    return {"run": lay.run_name(arm, seed), "checkpoint": summ["checkpoint"], "steps": summ["steps"],
+            "best_step": summ["best_step"], "train_seconds": summ["seconds"]}
+
+
+def evaluate_run(p: dict, params: dict, s: dict, arm: str, seed: int, o: dict, track: bool) -> dict[str, Any]:
+    from rlsac.config import section
+    from rlsac.evaluate import check_all, evaluate
+    from rlsac.folds import data_dir, scene_list, split_scenes, tuned_settings
+
+    ev = section(params, "evaluate", "fundamental")
+    train_scenes, test_scenes = (scene_list(x) for x in split_scenes(p, s["fold"]))
+    settings = tuned_settings(ev, s["regime"], s["fold"], s["settings_from"], train_scenes, test_scenes)
+    test = data_dir(s["regime"], s["fold"]) / "test.h5"
+    jobs = [{"task": "fundamental", "method": "rlsac", "sampling": "max", "seed": int(p["seed"]),
+             "checkpoint": str(lay.snapshot(s["fold"], arm, seed, k)), "device": o.get("device") or "cpu",
+             "sets_per_step": 1, "confidence": 0.0, **settings, "data": str(test), "iterations": int(it),
+             "out_dir": str(lay.eval_dir(s["fold"], arm, seed, k, it)),
+             "tags": {"benchmark": "scale", "fold": s["fold"], "arm": arm, "seed": str(seed), "step": str(k)}}
+            for k in s["steps"] for it in s["iterations"]]
+    check_all(jobs, track)  # every checkpoint and the test file read before the first evaluation writes
+    out = []
+    for opts in jobs:
+        r = evaluate(opts, track=track)
+        out.append({"checkpoint": opts["checkpoint"], "iterations": opts["iterations"], "mAA_R": r["mAA_R"],
+                    "mAA_t": r["mAA_t"]})
+    return {"run": lay.run_name(arm, seed), "evaluations": out}
+
+
+def format_summary(s: dict[str, Any]) -> str:
+    if s["stage"] == "pool":
+        return f"scale pool ({s['seconds']} s): {s['pairs']} pairs -> {s['pool']}"
+    if s["stage"] == "train":
+        return (f"scale train {s['run']} ({s['seconds']} s): {s['steps']} steps, kept step {s['best_step']} -> "
+                f"{s['checkpoint']} and its step snapshots")
+    lines = [f"scale evaluate {s['run']} ({s['seconds']} s):"]
+    lines += [f"  {e['checkpoint']} at {e['iterations']}: mAA_R {e['mAA_R']:.3f}, mAA_t {e['mAA_t']:.3f}"
+              for e in s["evaluations"]]
+    return "\n".join(lines)

@@ -1,0 +1,58 @@
+"""The training-scale study's vocabulary (issue #46): its parameters and where its files live. Read by the runner
+(rlsac.scale) and the report (rlsac.reports.scale) alike; imports nothing above config.
+
+params.yaml ``scale``: one fold of the benchmark; data arms (what an episode sees); training seeds; the steps at
+which each run's actor is kept (one run per arm and seed gives the whole curve: with a constant learning rate, the
+actor after k steps is the actor of a k-step run); the budgets it is tested at.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from rlsac.config import section
+from rlsac.errors import RlsacError
+
+ARMS = ("fixed", "redraw")  # the record's episodes; a fresh draw of the pool per episode, images swapped at random
+
+
+def protocol(params: dict[str, Any]) -> dict[str, Any]:
+    """params.yaml ``scale``, checked: fold, regime, pool, arms, seeds, steps, iterations, settings_from."""
+    s = dict(section(params, "scale"))
+    need = ("fold", "regime", "pool", "arms", "seeds", "steps", "iterations", "settings_from", "val_every")
+    missing = [k for k in need if k not in s]
+    if missing or set(s) - set(need):
+        raise RlsacError(f"params.yaml scale: needs exactly {', '.join(need)} (missing {missing}, "
+                         f"unknown {sorted(set(s) - set(need))})")
+    bad = [a for a in s["arms"] if a not in ARMS]
+    if bad or not s["arms"]:
+        raise RlsacError(f"scale.arms {bad or s['arms']}: each one of {', '.join(ARMS)}")
+    for key in ("seeds", "steps", "iterations"):
+        vals = s[key]
+        if not isinstance(vals, list) or not vals or not all(isinstance(v, int) and v >= 0 for v in vals):
+            raise RlsacError(f"scale.{key} must be a non-empty list of non-negative integers, got {vals!r}")
+    s["steps"] = sorted(set(s["steps"]))
+    return s
+
+
+def pool_file(fold: str) -> Path:
+    return Path("data") / "scale" / fold / "pool.h5"
+
+
+def run_name(arm: str, seed: int) -> str:
+    return f"{arm}-s{int(seed)}"
+
+
+def run_dir(fold: str, arm: str, seed: int) -> Path:
+    """A run's checkpoints: final.pt (the actor its selection rule kept) and step<k>.pt snapshots."""
+    return Path("checkpoints") / "scale" / fold / run_name(arm, seed)
+
+
+def snapshot(fold: str, arm: str, seed: int, step: int) -> Path:
+    return run_dir(fold, arm, seed) / f"final.step{int(step)}.pt"
+
+
+def eval_dir(fold: str, arm: str, seed: int, step: int | None = None, iterations: int | None = None) -> Path:
+    d = Path("reports") / "eval" / "scale" / fold / run_name(arm, seed)
+    return d if step is None else d / f"step{int(step)}" / f"i{int(iterations)}"
