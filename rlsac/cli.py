@@ -364,12 +364,12 @@ def select(tracking: bool, params_path: str, **options) -> None:
 
 @cli.command()
 @click.option("--which", type=click.Choice(["1", "2", "3", "iterations", "folds", "essential", "claims", "selection",
-                                           "all"]),
+                                           "scale", "all"]),
               default="all", show_default=True,
               help="Table 1 (lines), 2 (fundamental), 3 (ablations), the iterations CSV, Table 2 over the "
                    "leave-one-building-out folds, Table E (essential matrix, not in the paper), reports/claims.md "
                    "(every claim against its seed-aware interval), reports/selection.md (kept vs last checkpoint), "
-                   "or all.")
+                   "reports/scale.md (the training-scale study, issue #46; not in all), or all.")
 @click.option("--eval-root", default="reports/eval", show_default=True, type=click.Path(file_okay=False),
               help="Root of the evaluation summaries (lines/, fundamental/, ablation/).")
 @click.option("--out-dir", default="reports", show_default=True, type=click.Path(file_okay=False))

@@ -1,0 +1,78 @@
+"""The training-scale study (issue #46): its protocol's checks, the runner's refusals, the report on known values."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+from click.testing import CliRunner
+
+from rlsac.cli import cli
+from rlsac.errors import RlsacError
+from rlsac.reports import scale as report
+from rlsac.scale_layout import protocol
+
+SCALE = {"fold": "castle", "regime": "hard", "pool": 1000, "arms": ["fixed", "redraw"], "seeds": [0, 1],
+         "steps": [30, 10], "iterations": [100], "settings_from": "uniform", "val_every": 10}
+
+
+def test_protocol_checks_every_key():
+    s = protocol({"scale": SCALE})
+    assert s["steps"] == [10, 30]  # sorted: the largest is the run's length
+    with pytest.raises(RlsacError, match="each one of fixed, redraw"):
+        protocol({"scale": {**SCALE, "arms": ["pretrained"]}})
+    with pytest.raises(RlsacError, match="missing \\['val_every'\\]"):
+        protocol({"scale": {k: v for k, v in SCALE.items() if k != "val_every"}})
+    with pytest.raises(RlsacError, match="scale.seeds must be"):
+        protocol({"scale": {**SCALE, "seeds": []}})
+
+
+def test_the_command_refuses_a_run_it_does_not_know(workdir):
+    (workdir / "params.yaml").write_text(json.dumps({"scale": SCALE}))
+    res = CliRunner().invoke(cli, ["scale", "--stage", "train", "--arm", "fixed", "--seed", "7", "--no-tracking"])
+    assert res.exit_code == 2 and "error:" in res.output
+
+
+def _write(d, err_r, err_t, scenes):
+    d.mkdir(parents=True)
+    pd.DataFrame({"instance": range(len(err_r)), "scene": scenes, "pair": [f"p{i}" for i in range(len(err_r))],
+                  "err_R": err_r, "err_t": err_t}).to_csv(d / "errors.csv", index=False)
+    (d / "summary.json").write_text(json.dumps({"n": len(err_r)}))
+
+
+def test_the_report_pairs_seeds_and_pairs_on_known_values(workdir):
+    """Uniform fails every pair (180 deg); RLSAC is exact on every pair (fixed arm) or on half of them (redraw arm,
+    one seed each way): the differences are +1 and +0.5 on mAA, with intervals that say so."""
+    m = 8
+    scenes = ["castle-P19"] * 4 + ["castle-P30"] * 4
+    ev = workdir / "reports" / "eval"
+    for c in ("uniform", "guided"):
+        _write(ev / "folds/hard/castle" / c / "i100", [180.0] * m, [90.0] * m, scenes)
+    for seed in (0, 1):
+        for step in (10, 30):
+            _write(ev / f"scale/castle/fixed-s{seed}/step{step}/i100", [0.0] * m, [0.0] * m, scenes)
+            half = [0.0, 180.0] * (m // 2) if seed == 0 else [180.0, 0.0] * (m // 2)
+            _write(ev / f"scale/castle/redraw-s{seed}/step{step}/i100", half, half, scenes)
+    got = report.build({"scale": SCALE}, ev, workdir / "reports", workdir)
+    df = pd.read_csv(workdir / "reports" / "scale.csv")
+    fixed = df[(df.arm == "fixed") & (df.step == 30)].iloc[0]
+    assert fixed["mAA_R"] == 1.0 and fixed["vs_uniform_R"] == 1.0 and fixed["vs_uniform_R_lo"] == 1.0
+    red = df[(df.arm == "redraw") & (df.step == 30)].iloc[0]
+    assert red["vs_guided_t"] == pytest.approx(0.5) and red["vs_guided_t_lo"] < 0.5 < red["vs_guided_t_hi"]
+    assert red["sd_R"] == 0.0 and not got["missing"]
+    text = (workdir / "reports" / "scale.md").read_text()
+    assert "+1.000 [+1.000, +1.000]" in text and (workdir / "reports/figures/scale.png").is_file()
+
+
+def test_a_corrupt_result_is_refused_not_read_as_missing(workdir):
+    d = workdir / "e"
+    _write(d, [1.0, np.nan], [1.0, 2.0], ["a", "a"])
+    with pytest.raises(RlsacError, match="non-finite"):
+        report.read_errors(d / "errors.csv")
+    (d / "summary.json").write_text(json.dumps({"n": 3}))
+    _write(workdir / "f", [1.0, 2.0], [1.0, 2.0], ["a", "a"])
+    (workdir / "f" / "summary.json").write_text(json.dumps({"n": 3}))
+    with pytest.raises(RlsacError, match="truncated"):
+        report.read_errors(workdir / "f" / "errors.csv")
