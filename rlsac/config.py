@@ -270,6 +270,7 @@ PARAM_SECTIONS = {
     "ablation": "rlsac.ablate:protocol",
     "tuning": "rlsac.tune:conf",
     "scale": "rlsac.scale_layout:protocol",
+    "positive_control": "rlsac.positive_control:conf",
 }
 
 

@@ -7,6 +7,7 @@ Stages (params.yaml ``scale``, rlsac.scale_layout):
             ``steps``, its actor kept at every step of ``steps`` (the curve's points) and by the recipe's selection;
             arm ``fixed`` sees the training file's 150 points of a pair in every episode (the record), arm ``redraw``
             a fresh 150 of the pair's pool per episode with the images swapped at random (rlsac.episodes);
+  control   the learner's positive control on synthetic pairs (rlsac.positive_control, params positive_control);
   evaluate  every kept actor on the fold's test pairs at every budget of ``iterations``, with the inlier threshold
             and pre-filter tuned on the fold's validation pairs for ``settings_from`` (the uniform control): the
             policy's state no longer depends on the threshold (checkpoint state_scales), so the sampler-free
@@ -22,7 +23,7 @@ from typing import Any
 from rlsac import scale_layout as lay
 from rlsac.errors import RlsacError
 
-STAGES = ("pool", "train", "evaluate")
+STAGES = ("pool", "train", "evaluate", "control")
 
 
 def scale(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
@@ -34,6 +35,11 @@ def scale(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
     if stage not in STAGES:
         raise RlsacError(f"scale --stage must be one of {', '.join(STAGES)}, got {stage!r}")
     params = read_params(options.get("params") or "params.yaml")
+    if stage == "control":
+        from rlsac.positive_control import run as control
+
+        t0 = time.time()
+        return {"stage": stage, **control(params), "seconds": round(time.time() - t0, 1)}
     s = lay.protocol(params)
     p = for_task(protocol(params), params, "fundamental")
     if s["fold"] not in p["test"] or s["regime"] not in p["regimes"]:
@@ -131,6 +137,10 @@ def evaluate_run(p: dict, params: dict, s: dict, arm: str, seed: int, o: dict, t
 
 
 def format_summary(s: dict[str, Any]) -> str:
+    if s["stage"] == "control":
+        return (f"positive control ({s['seconds']} s): mean π(inliers) after training "
+                + ", ".join(f"{v:.3f} at inlier ratio {k}" for k, v in s["final"].items())
+                + f" -> {', '.join(s['files'])}")
     if s["stage"] == "pool":
         return f"scale pool ({s['seconds']} s): {s['pairs']} pairs -> {s['pool']}"
     if s["stage"] == "train":

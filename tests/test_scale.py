@@ -63,7 +63,7 @@ def test_the_report_pairs_seeds_and_pairs_on_known_values(workdir):
     assert red["vs_guided_t"] == pytest.approx(0.5) and red["vs_guided_t_lo"] < 0.5 < red["vs_guided_t_hi"]
     assert red["sd_R"] == 0.0 and not got["missing"]
     text = (workdir / "reports" / "scale.md").read_text()
-    assert "+1.000 [+1.000, +1.000]" in text and (workdir / "reports/figures/scale.png").is_file()
+    assert "+1.000 [+1.000, +1.000]" in text and (workdir / "reports/scale_curve.png").is_file()
 
 
 def test_a_corrupt_result_is_refused_not_read_as_missing(workdir):

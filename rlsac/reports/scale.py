@@ -1,4 +1,4 @@
-"""reports/scale.md, scale.csv and figures/scale.png: the training-scale study (issue #46) from its result files.
+"""reports/scale.md, scale.csv and scale_curve.png: the training-scale study (issue #46) from its result files.
 
 Reads the study's evaluations (reports/eval/scale/<fold>/<arm>-s<seed>/step<k>/i<it>/), the controls' evaluations on
 the same test pairs (reports/eval/folds/<regime>/<fold>/<control>/i<it>/), each run's validation curve (the history in
@@ -152,7 +152,7 @@ def build(params: dict[str, Any], eval_root: str | Path = "reports/eval", out_di
         comp.round(6).to_csv(tmp, index=False)
     with atomic_path(files[0]) as tmp:
         tmp.write_text(markdown(s, comp, curves, chosen, got["missing"], Path(out_dir)))
-    files += figure(s, comp, out_dir / "figures")
+    files += figure(s, comp, out_dir)  # beside scale.md: reports/figures/ is the figures stage's own output
     return {"files": files, "missing": got["missing"]}
 
 
@@ -205,7 +205,7 @@ def markdown(s: dict, comp: pd.DataFrame, curves: pd.DataFrame, chosen: dict | N
     pc = out_dir / "positive_control.json"
     if pc.is_file():
         lines += _positive_control(json.loads(pc.read_text()))
-    lines += ["## Figure", "", "![scale](figures/scale.png)", ""]
+    lines += ["## Figure", "", "![mAA against training steps](scale_curve.png)", ""]
     if missing:
         lines += [f"Not yet run ({len(missing)} evaluation folders absent): " + ", ".join(sorted(missing)[:6])
                   + (" ..." if len(missing) > 6 else ""), ""]
@@ -227,7 +227,7 @@ def _positive_control(pc: dict) -> list[str]:
 
 
 def figure(s: dict, comp: pd.DataFrame, out_dir: Path) -> list[str]:
-    """figures/scale.{png,pdf}: mAA against training steps per arm (a band over seeds), the controls as lines."""
+    """scale_curve.{png,pdf}: mAA against training steps per arm (a band over seeds), the controls as lines."""
     import matplotlib.pyplot as plt
 
     from rlsac.reports.figfile import save
@@ -256,4 +256,4 @@ def figure(s: dict, comp: pd.DataFrame, out_dir: Path) -> list[str]:
             ax.set_title(f"{s['fold']}, {it} hypotheses: mAA {m}")
             ax.legend(fontsize=8, loc="lower right")
     fig.tight_layout()
-    return save(fig, out_dir, "scale", dpi=110)
+    return save(fig, out_dir, "scale_curve", dpi=110)
