@@ -8,7 +8,8 @@ Stages (params.yaml ``scale``, rlsac.scale_layout):
             arm ``fixed`` sees the training file's 150 points of a pair in every episode (the record), arm ``redraw``
             a fresh 150 of the pair's pool per episode with the images swapped at random (rlsac.episodes);
   control   the learner's positive control on synthetic pairs (rlsac.positive_control, params positive_control);
-  evaluate  every kept actor on the fold's test pairs at every budget of ``iterations``, with the inlier threshold
+  evaluate  every kept actor on the fold's test pairs at every budget of ``iterations`` (``evaluate-final``: the last
+            one at ``final_iterations``), with the inlier threshold
             and pre-filter tuned on the fold's validation pairs for ``settings_from`` (the uniform control): the
             policy's state no longer depends on the threshold (checkpoint state_scales), so the sampler-free
             control's setting scores both alike, and RLSAC - uniform is the sampler alone.
@@ -23,7 +24,7 @@ from typing import Any
 from rlsac import scale_layout as lay
 from rlsac.errors import RlsacError
 
-STAGES = ("pool", "train", "evaluate", "control")
+STAGES = ("pool", "train", "evaluate", "evaluate-final", "control")
 
 
 def scale(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
@@ -60,7 +61,8 @@ def scale(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
     elif stage == "train":
         out = train_run(p, params, s, options["arm"], int(options["seed"]), options, track)
     else:
-        out = evaluate_run(p, params, s, options["arm"], int(options["seed"]), options, track)
+        out = evaluate_run(p, params, s, options["arm"], int(options["seed"]), options, track,
+                           final=stage == "evaluate-final")
     return {"stage": stage, **out, "seconds": round(time.time() - t0, 1)}
 
 
@@ -112,7 +114,8 @@ def train_run(p: dict, params: dict, s: dict, arm: str, seed: int, o: dict, trac
             "best_step": summ["best_step"], "train_seconds": summ["seconds"]}
 
 
-def evaluate_run(p: dict, params: dict, s: dict, arm: str, seed: int, o: dict, track: bool) -> dict[str, Any]:
+def evaluate_run(p: dict, params: dict, s: dict, arm: str, seed: int, o: dict, track: bool,
+                 final: bool = False) -> dict[str, Any]:
     from rlsac.config import section
     from rlsac.evaluate import check_all, evaluate
     from rlsac.folds import data_dir, scene_list, split_scenes, tuned_settings
@@ -124,9 +127,10 @@ def evaluate_run(p: dict, params: dict, s: dict, arm: str, seed: int, o: dict, t
     jobs = [{"task": "fundamental", "method": "rlsac", "sampling": "max", "seed": int(p["seed"]),
              "checkpoint": str(lay.snapshot(s["fold"], arm, seed, k)), "device": o.get("device") or "cpu",
              "sets_per_step": 1, "confidence": 0.0, **settings, "data": str(test), "iterations": int(it),
-             "out_dir": str(lay.eval_dir(s["fold"], arm, seed, k, it)),
+             "out_dir": str(lay.eval_dir(s["fold"], it, arm, seed, k)),
              "tags": {"benchmark": "scale", "fold": s["fold"], "arm": arm, "seed": str(seed), "step": str(k)}}
-            for k in s["steps"] for it in s["iterations"]]
+            for it in (s["final_iterations"] if final else s["iterations"])
+            for k in (s["steps"][-1:] if final else s["steps"])]
     check_all(jobs, track)  # every checkpoint and the test file read before the first evaluation writes
     out = []
     for opts in jobs:

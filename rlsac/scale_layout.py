@@ -3,7 +3,8 @@
 
 params.yaml ``scale``: one fold of the benchmark; data arms (what an episode sees); training seeds; the steps at
 which each run's actor is kept (one run per arm and seed gives the whole curve: with a constant learning rate, the
-actor after k steps is the actor of a k-step run); the budgets it is tested at.
+actor after k steps is the actor of a k-step run); the budgets every kept actor is tested at (``iterations``) and
+those only the last one is (``final_iterations``: Table 2's 1000, ten times the CPU time).
 """
 
 from __future__ import annotations
@@ -20,7 +21,8 @@ ARMS = ("fixed", "redraw")  # the record's episodes; a fresh draw of the pool pe
 def protocol(params: dict[str, Any]) -> dict[str, Any]:
     """params.yaml ``scale``, checked: fold, regime, pool, arms, seeds, steps, iterations, settings_from."""
     s = dict(section(params, "scale"))
-    need = ("fold", "regime", "pool", "arms", "seeds", "steps", "iterations", "settings_from", "val_every")
+    need = ("fold", "regime", "pool", "arms", "seeds", "steps", "iterations", "final_iterations", "settings_from",
+            "val_every")
     missing = [k for k in need if k not in s]
     if missing or set(s) - set(need):
         raise RlsacError(f"params.yaml scale: needs exactly {', '.join(need)} (missing {missing}, "
@@ -28,7 +30,7 @@ def protocol(params: dict[str, Any]) -> dict[str, Any]:
     bad = [a for a in s["arms"] if a not in ARMS]
     if bad or not s["arms"]:
         raise RlsacError(f"scale.arms {bad or s['arms']}: each one of {', '.join(ARMS)}")
-    for key in ("seeds", "steps", "iterations"):
+    for key in ("seeds", "steps", "iterations", "final_iterations"):
         vals = s[key]
         if not isinstance(vals, list) or not vals or not all(isinstance(v, int) and v >= 0 for v in vals):
             raise RlsacError(f"scale.{key} must be a non-empty list of non-negative integers, got {vals!r}")
@@ -53,6 +55,8 @@ def snapshot(fold: str, arm: str, seed: int, step: int) -> Path:
     return run_dir(fold, arm, seed) / f"final.step{int(step)}.pt"
 
 
-def eval_dir(fold: str, arm: str, seed: int, step: int | None = None, iterations: int | None = None) -> Path:
-    d = Path("reports") / "eval" / "scale" / fold / run_name(arm, seed)
-    return d if step is None else d / f"step{int(step)}" / f"i{int(iterations)}"
+def eval_dir(fold: str, iterations: int, arm: str, seed: int, step: int | None = None) -> Path:
+    """Budget first (reports/eval/scale/<fold>/i<it>/<arm>-s<seed>/step<k>): each budget's evaluations are one
+    stage's output, so a budget added later runs without touching the others."""
+    d = Path("reports") / "eval" / "scale" / fold / f"i{int(iterations)}" / run_name(arm, seed)
+    return d if step is None else d / f"step{int(step)}"

@@ -15,7 +15,8 @@ from rlsac.reports import scale as report
 from rlsac.scale_layout import protocol
 
 SCALE = {"fold": "castle", "regime": "hard", "pool": 1000, "arms": ["fixed", "redraw"], "seeds": [0, 1],
-         "steps": [30, 10], "iterations": [100], "settings_from": "uniform", "val_every": 10}
+         "steps": [30, 10], "iterations": [100], "final_iterations": [1000], "settings_from": "uniform",
+         "val_every": 10}
 
 
 def test_protocol_checks_every_key():
@@ -49,15 +50,18 @@ def test_the_report_pairs_seeds_and_pairs_on_known_values(workdir):
     scenes = ["castle-P19"] * 4 + ["castle-P30"] * 4
     ev = workdir / "reports" / "eval"
     for c in ("uniform", "guided"):
-        _write(ev / "folds/hard/castle" / c / "i100", [180.0] * m, [90.0] * m, scenes)
+        for it in (100, 1000):
+            _write(ev / "folds/hard/castle" / c / f"i{it}", [180.0] * m, [90.0] * m, scenes)
     for seed in (0, 1):
-        for step in (10, 30):
-            _write(ev / f"scale/castle/fixed-s{seed}/step{step}/i100", [0.0] * m, [0.0] * m, scenes)
-            half = [0.0, 180.0] * (m // 2) if seed == 0 else [180.0, 0.0] * (m // 2)
-            _write(ev / f"scale/castle/redraw-s{seed}/step{step}/i100", half, half, scenes)
+        for it, steps in ((100, (10, 30)), (1000, (30,))):
+            for step in steps:
+                _write(ev / f"scale/castle/i{it}/fixed-s{seed}/step{step}", [0.0] * m, [0.0] * m, scenes)
+                half = [0.0, 180.0] * (m // 2) if seed == 0 else [180.0, 0.0] * (m // 2)
+                _write(ev / f"scale/castle/i{it}/redraw-s{seed}/step{step}", half, half, scenes)
     got = report.build({"scale": SCALE}, ev, workdir / "reports", workdir)
     df = pd.read_csv(workdir / "reports" / "scale.csv")
-    fixed = df[(df.arm == "fixed") & (df.step == 30)].iloc[0]
+    assert len(df) == 2 * 2 + 2  # two steps at 100 hypotheses, the last one at 1000, per arm
+    fixed = df[(df.arm == "fixed") & (df.step == 30) & (df.iterations == 1000)].iloc[0]
     assert fixed["mAA_R"] == 1.0 and fixed["vs_uniform_R"] == 1.0 and fixed["vs_uniform_R_lo"] == 1.0
     red = df[(df.arm == "redraw") & (df.step == 30)].iloc[0]
     assert red["vs_guided_t"] == pytest.approx(0.5) and red["vs_guided_t_lo"] < 0.5 < red["vs_guided_t_hi"]

@@ -60,7 +60,7 @@ def collect(s: dict[str, Any], eval_root: Path = Path("reports/eval")) -> dict[s
     """Every evaluation of the study and of its controls -> errors per (arm, step, budget) as (seeds, pairs)."""
     fold, regime = s["fold"], s["regime"]
     keys, strata, out, missing = None, None, {"runs": {}, "controls": {}}, []
-    for it in s["iterations"]:
+    for it in sorted(set(s["iterations"]) | set(s["final_iterations"])):
         for c in CONTROLS:
             d = eval_root / "folds" / regime / fold / c / f"i{it}"
             if not (d / "errors.csv").is_file():
@@ -70,10 +70,10 @@ def collect(s: dict[str, Any], eval_root: Path = Path("reports/eval")) -> dict[s
             out["controls"][(c, it)] = (r[None], t[None])
             strata = np.array([k.split("/")[0] for k in keys])
         for arm in s["arms"]:
-            for k in s["steps"]:
+            for k in (s["steps"] if it in s["iterations"] else s["steps"][-1:]):
                 rs, ts = [], []
                 for seed in s["seeds"]:
-                    d = Path(eval_root) / lay.eval_dir(fold, arm, seed, k, it).relative_to("reports/eval")
+                    d = Path(eval_root) / lay.eval_dir(fold, it, arm, seed, k).relative_to("reports/eval")
                     if not (d / "errors.csv").is_file():
                         missing.append(str(d))
                         continue
@@ -202,6 +202,8 @@ def markdown(s: dict, comp: pd.DataFrame, curves: pd.DataFrame, chosen: dict | N
         if chosen is not None:
             lines += ["", f"Chosen on validation (best seed-mean validation mAA): arm `{chosen['arm']}` at "
                           f"{chosen['step']} steps (val mAA {chosen['val_mAA']:.3f}).", ""]
+    if not comp.empty:
+        lines += _verdict(comp)
     pc = out_dir / "positive_control.json"
     if pc.is_file():
         lines += _positive_control(json.loads(pc.read_text()))
@@ -212,17 +214,43 @@ def markdown(s: dict, comp: pd.DataFrame, curves: pd.DataFrame, chosen: dict | N
     return "\n".join(lines)
 
 
+def _where(lo: float, hi: float) -> str:
+    return "above" if lo > 0 else "below" if hi < 0 else "not distinguishable from"
+
+
+def _verdict(comp: pd.DataFrame) -> list[str]:
+    """What the curve says, in words computed from the numbers above: the change from the first to the last step and
+    where the last step stands against each control."""
+    out = ["## What the curve says", ""]
+    for (arm, it), g in comp.groupby(["arm", "iterations"]):
+        g = g.sort_values("step")
+        a, b = g.iloc[0], g.iloc[-1]
+        parts = [f"**{arm}, {it} hypotheses:** from {a['step']} to {b['step']} steps RLSAC's mAA_R moves "
+                 f"{b['mAA_R'] - a['mAA_R']:+.3f} and mAA_t {b['mAA_t'] - a['mAA_t']:+.3f} (seed means)"]
+        for c in CONTROLS:
+            if f"vs_{c}_R_lo" in b and not pd.isna(b[f"vs_{c}_R_lo"]):
+                parts.append(f"at {b['step']} steps it is {_where(b[f'vs_{c}_R_lo'], b[f'vs_{c}_R_hi'])} {c} in R "
+                             f"({b[f'vs_{c}_R']:+.3f} [{b[f'vs_{c}_R_lo']:+.3f}, {b[f'vs_{c}_R_hi']:+.3f}]) and "
+                             f"{_where(b[f'vs_{c}_t_lo'], b[f'vs_{c}_t_hi'])} it in t ({b[f'vs_{c}_t']:+.3f} "
+                             f"[{b[f'vs_{c}_t_lo']:+.3f}, {b[f'vs_{c}_t_hi']:+.3f}])")
+        out.append("; ".join(parts) + ".")
+    return out + [""]
+
+
 def _positive_control(pc: dict) -> list[str]:
     rows = ["## The learner's positive control (benchmarks/positive_control.py, reports/positive_control.md)", "",
             "Synthetic pairs whose SNN channel separates the true inliers by construction; π(inliers) is the policy's "
             "probability mass on them at its first step.", "", "| sampler | π(inliers) | mAA_R | mAA_t |",
             "| --- | --- | --- | --- |"]
-    for name, v in pc["controls"].items():
-        rows.append(f"| {name} | {v['pi_inliers']:.3f} | {v['mAA_R']:.3f} | {v['mAA_t']:.3f} |")
-    last = [c["rows"][-1] for c in pc["curves"]]
-    mean = {k: float(np.mean([r[k] for r in last])) for k in ("pi_inliers", "mAA_R", "mAA_t")}
-    rows.append(f"| RLSAC after {last[0]['step']} steps ({len(last)} seeds, mean) | {mean['pi_inliers']:.3f} | "
-                f"{mean['mAA_R']:.3f} | {mean['mAA_t']:.3f} |")
+    for r in pc["results"]:
+        for name, v in r["controls"].items():
+            rows.append(f"| {name}, inlier ratio {r['inlier_ratio']} | {v['pi_inliers']:.3f} | {v['mAA_R']:.3f} | "
+                        f"{v['mAA_t']:.3f} |")
+        last = [c["rows"][-1] for c in r["curves"]]
+        mean = {k: float(np.mean([x[k] for x in last])) for k in ("pi_inliers", "mAA_R", "mAA_t")}
+        rows.append(f"| **RLSAC after {last[0]['step']} steps ({last[0]['updates']} updates), inlier ratio "
+                    f"{r['inlier_ratio']}** ({len(last)} seeds, mean) | {mean['pi_inliers']:.3f} | {mean['mAA_R']:.3f} "
+                    f"| {mean['mAA_t']:.3f} |")
     return rows + [""]
 
 
@@ -232,7 +260,7 @@ def figure(s: dict, comp: pd.DataFrame, out_dir: Path) -> list[str]:
 
     from rlsac.reports.figfile import save
 
-    its = sorted(s["iterations"])
+    its = sorted(set(s["iterations"]) | set(s["final_iterations"]))
     fig, axes = plt.subplots(len(its), 2, figsize=(10, 3.6 * len(its)), squeeze=False)
     colours = {"fixed": "tab:blue", "redraw": "tab:orange"}
     for i, it in enumerate(its):
