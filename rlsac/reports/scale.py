@@ -86,6 +86,24 @@ def collect(s: dict[str, Any], eval_root: Path = Path("reports/eval")) -> dict[s
     return out
 
 
+def same_as_record(s: dict[str, Any], root: Path = Path(".")) -> str:
+    """Whether the fixed arm's seed-0 actor at the record's length is the record's Table 2 model, tensor for tensor
+    (it should be: same data, seed and code; the run only goes on longer)."""
+    import torch
+
+    record = root / "checkpoints" / "folds" / s["regime"] / s["fold"] / "rlsac.pt"
+    if "fixed" not in s["arms"] or 0 not in s["seeds"] or not record.is_file():
+        return ""
+    rec = torch.load(record, map_location="cpu", weights_only=False)
+    snap = root / lay.snapshot(s["fold"], "fixed", 0, int(rec["step"]))
+    if not snap.is_file():
+        return ""
+    ours = torch.load(snap, map_location="cpu", weights_only=False)["actor"]
+    same = set(ours) == set(rec["actor"]) and all(torch.equal(ours[k], rec["actor"][k]) for k in ours)
+    return (f" The fixed arm's seed-0 actor at step {rec['step']} {'is' if same else 'is NOT'} the record's Table 2 "
+            f"model of this fold ({record}), tensor for tensor: the curve starts at the record.")
+
+
 def validation_curves(s: dict[str, Any], root: Path = Path(".")) -> pd.DataFrame:
     """Each run's validation history (its kept checkpoint's): one row per (arm, seed, step)."""
     import torch
@@ -133,6 +151,17 @@ def choose(s: dict[str, Any], curves: pd.DataFrame) -> dict[str, Any] | None:
     return {"arm": arm, "step": int(step), "val_mAA": best, "table": at.reset_index()}
 
 
+def _pairs_line(s: dict, out_dir: Path) -> str:
+    """How many training pairs the fold has: its data record (rlsac folds --stage data)."""
+    path = out_dir / "folds" / "data" / s["regime"] / f"{s['fold']}.json"
+    if not path.is_file():
+        return ""
+    splits = json.loads(path.read_text())["splits"]
+    return (f" The fold's training buildings give {splits['train']['pairs']} training and {splits['val']['pairs']} "
+            "validation pairs: every pair the import keeps (at least 100 SNN < 0.8 matches), so more real pairs "
+            "cannot come from these buildings; the pool multiplies the inputs per pair, not the pairs.")
+
+
 def _cell(row, key: str) -> str:
     if f"{key}_lo" not in row or pd.isna(row.get(key)):
         return "–"
@@ -151,13 +180,13 @@ def build(params: dict[str, Any], eval_root: str | Path = "reports/eval", out_di
     with atomic_path(files[1]) as tmp:
         comp.round(6).to_csv(tmp, index=False)
     with atomic_path(files[0]) as tmp:
-        tmp.write_text(markdown(s, comp, curves, chosen, got["missing"], Path(out_dir)))
+        tmp.write_text(markdown(s, comp, curves, chosen, got["missing"], Path(out_dir), same_as_record(s, Path(root))))
     files += figure(s, comp, out_dir)  # beside scale.md: reports/figures/ is the figures stage's own output
     return {"files": files, "missing": got["missing"]}
 
 
 def markdown(s: dict, comp: pd.DataFrame, curves: pd.DataFrame, chosen: dict | None, missing: list[str],
-             out_dir: Path) -> str:
+             out_dir: Path, record_line: str = "") -> str:
     arms = ", ".join(f"`{a}` = {ARM_LABEL[a]}" for a in s["arms"])
     lines = [
         "# Is RLSAC starved? The training-scale study (issue #46)", "",
@@ -179,7 +208,7 @@ def markdown(s: dict, comp: pd.DataFrame, curves: pd.DataFrame, chosen: dict | N
         "pair-episodes). The record's fold recipe is 300 steps x 16 episodes (4,800 episodes, about 280 updates) on "
         "the fold's training pairs; this study goes to 10x the steps and, in the redraw arm, gives every episode a "
         "fresh draw of 150 of a pair's 1000 lowest-SNN matches with the images swapped at random, so an input "
-        "essentially never repeats.", ""]
+        "essentially never repeats." + _pairs_line(s, out_dir) + record_line, ""]
     if not comp.empty:
         lines += ["## Test pairs: RLSAC against the controls", "",
                   "| arm | steps | budget | RLSAC mAA_R | RLSAC mAA_t | − uniform R | − uniform t | − guided R | "
