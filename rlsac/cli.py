@@ -58,9 +58,12 @@ class _Group(click.Group):
         sys.exit(code if isinstance(code, int) else 0)
 
     def invoke(self, ctx):
+        from rlsac.signals import interrupt_on_signals
+
         try:
             numerics.check_mode()  # an unknown RLSAC_NUMERICS, or pins that did not take: before any work
-            return super().invoke(ctx)
+            with interrupt_on_signals():  # SIGINT / SIGTERM: runs end KILLED, temp files go, exit 130 / 143
+                return super().invoke(ctx)
         except RlsacError as e:
             raise _UserError(" ".join(str(e).split()) or e.__class__.__name__, getattr(e, "exit_code", 2)) from None
         except (MemoryError, RuntimeError) as e:  # sizes within their ranges that this machine cannot hold

@@ -625,17 +625,13 @@ def tuned_settings(ev: dict, regime: str, fold: str, name: str, train_scenes: li
                    task: str = "fundamental") -> dict[str, Any]:
     """Row ``name``'s settings from its tuning record (chosen on the fold's validation pairs only, checked against
     the test scenes) as evaluate options."""
-    import json
-
     from rlsac import tune
+    from rlsac.results import read_record
 
     path = tune.record_path(regime, fold, name, task)
-    if not path.is_file():
+    rec = read_record(path)  # `[]`, `null`, `chosen: {}`, `val_scenes: []` are refused by name (issue #49)
+    if rec is None:
         raise RlsacError(f"{path}: no tuning record (run `rlsac folds --stage tune` first)")
-    try:
-        rec = json.loads(path.read_text())
-    except (OSError, ValueError) as e:
-        raise RlsacError(f"{path}: not a tuning record ({e})") from None
     return tune.as_options(tune.check_record(rec, path, regime, fold, name, train_scenes, test_scenes), ev.get("lo"))
 
 

@@ -80,7 +80,7 @@ def select_fold(p: dict, params: dict, regime: str, fold: str, model: str, o: di
         train_options,
         tuned_settings,
     )
-    from rlsac.reports.tables import read_summary
+    from rlsac.results import read_errors, read_summary
     from rlsac.tasks import task_class
     from rlsac.tracking import check_store, start_run
     from rlsac.train import selection_score
@@ -100,7 +100,7 @@ def select_fold(p: dict, params: dict, regime: str, fold: str, model: str, o: di
         d = eval_dir(regime, fold, model, it, task)
         if not (d / "errors.csv").is_file() or not (d / "summary.json").is_file():
             raise RlsacError(f"{d}: no evaluation of the kept actor at {it} iterations (run its fold_eval stage)")
-        err = pd.read_csv(d / "errors.csv", dtype={"scene": str, "pair": str})
+        err = read_errors(d / "errors.csv", ("err_R", "err_t"))
         if [f"{a}/{b}" for a, b in zip(err["scene"], err["pair"], strict=True)] != pairs:
             raise RlsacError(f"{d}: its pairs are not those of {test}")
         kept_eval[it] = (err, read_summary(d / "summary.json"))

@@ -24,6 +24,7 @@ from rlsac.errors import RlsacError
 from rlsac.io import atomic_path, write_text
 from rlsac.reports.folds import LIMIT, N_BOOT  # mAA@10 deg and the bootstrap's draws, as Table 2
 from rlsac.reports.tables import LINE_LIMIT_DEG  # Table 1's mAA limit, for the line models' records
+from rlsac.results import read_errors
 
 METRICS = ("R", "t")
 
@@ -37,7 +38,9 @@ def read_runs(root: str | Path) -> list[dict[str, Any]]:
         csv = path.with_suffix(".csv")
         try:
             rec = json.loads(path.read_text())
-            errors = pd.read_csv(csv, dtype={"pair": str, "scene": str})
+            errors = read_errors(csv, ("err_R", "err_t"), per_instance=False)
+            if errors is None:
+                raise OSError(f"no {csv.name}")
         except (OSError, ValueError) as e:
             raise RlsacError(f"{path}: not a readable selection record ({e.__class__.__name__})") from None
         need = {"regime", "fold", "model", "kept_step", "last_step", "steps", "candidates", "history", "iterations"}
@@ -242,7 +245,9 @@ def read_line_runs(root: str | Path) -> list[dict[str, Any]]:
     for path in sorted(Path(root).glob("*.json")):
         try:
             rec = json.loads(path.read_text())
-            errors = pd.read_csv(path.with_suffix(".csv"))
+            errors = read_errors(path.with_suffix(".csv"), ("err_deg",), per_instance=False)
+            if errors is None:
+                raise OSError(f"no {path.with_suffix('.csv').name}")
         except (OSError, ValueError) as e:
             raise RlsacError(f"{path}: not a readable selection record ({e.__class__.__name__})") from None
         need = {"data", "seed", "kept_step", "last_step", "steps", "candidates", "history", "inlier_ratio_step", "tie"}

@@ -25,6 +25,7 @@ from rlsac.errors import RlsacError
 from rlsac.io import all_or_nothing, atomic_path, staged, write_json, write_text
 from rlsac.metrics import paired_bootstrap_maa
 from rlsac.reports import paper
+from rlsac.results import read_errors_column, read_summary
 
 DASH = "–"
 LINE_LIMIT_DEG = 0.5  # Table 1's mAA limit (thresholds 0.05..0.5 deg)
@@ -59,43 +60,17 @@ F_HEADERS = {"mAA_R": "mAA@10° R", "mAA_t": "mAA@10° t", "median_R": "median �
 # --------------------------------------------------------------------------------------------- reading
 
 
-def read_summary(path: str | Path) -> dict[str, Any] | None:
-    """summary.json -> dict, None when the file is missing; an empty or invalid one is an error naming it
-    (a table would otherwise show its cells as missing)."""
-    path = Path(path)
-    if not path.is_file():
-        return None
-    try:
-        s = json.loads(path.read_text())
-    except (OSError, ValueError) as e:
-        raise RlsacError(f"{path}: not a valid summary.json ({e.__class__.__name__}); re-run its evaluation "
-                         "or remove it") from None
-    if not isinstance(s, dict):
-        raise RlsacError(f"{path}: not a valid summary.json (holds a {type(s).__name__}, not a mapping)")
-    return s
-
-
 def read_errors(path: Path, column: str = "err_deg"):
-    """Column ``column`` of an evaluation's errors.csv, None when the file is missing; a file without
-    the column (or not a CSV) is an error naming it."""
-    if not path.is_file():
-        return None
-    try:
-        frame = pd.read_csv(path)
-    except (OSError, ValueError) as e:
-        raise RlsacError(f"{path}: not a readable errors.csv ({e.__class__.__name__})") from None
-    if column not in frame:
-        raise RlsacError(f"{path}: no '{column}' column (columns: {', '.join(map(str, frame.columns))})")
-    return pd.to_numeric(frame[column], errors="coerce").to_numpy()
+    """Column ``column`` of an evaluation's errors.csv (rlsac.results: a corrupt file is an error naming it), None
+    when the file is absent."""
+    return read_errors_column(path, column)
 
 
 def _get(summary: dict | None, key: str) -> float:
+    """A summary's metric (rlsac.results.read_summary checked it is a finite number), NaN when absent ("–")."""
     if summary is None or summary.get(key) is None:
         return math.nan
-    try:
-        return float(summary[key])
-    except (TypeError, ValueError):
-        return math.nan
+    return float(summary[key])
 
 
 def _fmt(v, digits: int = 3) -> str:
