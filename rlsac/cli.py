@@ -461,10 +461,16 @@ def pipeline(tracking: bool, stages: tuple[str, ...], **options) -> None:
     """Run the DVC pipeline's out-of-date stages (or STAGES: names, foreach groups or patterns, with what they
     need) as Ray tasks in dependency order, each through `dvc repro -s` (rlsac.pipeline); exit 1 when one
     fails."""
+    from rlsac.errors import Interrupted
     from rlsac.pipeline import format_summary
     from rlsac.pipeline import pipeline as run
 
-    s = run({**options, "stages": ",".join(stages) or None}, track=tracking)
+    try:
+        s = run({**options, "stages": ",".join(stages) or None}, track=tracking)
+    except Interrupted as e:  # what ran before the signal, then the one error line
+        if getattr(e, "summary", None):
+            click.echo(format_summary(e.summary))
+        raise
     click.echo(format_summary(s))
     if s["counts"].get("failed"):
         sys.exit(1)

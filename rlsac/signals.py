@@ -62,9 +62,10 @@ class StopOnSignal:
     A second signal raises ``Interrupted`` as ``interrupt_on_signals`` does: the with-blocks unwind, so the MLflow run
     ends KILLED and a save in progress removes its temporary file (issue #28, item 5)."""
 
-    def __init__(self, what: str = "rlsac train", safe_point: str = "the end of the episode"):
+    def __init__(self, what: str = "rlsac train", safe_point: str = "the end of the episode",
+                 again: str = "without saving; continue from the last saved state with --resume"):
         self.signum = 0
-        self.what, self.safe_point = what, safe_point
+        self.what, self.safe_point, self.again = what, safe_point, again
         self._previous: dict = {}
 
     def __call__(self) -> bool:
@@ -72,8 +73,7 @@ class StopOnSignal:
 
     def _handle(self, signum, frame) -> None:
         if self.signum:
-            raise Interrupted(f"interrupted by a second {name(signum)}: stopped at once, without saving; continue "
-                              "from the last saved state with --resume", signum)
+            raise Interrupted(f"interrupted by a second {name(signum)}: stopped at once, {self.again}", signum)
         self.signum = signum
         print(f"\n{self.what}: {name(signum)} received, stopping at {self.safe_point} (send it again to stop at "
               "once)", file=sys.stderr, flush=True)
