@@ -523,7 +523,7 @@ CASES = [
     # issue #28, item 3: options bounded by a fixed cap and by what the data allow; every params.yaml section
     # typed and checked at load, whichever command reads it (evaluate refuses a bad train or lines section too)
     ("eval-sets-per-step-huge", evaluate("--sets-per-step", "1000000000"), "sets_per_step must be in [1, 1024]"),
-    ("eval-sets-per-step-data", evaluate("--sets-per-step", "500"),
+    ("eval-sets-per-step-data", evaluate("--sets-per-step", "500", "--method", "uniform"),
      "sets_per_step 500 is more than the 190 distinct minimal sets of 2 points"),
     ("eval-lo-unused", evaluate(params="{p_eval_lo}"), "unknown LO score 'bogus'"),
     ("eval-lo-unused-f", evaluate(data="{fund}", params="{p_eval_lo_f}", **EVAL_F),

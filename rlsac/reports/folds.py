@@ -163,13 +163,20 @@ def _order(methods) -> list[str]:
 
 
 def load_records(records: str | Path = "reports/folds/data") -> dict[tuple[str, str], dict]:
+    """The folds' data records (rlsac folds --stage data); a corrupt one is an error naming it (issue #49: it was
+    skipped with a printed line, and its fold left out of the data table at exit 0)."""
+    from rlsac.errors import RlsacError
+
     out = {}
     root = Path(records)
     for f in sorted(root.glob("*/*.json")) if root.is_dir() else []:
         try:
-            out[(f.parent.name, f.stem)] = json.loads(f.read_text())
-        except (OSError, ValueError):
-            print(f"folds: unreadable data record {f}")
+            rec = json.loads(f.read_text())
+        except (OSError, ValueError) as e:
+            raise RlsacError(f"{f}: not a readable data record ({e.__class__.__name__})") from None
+        if not isinstance(rec, dict) or not isinstance(rec.get("splits"), dict):
+            raise RlsacError(f"{f}: not a data record of rlsac folds --stage data (no 'splits' mapping)")
+        out[(f.parent.name, f.stem)] = rec
     return out
 
 

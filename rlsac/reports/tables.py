@@ -25,7 +25,7 @@ from rlsac.errors import RlsacError
 from rlsac.io import all_or_nothing, atomic_path, staged, write_json, write_text
 from rlsac.metrics import paired_bootstrap_maa
 from rlsac.reports import paper
-from rlsac.results import read_errors_column, read_summary
+from rlsac.results import read_errors_column, read_record, read_summary
 
 DASH = "–"
 LINE_LIMIT_DEG = 0.5  # Table 1's mAA limit (thresholds 0.05..0.5 deg)
@@ -518,7 +518,10 @@ def build(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
         from rlsac.reports import folds
 
         for sub in ("folds", "essential") if which == "all" else (which,):
-            folds.check_distinct(folds.collect(eval_root, sub), sub)
+            folds.check_distinct(folds.collect(eval_root, sub), sub)  # collect reads every cell's errors.csv
+        for path in sorted((out_dir / "tuning").glob("**/*.json")):  # the tables' tuning sections read them
+            read_record(path)
+        folds.load_records(out_dir / "folds" / "data")
     check_writable(out_dir / "metrics.json")
     check_store(track, "reports")
     with start_run("reports", f"table {which}", params={"which": which, "eval_root": str(eval_root),
