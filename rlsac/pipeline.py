@@ -46,7 +46,7 @@ LOG_DIR = Path("logs") / "pipeline"
 # environment the driver passes to every stage (a worker on another node has its own environment otherwise)
 FORWARD_ENV = ("MLFLOW_TRACKING_URI", "OMP_NUM_THREADS", "MLFLOW_LOGGING_LEVEL")
 STATUSES = ("done", "skipped", "failed", "not run", "interrupted")
-ADDRESS_TIMEOUT_S = 3.0  # an unreachable --address: Ray itself retries for minutes
+ADDRESS_TIMEOUT_S = 10.0  # an unreachable --address (a head still starting gets this long): Ray retried for minutes
 _ERROR_LINE = re.compile(r"^(error\b|ERROR\b|[A-Za-z_][\w.]*(Error|Exception|Interrupt)\b)")
 _SKIPPED = re.compile(r"Stage '.*' didn't change, skipping")
 KILL_GRACE_S = 10.0
@@ -220,8 +220,8 @@ def _check_options(o: dict) -> None:
 
 
 def _check_address(address: str) -> None:
-    """A TCP connection to ``address`` (host:port, or ray://host:port) within ``ADDRESS_TIMEOUT_S``: Ray's own
-    connection retried for over 400 s, with the MLflow run already open."""
+    """A TCP connection to ``address`` (host:port, or ray://host:port) within ``ADDRESS_TIMEOUT_S``, retried while
+    refused (a head started just before): Ray's own connection retried for over 400 s, with the MLflow run open."""
     import socket
     from urllib.parse import urlsplit
 
@@ -232,11 +232,16 @@ def _check_address(address: str) -> None:
         host, port = None, None
     if not host or not port:
         raise RlsacError(f"--address {address}: not host:port (`ray start --head` prints the address), nor 'auto'")
-    try:
-        socket.create_connection((host, port), timeout=ADDRESS_TIMEOUT_S).close()
-    except OSError as e:
-        raise RlsacError(f"--address {address}: no Ray cluster answers there ({e.__class__.__name__}: "
-                         f"{' '.join(str(e).split())[:120]})") from None
+    end = time.monotonic() + ADDRESS_TIMEOUT_S
+    while True:
+        try:
+            socket.create_connection((host, port), timeout=max(0.1, end - time.monotonic())).close()
+            return
+        except OSError as e:
+            if time.monotonic() + 0.5 >= end:
+                raise RlsacError(f"--address {address}: no Ray cluster answers there within {ADDRESS_TIMEOUT_S:g} s "
+                                 f"({e.__class__.__name__}: {' '.join(str(e).split())[:120]})") from None
+            time.sleep(0.5)
 
 
 def _check_resources(o: dict, plan: dict, resources: dict) -> None:

@@ -249,6 +249,19 @@ def test_help_does_not_import_ray():
     assert out.strip() == "[]"
 
 
+def _wait_for_port(port: int, proc, timeout: float = 180.0) -> None:
+    import socket
+
+    end = time.monotonic() + timeout
+    while time.monotonic() < end and proc.poll() is None:
+        try:
+            socket.create_connection(("127.0.0.1", port), timeout=1.0).close()
+            return
+        except OSError:
+            time.sleep(0.5)
+    raise AssertionError(f"ray head on port {port} did not come up")
+
+
 def test_joins_a_ray_cluster_by_address(tmp_path):
     """`--address HOST:PORT` joins a cluster started with `ray start --head` (token authentication on: the
     module's local cluster made ~/.ray/auth_token) and runs the stages there."""
@@ -264,6 +277,7 @@ def test_joins_a_ray_cluster_by_address(tmp_path):
                             start_new_session=True, env=env)
     try:
         repo = make_repo(tmp_path / "repo", {"a": TOY["a"], "b": TOY["b"]})
+        _wait_for_port(port, head)  # the pipeline gives an address 10 s to answer (issue #49: no 400 s retries)
         r = subprocess.run([str(Path(sys.executable).parent / "rlsac"), "pipeline", "--repo", str(repo),
                             "--address", f"127.0.0.1:{port}", "--no-tracking"], capture_output=True, text=True,
                            env=env)

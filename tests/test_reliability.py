@@ -1360,7 +1360,7 @@ def test_issue49_bad_input_is_one_line_error(workdir, inputs, argv, fragment):
 
     t0 = time.monotonic()
     test_bad_input_is_one_line_error_and_writes_nothing(workdir, inputs, argv, fragment)
-    assert time.monotonic() - t0 < 10  # at once: Ray's own connection retried for over 400 s
+    assert time.monotonic() - t0 < 20  # within seconds: Ray's own connection retried for over 400 s
 
 
 # readers: each corrupt result file an error naming it (issue #49: coerced to NaN, a table lied at exit 0)
