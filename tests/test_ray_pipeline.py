@@ -304,15 +304,23 @@ def test_an_interrupted_run_keeps_the_times_of_the_stages_it_finished(tmp_path, 
 
     repo = make_repo(tmp_path / "repo", {"a": TOY["a"], "b": TOY["b"]})
 
-    def interrupted(plan, o, ray_module, progress):
-        progress({"stage": plan["todo"][0], "status": "done", "seconds": 1.5})
-        raise KeyboardInterrupt
+    from rlsac.errors import Interrupted
+
+    def interrupted(plan, o, ray_module, progress, results, running, stop):
+        r = {"stage": plan["todo"][0], "status": "done", "seconds": 1.5}
+        results[r["stage"]] = r
+        progress(r)
+        running["task-of-b"] = plan["todo"][1]  # in flight when the signal came (issue #49)
+        raise Interrupted("interrupted by SIGTERM", 15)
 
     monkeypatch.setattr(pipeline_module, "schedule", interrupted)
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
     r = CliRunner().invoke(cli, ["pipeline", "--repo", str(repo)])
-    assert r.exit_code != 0
+    assert r.exit_code == 143, r.output  # the summary of what ran, then one error line, and the run KILLED
+    assert summary(r.stdout)[0].startswith("pipeline: 1 done, 0 skipped, 0 failed, 0 not run, 1 interrupted"), r.stdout
+    assert r.stderr.strip().splitlines()[-1] == "error: interrupted by SIGTERM", r.stderr
     runs = mlflow.MlflowClient(uri).search_runs(
         [mlflow.MlflowClient(uri).get_experiment_by_name("pipeline").experiment_id])
     assert len(runs) == 1 and runs[0].data.metrics.get("stage_s/a") == 1.5, runs[0].data.metrics
+    assert runs[0].info.status == "KILLED" and runs[0].data.tags["error"] == "interrupted by SIGTERM"
