@@ -108,7 +108,17 @@ def load_actor(path: str | Path, device: str | torch.device = "cpu", kind: str =
     if bad:  # a diverged training: every score would be NaN and every sample arbitrary
         raise RlsacError(f"{path}: non-finite weights in {bad[0]} ({len(bad)} tensor(s)); a diverged training?")
     actor.eval()
+    actor.in_channels = int(ckpt["in_channels"])  # what ``check_reads`` compares with the sampler's input
     return actor, conf
+
+
+def check_reads(path: str | Path, actor: Actor, want: int, kind: str) -> None:
+    """The network must read the ``want`` channels ``kind``'s sampler feeds it: a checkpoint whose ``kind`` does not
+    match its weights (an RLSAC actor labelled "ngransac") failed with a shape RuntimeError in the first batch."""
+    have = getattr(actor, "in_channels", want)
+    if have != want:
+        raise RlsacError(f"{path}: its network reads {have} input channels, not the {want} a {kind} sampler gives "
+                         "it (a 'kind' that does not match the weights?)")
 
 
 def env_conf(ckpt_conf: dict | None, steps_per_episode: int | None = None) -> EnvConf:

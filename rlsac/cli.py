@@ -58,9 +58,12 @@ class _Group(click.Group):
         sys.exit(code if isinstance(code, int) else 0)
 
     def invoke(self, ctx):
+        from rlsac.signals import interrupt_on_signals
+
         try:
             numerics.check_mode()  # an unknown RLSAC_NUMERICS, or pins that did not take: before any work
-            return super().invoke(ctx)
+            with interrupt_on_signals():  # SIGINT / SIGTERM: runs end KILLED, temp files go, exit 130 / 143
+                return super().invoke(ctx)
         except RlsacError as e:
             raise _UserError(" ".join(str(e).split()) or e.__class__.__name__, getattr(e, "exit_code", 2)) from None
         except (MemoryError, RuntimeError) as e:  # sizes within their ranges that this machine cannot hold
@@ -480,10 +483,16 @@ def pipeline(tracking: bool, stages: tuple[str, ...], **options) -> None:
     """Run the DVC pipeline's out-of-date stages (or STAGES: names, foreach groups or patterns, with what they
     need) as Ray tasks in dependency order, each through `dvc repro -s` (rlsac.pipeline); exit 1 when one
     fails."""
+    from rlsac.errors import Interrupted
     from rlsac.pipeline import format_summary
     from rlsac.pipeline import pipeline as run
 
-    s = run({**options, "stages": ",".join(stages) or None}, track=tracking)
+    try:
+        s = run({**options, "stages": ",".join(stages) or None}, track=tracking)
+    except Interrupted as e:  # what ran before the signal, then the one error line
+        if getattr(e, "summary", None):
+            click.echo(format_summary(e.summary))
+        raise
     click.echo(format_summary(s))
     if s["counts"].get("failed"):
         sys.exit(1)

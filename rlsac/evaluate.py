@@ -85,6 +85,9 @@ DEFAULTS: dict[str, Any] = {
 MAX_SETS_PER_STEP = 1024
 # the options above that a params.yaml evaluate.<task> section passes on to every environment method's run
 SAMPLER_OPTIONS = ("sets_per_step", "confidence")
+# the RLSAC environment's options and the methods that read them: another method given a value other than the default
+# is refused (issue #49: NG-RANSAC's config.json recorded a --sets-per-step it ignored); the default stays recorded
+READ_BY = {"policy_every": ("rlsac",), "sets_per_step": ("rlsac", "uniform", "guided")}
 # what evaluate measures of time: written to TIMING_FILE beside summary.json (git- and dvc-ignored) and to MLflow
 TIMING_FILE = "timing.json"
 TIMING_KEYS = ("seconds", "seconds_per_instance", "lo_seconds_per_instance", "lo_time_fraction")
@@ -174,6 +177,11 @@ def check_options(options: dict[str, Any], checkpoint_later: bool = False) -> di
             raise RlsacError(f"steps_per_episode must be positive, got {o['steps_per_episode']}")
     for key in ("seed", "sampling", "policy_every", "sets_per_step", "confidence"):
         o[key] = _checked(o, key)
+    base = o["method"].removesuffix("-lo")
+    for key, readers in READ_BY.items():  # config.json and MLflow record every option: none that was ignored
+        if base not in readers and o[key] != DEFAULTS[key]:
+            raise RlsacError(f"{key} {o[key]}: --method {o['method']} does not read it (only {', '.join(readers)} "
+                             "and their -lo variants do)")
     if o["threshold_px"] is not None:
         o["threshold_px"] = _checked(o, "threshold_px")
         if not hasattr(task_cls, "px_thresholds"):

@@ -555,7 +555,7 @@ def train_models(p: dict, params: dict, regime: str, fold: str, models: list[str
 def _selected(p: dict, fold: str, o: dict, split: str) -> dict[str, dict[str, Any]]:
     """The rows of ``--only`` (every row of the regime without it), their data file (``split``.h5 of their N) and
     checkpoints checked before any work."""
-    from rlsac.checkpoint import read as read_checkpoint
+    from rlsac.checkpoint import load_actor
 
     table = rows(p, fold, o["regime"])
     only = o.get("only") or list(table)
@@ -568,7 +568,9 @@ def _selected(p: dict, fold: str, o: dict, split: str) -> dict[str, dict[str, An
         if r["checkpoint"] is not None:
             if not Path(r["checkpoint"]).is_file():
                 raise RlsacError(f"no checkpoint {r['checkpoint']} (run `rlsac folds --stage train` first)")
-            read_checkpoint(r["checkpoint"])  # a file that is not a checkpoint fails here, before the first write
+            # a file that is not a checkpoint of the row's sampler, or one with non-finite weights, fails here, before
+            # the first row's record is written (issue #49: --only a,b rewrote a's record, then failed on b's)
+            load_actor(r["checkpoint"], "cpu", kind="ngransac" if r["method"].startswith("ngransac") else "rlsac")
     return chosen
 
 
@@ -625,17 +627,13 @@ def tuned_settings(ev: dict, regime: str, fold: str, name: str, train_scenes: li
                    task: str = "fundamental") -> dict[str, Any]:
     """Row ``name``'s settings from its tuning record (chosen on the fold's validation pairs only, checked against
     the test scenes) as evaluate options."""
-    import json
-
     from rlsac import tune
+    from rlsac.results import read_record
 
     path = tune.record_path(regime, fold, name, task)
-    if not path.is_file():
+    rec = read_record(path)  # `[]`, `null`, `chosen: {}`, `val_scenes: []` are refused by name (issue #49)
+    if rec is None:
         raise RlsacError(f"{path}: no tuning record (run `rlsac folds --stage tune` first)")
-    try:
-        rec = json.loads(path.read_text())
-    except (OSError, ValueError) as e:
-        raise RlsacError(f"{path}: not a tuning record ({e})") from None
     return tune.as_options(tune.check_record(rec, path, regime, fold, name, train_scenes, test_scenes), ev.get("lo"))
 
 

@@ -103,13 +103,14 @@ def _guided(o, device, lo=None):
 @register_method("rlsac", "RLSAC", checkpoint=True)
 def _rlsac(o, device, lo=None):
     """The learned sampler of ``o['checkpoint']`` in its own environment."""
-    from rlsac.checkpoint import env_conf, load_actor, state_scales, task_options
-    from rlsac.rollout import rlsac_estimate, with_lo
+    from rlsac.checkpoint import check_reads, env_conf, load_actor, state_scales, task_options
+    from rlsac.rollout import in_channels, rlsac_estimate, with_lo
     from rlsac.tasks import task_for
 
     actor, ckpt_conf = load_actor(o["checkpoint"], device)
     ckpt_conf = dict(ckpt_conf or {})
     task = task_for(o, task_options(ckpt_conf))
+    check_reads(o["checkpoint"], actor, in_channels(task), "rlsac")
     env = with_lo(env_conf(ckpt_conf, o["steps_per_episode"]), lo)
     # the policy sees residuals in its training unit, whatever threshold this evaluation scores with (issue #46);
     # a checkpoint from before state_scales sees them at the evaluation threshold, as the record was made
@@ -128,12 +129,13 @@ def _rlsac(o, device, lo=None):
 @register_method("ngransac", "NG-RANSAC (ours, from the paper)", checkpoint=True)
 def _ngransac(o, device, lo=None):
     """NG-RANSAC (rlsac.ngransac): our RANSAC with minimal sets drawn from the network of ``o['checkpoint']``."""
-    from rlsac.checkpoint import task_options
+    from rlsac.checkpoint import check_reads, task_options
     from rlsac.ngransac import estimate, load
     from rlsac.tasks import task_for
 
     net, ckpt_conf = load(o["checkpoint"], device)
     task = task_for(o, task_options(dict(ckpt_conf or {})))
+    check_reads(o["checkpoint"], net, task.feature_dim, "ngransac")
     return task, lambda batch, g: estimate(task, net, batch, o["iterations"], g, lo=lo), {}
 
 

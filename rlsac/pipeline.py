@@ -17,6 +17,7 @@ Ray is imported only here, when the command runs (``rlsac --help`` stays fast).
 
 from __future__ import annotations
 
+import contextlib
 import fnmatch
 import json
 import os
@@ -28,7 +29,9 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
-from rlsac.errors import RlsacError
+from rlsac.errors import Interrupted, RlsacError
+from rlsac.signals import StopOnSignal
+from rlsac.signals import name as signal_name
 
 DEFAULTS: dict[str, Any] = {
     "repo": ".",  # the DVC repository (its root)
@@ -42,7 +45,8 @@ DEFAULTS: dict[str, Any] = {
 LOG_DIR = Path("logs") / "pipeline"
 # environment the driver passes to every stage (a worker on another node has its own environment otherwise)
 FORWARD_ENV = ("MLFLOW_TRACKING_URI", "OMP_NUM_THREADS", "MLFLOW_LOGGING_LEVEL")
-STATUSES = ("done", "skipped", "failed", "not run")
+STATUSES = ("done", "skipped", "failed", "not run", "interrupted")
+ADDRESS_TIMEOUT_S = 10.0  # an unreachable --address (a head still starting gets this long): Ray retried for minutes
 _ERROR_LINE = re.compile(r"^(error\b|ERROR\b|[A-Za-z_][\w.]*(Error|Exception|Interrupt)\b)")
 _SKIPPED = re.compile(r"Stage '.*' didn't change, skipping")
 KILL_GRACE_S = 10.0
@@ -84,6 +88,8 @@ def load_plan(repo_dir: str | os.PathLike, names: str | None = None) -> dict:
                 if not hits:
                     raise RlsacError(f"no stage matches '{name}' (`dvc stage list` shows the names)")
                 chosen.update(hits)
+            if not chosen:  # `rlsac pipeline ','` ran nothing at exit 0 (verify refuses the same)
+                raise RlsacError(f"stages {names!r}: names no stage (`dvc stage list` shows the names)")
             # what the named stages need comes along (as `dvc repro <stage>`)
             nodes = set()
             for a in chosen:
@@ -205,6 +211,45 @@ def _check_options(o: dict) -> None:
         raise RlsacError("--workers sizes a local Ray cluster; with --address the cluster's own resources count")
     if not 0 <= o["gpus_per_train"] < float("inf"):  # nan and inf pass click's FloatRange
         raise RlsacError(f"--gpus-per-train {o['gpus_per_train']}: must be a finite number >= 0")
+    cpus = os.cpu_count() or 1
+    if o["workers"] is not None and o["workers"] > cpus:  # ray.init hung on --workers 1000000000
+        raise RlsacError(f"--workers {o['workers']}: this machine has {cpus} CPUs (a local Ray cluster has at most "
+                         "as many)")
+    if o["address"] and o["address"] != "auto":
+        _check_address(o["address"])
+
+
+def _check_address(address: str) -> None:
+    """A TCP connection to ``address`` (host:port, or ray://host:port) within ``ADDRESS_TIMEOUT_S``, retried while
+    refused (a head started just before): Ray's own connection retried for over 400 s, with the MLflow run open."""
+    import socket
+    from urllib.parse import urlsplit
+
+    where = urlsplit(address if "://" in address else f"ray://{address}")
+    try:
+        host, port = where.hostname, where.port
+    except ValueError:  # a port that is not a number
+        host, port = None, None
+    if not host or not port:
+        raise RlsacError(f"--address {address}: not host:port (`ray start --head` prints the address), nor 'auto'")
+    end = time.monotonic() + ADDRESS_TIMEOUT_S
+    while True:
+        try:
+            socket.create_connection((host, port), timeout=max(0.1, end - time.monotonic())).close()
+            return
+        except OSError as e:
+            if time.monotonic() + 0.5 >= end:
+                raise RlsacError(f"--address {address}: no Ray cluster answers there within {ADDRESS_TIMEOUT_S:g} s "
+                                 f"({e.__class__.__name__}: {' '.join(str(e).split())[:120]})") from None
+            time.sleep(0.5)
+
+
+def _check_resources(o: dict, plan: dict, resources: dict) -> None:
+    """What the stages ask Ray for must exist in the cluster, else a task waits for ever."""
+    gpu_stages = [a for a in plan["todo"] if o["gpus_per_train"] > 0 and _is_gpu_stage(a, o["gpu_stages"])]
+    if gpu_stages and resources.get("GPU", 0) < o["gpus_per_train"]:
+        raise RlsacError(f"--gpus-per-train {o['gpus_per_train']:g}: the Ray cluster has "
+                         f"{resources.get('GPU', 0):g} GPUs ({gpu_stages[0]} would never start)")
 
 
 def _start_ray(o: dict) -> tuple[Any, bool]:
@@ -255,9 +300,13 @@ def _descendants(address: str, dependents: dict[str, list[str]]) -> set[str]:
     return out
 
 
-def schedule(plan: dict, o: dict, ray, progress: Callable[[dict], None] | None = None) -> dict[str, dict]:
+def schedule(plan: dict, o: dict, ray, progress: Callable[[dict], None] | None = None,
+             results: dict[str, dict] | None = None, running: dict | None = None,
+             stop: Callable[[], int] | None = None) -> dict[str, dict]:
     """Run ``plan["todo"]`` as Ray tasks, each once its dependencies are done, as many at once as the cluster
-    has room for. -> {address: result}; a stage that never ran: {"status": "not run", "after": <failed stage>}."""
+    has room for. -> {address: result}; a stage that never ran: {"status": "not run", "after": <failed stage>}.
+    ``results`` and ``running`` (task -> address), when given, are filled as it goes: what an interrupted pipeline
+    reports; ``stop()`` true (a signal's number) ends the loop with ``Interrupted``."""
     todo = plan["todo"]
     root = str(plan["root"])
     env = {k: os.environ[k] for k in FORWARD_ENV if k in os.environ}
@@ -268,8 +317,8 @@ def schedule(plan: dict, o: dict, ray, progress: Callable[[dict], None] | None =
     for a, ds in waiting.items():
         for d in ds:
             dependents[d].append(a)
-    results: dict[str, dict] = {}
-    running: dict[Any, str] = {}
+    results = {} if results is None else results
+    running = {} if running is None else running
     while waiting or running:
         for a in [a for a in todo if a in waiting and not waiting[a]]:
             del waiting[a]
@@ -280,7 +329,9 @@ def schedule(plan: dict, o: dict, ray, progress: Callable[[dict], None] | None =
             running[task.options(**opts).remote(root, a, env, log)] = a
         if not running:  # nothing runnable is left: the rest waits on a failed stage (already marked)
             break
-        ready, _ = ray.wait(list(running), num_returns=1)
+        ready, _ = ray.wait(list(running), num_returns=1, timeout=None if stop is None else 0.5)
+        if stop is not None and stop():
+            raise Interrupted(f"interrupted by {signal_name(stop.signum)}", stop.signum)
         for ref in ready:
             a = running.pop(ref)
             try:
@@ -308,7 +359,6 @@ def schedule(plan: dict, o: dict, ray, progress: Callable[[dict], None] | None =
 def pipeline(options: dict[str, Any], track: bool = True) -> dict:
     """Check the options and the pipeline, then run the out-of-date stages. -> {"root", "results" {address:
     result}, "counts" {status: n}, "n_selected", "wall_s", "workers", "run_id", "dry_run"}."""
-    from rlsac.progress import tqdm
     from rlsac.tracking import check_store, start_run
 
     o = {**DEFAULTS, **{k: v for k, v in options.items() if v is not None}}
@@ -323,45 +373,77 @@ def pipeline(options: dict[str, Any], track: bool = True) -> dict:
     params = {k: o[k] for k in ("stages", "workers", "address", "gpus_per_train", "gpu_stages")}
     params.update(repo=str(plan["root"]), n_todo=len(plan["todo"]))
     t0 = time.time()
-    with start_run("pipeline", f"pipeline {len(plan['todo'])} stages", params=params, enabled=track) as run:
-        ray, started = _start_ray(o) if plan["todo"] else (None, False)
-        try:
-            resources = ray.cluster_resources() if ray is not None else {}
-            workers = int(resources.get("CPU", 0))
-            gpu_stages = [a for a in plan["todo"] if o["gpus_per_train"] > 0 and _is_gpu_stage(a, o["gpu_stages"])]
-            if gpu_stages and resources.get("GPU", 0) < o["gpus_per_train"]:  # the task would wait for ever
-                raise RlsacError(f"--gpus-per-train {o['gpus_per_train']:g}: the Ray cluster has "
-                                 f"{resources.get('GPU', 0):g} GPUs ({gpu_stages[0]} would never start)")
-            bar = tqdm(total=len(plan["todo"]), desc="pipeline", unit="stage")
+    if not o["address"] and plan["todo"]:  # a local cluster has this machine's GPUs: known before Ray starts
+        import torch
 
-            def progress(r: dict) -> None:
-                bar.set_postfix_str(f"{r['status']} {r['stage']}", refresh=False)
-                bar.update(1)
-                if r.get("seconds") is not None and r["status"] != "skipped":  # logged as each stage ends, so an
-                    # interrupted run keeps the times of what it finished (pipeline_projection.py --from-mlflow)
-                    run.metrics({stage_metric(r["stage"]): r["seconds"]})
-
+        _check_resources(o, plan, {"GPU": torch.cuda.device_count()})
+    # Ray before the MLflow run: a cluster that cannot start or lacks the GPUs asked for fails with no run
+    ray, started = _start_ray(o) if plan["todo"] else (None, False)
+    try:
+        resources = ray.cluster_resources() if ray is not None else {}
+        workers = int(resources.get("CPU", 0))
+        _check_resources(o, plan, resources)
+        with start_run("pipeline", f"pipeline {len(plan['todo'])} stages", params=params, enabled=track) as run:
+            results, running = {}, {}
+            # ray.init replaced the SIGTERM handler (exit 134, no summary), and an exception raised inside Ray's
+            # C calls comes out as a SystemError: the signal sets a flag that the scheduling loop checks
+            stop = StopOnSignal("rlsac pipeline", "the next check (within a second), cancelling the running stages",
+                                "without the summary; running the command again resumes")
             try:
-                results = schedule(plan, o, ray, progress) if plan["todo"] else {}
-            finally:
-                bar.close()
-        finally:
-            if started:
-                ray.shutdown()
-        wall = time.time() - t0
-        for a in skipped:
-            results[a] = {"stage": a, "status": "skipped", "seconds": None}
-        results = {a: results[a] for a in plan["order"] if a in results}
-        counts = {s: sum(r["status"] == s for r in results.values()) for s in STATUSES}
-        run.metrics({f"n_{k.replace(' ', '_')}": v for k, v in counts.items()})
-        run.metrics({"wall_s": wall, "workers": workers})
-        if track:
-            import tempfile
+                with stop:
+                    _run(plan, o, ray, run, results, running, stop)
+            except Interrupted as e:  # the summary of what ran, the in-flight stages' tasks cancelled
+                for ref, a in running.items():
+                    results[a] = {"stage": a, "status": "interrupted", "seconds": None}
+                    with contextlib.suppress(Exception):  # kills the worker: its guard SIGTERMs the stage, whose
+                        ray.cancel(ref, force=True)  # rlsac command ends its own run KILLED
+                e.summary = _summary(plan, base, skipped, results, time.time() - t0, workers, run, track)
+                raise
+            summary = _summary(plan, base, skipped, results, time.time() - t0, workers, run, track)
+    finally:
+        if started:
+            ray.shutdown()
+    return summary
 
-            with tempfile.TemporaryDirectory() as tmp:
-                path = Path(tmp) / "pipeline.json"
-                path.write_text(json.dumps({"deps": plan["deps"], "results": results}, indent=1) + "\n")
-                run.artifact(path)
+
+def _run(plan: dict, o: dict, ray, run, results: dict, running: dict, stop: Callable[[], int]) -> None:
+    from rlsac.progress import tqdm
+
+    bar = tqdm(total=len(plan["todo"]), desc="pipeline", unit="stage")
+
+    def progress(r: dict) -> None:
+        bar.set_postfix_str(f"{r['status']} {r['stage']}", refresh=False)
+        bar.update(1)
+        if r.get("seconds") is not None and r["status"] != "skipped":  # logged as each stage ends, so an
+            # interrupted run keeps the times of what it finished (pipeline_projection.py --from-mlflow)
+            run.metrics({stage_metric(r["stage"]): r["seconds"]})
+
+    try:
+        if plan["todo"]:
+            schedule(plan, o, ray, progress, results, running, stop)
+    finally:
+        bar.close()
+
+
+def _summary(plan: dict, base: dict, skipped: list[str], results: dict, wall: float, workers: int, run,
+             track: bool) -> dict:
+    """-> the command's result (see ``pipeline``), logged to the run; stages never reached are "not run"."""
+    results = dict(results)
+    for a in skipped:
+        results[a] = {"stage": a, "status": "skipped", "seconds": None}
+    for a in plan["todo"]:
+        results.setdefault(a, {"stage": a, "status": "not run"})
+    results = {a: results[a] for a in plan["order"] if a in results}
+    counts = {s: sum(r["status"] == s for r in results.values()) for s in STATUSES}
+    run.metrics({f"n_{k.replace(' ', '_')}": v for k, v in counts.items()})
+    run.metrics({"wall_s": wall, "workers": workers})
+    if track:
+        import tempfile
+
+        with tempfile.TemporaryDirectory() as tmp:
+            path = Path(tmp) / "pipeline.json"
+            path.write_text(json.dumps({"deps": plan["deps"], "results": results}, indent=1) + "\n")
+            run.artifact(path)
     return {**base, "dry_run": False, "results": results, "counts": counts, "wall_s": wall, "workers": workers,
             "run_id": run.run_id}
 
@@ -400,7 +482,7 @@ def format_summary(s: dict) -> str:
         if s["todo"]:
             lines.append(f"to run   {_names(s['todo'])}")
         return "\n".join(lines)
-    head = ", ".join(f"{len(by[k])} {k}" for k in STATUSES)
+    head = ", ".join(f"{len(by[k])} {k}" for k in STATUSES if k != "interrupted" or by[k])
     lines = [f"pipeline: {head} of {s['n_selected']} stages in {s['wall_s']:.1f} s"
              + (f" ({s['workers']} CPUs)" if s["workers"] else "")]
     for k in ("done", "skipped"):
@@ -413,4 +495,6 @@ def format_summary(s: dict) -> str:
         lines.append(f"failed   ... and {len(by['failed']) - 10} more")
     if by["not run"]:
         lines.append(f"not run  {_names(by['not run'])}")
+    if by["interrupted"]:  # in flight at SIGINT / SIGTERM: their tasks cancelled, their runs ended KILLED
+        lines.append(f"interrupted {_names(by['interrupted'])}")
     return "\n".join(lines)

@@ -44,9 +44,11 @@ def candidates(history: list[dict[str, Any]], kept_step: int, tie: float, key: s
     return [s for s in sorted(score) if abs(score[s] - score[kept_step]) <= tie]
 
 
-def replay(train_opts: dict[str, Any], kept: dict[str, Any], where: Path) -> list[dict[str, Any]]:
+def replay(train_opts: dict[str, Any], kept: dict[str, Any], where: Path, name: str | None = None
+           ) -> list[dict[str, Any]]:
     """Train again with ``train_opts`` (output under ``where``, untracked) -> the payload of every validated actor;
-    RlsacError unless the actor of ``kept``'s step is ``kept``'s actor, tensor for tensor."""
+    RlsacError unless the actor of ``kept``'s step is ``kept``'s actor, tensor for tensor. ``name``: the checkpoint
+    as the user gave it, for the message (its stored ``out`` may be another machine's path)."""
     import torch
 
     from rlsac.train import train
@@ -56,7 +58,7 @@ def replay(train_opts: dict[str, Any], kept: dict[str, Any], where: Path) -> lis
     same = [s for s in snaps if s["step"] == kept.get("step")]
     if not same or set(same[0]["actor"]) != set(kept["actor"]) or not all(
             torch.equal(same[0]["actor"][k].cpu(), kept["actor"][k].cpu()) for k in kept["actor"]):
-        raise RlsacError(f"{train_opts['out']}: the replayed training does not give the kept actor of step "
+        raise RlsacError(f"{name or train_opts['out']}: the replayed training does not give the kept actor of step "
                          f"{kept.get('step')} (a checkpoint from other options, code or hardware)")
     if "state_scales" not in kept:  # a checkpoint from before the key: its snapshots are evaluated as it was
         for s in snaps:
@@ -83,7 +85,7 @@ def select_fold(p: dict, params: dict, regime: str, fold: str, model: str, o: di
         train_options,
         tuned_settings,
     )
-    from rlsac.reports.tables import read_summary
+    from rlsac.results import read_errors, read_summary
     from rlsac.tasks import task_class
     from rlsac.tracking import check_store, start_run
     from rlsac.train import selection_score
@@ -103,13 +105,18 @@ def select_fold(p: dict, params: dict, regime: str, fold: str, model: str, o: di
         d = eval_dir(regime, fold, model, it, task)
         if not (d / "errors.csv").is_file() or not (d / "summary.json").is_file():
             raise RlsacError(f"{d}: no evaluation of the kept actor at {it} iterations (run its fold_eval stage)")
-        err = pd.read_csv(d / "errors.csv", dtype={"scene": str, "pair": str})
+        err = read_errors(d / "errors.csv", ("err_R", "err_t"))
         if [f"{a}/{b}" for a, b in zip(err["scene"], err["pair"], strict=True)] != pairs:
             raise RlsacError(f"{d}: its pairs are not those of {test}")
         kept_eval[it] = (err, read_summary(d / "summary.json"))
     csv_path, json_path = paths(regime, fold, model)
     for path in (csv_path, json_path):
         check_writable(path)
+    train_opts = train_options(p, params, regime, fold, model, o)
+    for key in ("data", "val_data"):  # before the run, not inside it
+        if train_opts.get(key) and not Path(str(train_opts[key])).is_file():
+            raise RlsacError(f"{train_opts[key]}: no such file (the {key} {model} was trained on; run the fold's "
+                             "data stage)")
     experiment = task_class(task).experiment
     check_store(track, experiment)
     device = resolve_device(o["device"])
@@ -120,7 +127,7 @@ def select_fold(p: dict, params: dict, regime: str, fold: str, model: str, o: di
                                                                         "tie": p["select_tie"], **settings},
             tags=tags, enabled=track) as mlrun:
         t0 = time.perf_counter()
-        snaps = replay(train_options(p, params, regime, fold, model, o), kept, Path(tmp))
+        snaps = replay(train_opts, kept, Path(tmp), str(row["checkpoint"]))
         mlrun.metrics({"time/replay_seconds": time.perf_counter() - t0})
         for snap in snaps:
             step = int(snap["step"])
@@ -202,12 +209,12 @@ def select_checkpoint(o: dict[str, Any], params: dict, track: bool = True) -> di
     and the inlier-ratio-best step; the candidates within ``tie`` of the kept one's validation score; each step's
     test summary). The kept actor must come back tensor for tensor and give the test mAA of its committed evaluation
     ``o['kept_eval']``, or nothing is written (RlsacError). -> a summary."""
-    import json
     import time
 
     from rlsac import checkpoint
     from rlsac.config import section
     from rlsac.evaluate import check_options, resolve_device, score
+    from rlsac.results import read_errors, read_summary
     from rlsac.tasks import task_class
     from rlsac.tracking import check_store, start_run
     from rlsac.train import SELECTION_KEY, selection_score
@@ -219,7 +226,14 @@ def select_checkpoint(o: dict[str, Any], params: dict, track: bool = True) -> di
     conf = dict(kept["conf"])
     task = str(conf.get("task"))
     task_cls = task_class(task)
-    kept_summary = json.loads((Path(o["kept_eval"]) / "summary.json").read_text())
+    # the kept evaluation and the training files, all checked before the run (issue #49: a corrupt or list
+    # summary was a traceback, a missing training file failed inside the run)
+    kept_summary = read_summary(Path(o["kept_eval"]) / "summary.json")
+    read_errors(Path(o["kept_eval"]) / "errors.csv")
+    for key in ("data", "val_data"):
+        if conf.get(key) and not Path(str(conf[key])).is_file():
+            raise RlsacError(f"{o['checkpoint']}: trained on {key} {conf[key]}, which is absent here (select "
+                             "replays the training on it)")
     if Path(str(kept_summary.get("checkpoint", ""))).resolve() != Path(o["checkpoint"]).resolve() or Path(
             str(kept_summary.get("data", ""))).resolve() != Path(o["data"]).resolve():
         raise RlsacError(f"{o['kept_eval']}: an evaluation of {kept_summary.get('checkpoint')} on "
@@ -239,7 +253,8 @@ def select_checkpoint(o: dict[str, Any], params: dict, track: bool = True) -> di
                                                                "iterations": iterations, "tie": o["tie"]},
             tags={"command": "select"}, enabled=track) as mlrun:
         t0 = time.perf_counter()
-        snaps = replay({**conf, "resume": False, "device": o.get("device") or "cpu"}, kept, Path(tmp))
+        snaps = replay({**conf, "resume": False, "device": o.get("device") or "cpu"}, kept, Path(tmp),
+                       o["checkpoint"])
         mlrun.metrics({"time/replay_seconds": time.perf_counter() - t0})
         for snap in snaps:
             step = int(snap["step"])

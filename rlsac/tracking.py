@@ -162,6 +162,49 @@ def _error_tags(e: BaseException) -> dict[str, str]:
     return {"error": message[:5000], "error_type": e.__class__.__name__}
 
 
+def _process_tags() -> dict[str, str]:
+    """Which process holds a run: ``close_dead_runs`` ends the runs of processes that no longer exist."""
+    import socket
+
+    return {"host": socket.gethostname(), "pid": str(os.getpid())}
+
+
+def _alive(pid: int, since_s: float) -> bool:
+    """Whether process ``pid`` exists and started before ``since_s`` (epoch seconds): a newer process of the same
+    pid is not the one that opened the run."""
+    import psutil
+
+    try:
+        return psutil.Process(pid).create_time() <= since_s + 1.0
+    except (psutil.NoSuchProcess, psutil.AccessDenied, ValueError):
+        return False
+
+
+def close_dead_runs(client=None) -> list[str]:
+    """End KILLED every RUNNING run of this host whose process (tags ``host`` and ``pid``) is gone: a SIGKILL (or a
+    lost machine) gives a process no chance to end its run, so the next command on the host does it (issue #49).
+    -> the run ids closed. Runs of other hosts, and runs without the tags, are left alone."""
+    import socket
+
+    import mlflow
+
+    client = client or mlflow.MlflowClient()
+    host, closed = socket.gethostname(), []
+    ids = [e.experiment_id for e in client.search_experiments()]
+    if not ids:
+        return closed
+    for r in client.search_runs(ids, filter_string=f"attributes.status = 'RUNNING' and tags.host = '{host}'",
+                                max_results=1000):
+        pid = r.data.tags.get("pid", "")
+        if not pid.isdigit() or _alive(int(pid), r.info.start_time / 1000.0):
+            continue
+        client.set_tag(r.info.run_id, "error", f"process {pid} on {host} ended while the run was RUNNING (killed, "
+                       "e.g. by SIGKILL); closed by a later command")
+        client.set_terminated(r.info.run_id, status="KILLED")
+        closed.append(r.info.run_id)
+    return closed
+
+
 @contextlib.contextmanager
 def start_run(experiment: str, run_name: str, params: dict[str, Any] | None = None,
               tags: dict[str, str] | None = None, enabled: bool = True, run_id: str | None = None) -> Iterator[Run]:
@@ -171,6 +214,8 @@ def start_run(experiment: str, run_name: str, params: dict[str, Any] | None = No
 
     ``run_id``: continue that run (``rlsac train --resume``) when the store still has it; params it
     already holds with another value are not re-logged but tagged ``changed_on_resume.<key>``.
+    Every run is tagged with its ``host`` and ``pid``; runs of this host's dead processes are closed first
+    (``close_dead_runs``).
     """
     if not enabled:
         yield Run(None)
@@ -182,13 +227,15 @@ def start_run(experiment: str, run_name: str, params: dict[str, Any] | None = No
     from rlsac.errors import RlsacError
 
     uri = os.environ.get("MLFLOW_TRACKING_URI", DEFAULT_URI)
-    tags = {k: str(v) for k, v in (tags or {}).items()}
+    tags = {**{k: str(v) for k, v in (tags or {}).items()}, **_process_tags()}
     if "command" not in tags and command_name():
         tags["command"] = command_name()
     try:
         mlflow.set_tracking_uri(uri)
         with _store_lock(uri):
             mlflow.set_experiment(experiment)
+        with contextlib.suppress(Exception):  # a store that cannot be searched still records this run
+            close_dead_runs()
         old = None
         if run_id is not None:
             try:

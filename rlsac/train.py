@@ -14,8 +14,6 @@ The actor kept in ``out`` is the one with the best validation mAA seen so far.
 from __future__ import annotations
 
 import signal
-import sys
-import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,6 +32,7 @@ from rlsac.ngransac import NGRansacConf
 from rlsac.policy import PolicyConf
 from rlsac.rollout import in_channels, rlsac_estimate
 from rlsac.sac import ReplayBuffer, SACAgent, SACConf, seed_everything, train_loop
+from rlsac.signals import StopOnSignal as _StopOnSignal  # shared with every command (rlsac.signals)
 from rlsac.tasks import TASKS, Task, get_task, task_class
 from rlsac.tracking import check_store, start_run
 
@@ -362,44 +361,6 @@ def validation_summary(task, val: dict, res: dict) -> dict:
     ratio = res["inliers"].sum(-1).float() / val["mask"].sum(-1).clamp_min(1)
     summ["charts/val_inlier_ratio"] = float(ratio.mean())
     return summ
-
-
-class _StopOnSignal:
-    """While active (``with``): a first SIGINT / SIGTERM sets ``signum`` (call it: ``stop()`` -> bool) instead of
-    killing the process, so that training stops at the end of the episode after saving its state. A second
-    signal stops at once, by raising ``Interrupted`` where the program is: the with-blocks unwind, so the MLflow
-    run ends KILLED and a save in progress removes its temporary file (issue #28, item 5: the default handler
-    killed the process, leaving the run RUNNING and the temporary file behind). Only in the main thread."""
-
-    def __init__(self):
-        self.signum = 0
-        self._previous: dict = {}
-
-    def __call__(self) -> bool:
-        return bool(self.signum)
-
-    def _handle(self, signum, frame) -> None:
-        name = signal.Signals(signum).name
-        if self.signum:
-            raise Interrupted(f"interrupted by a second {name}: stopped at once, without saving; continue from "
-                              "the last saved state with --resume", signum)
-        self.signum = signum
-        print(f"\nrlsac train: {name} received, stopping at the end of the episode (send it again to stop at once)",
-              file=sys.stderr, flush=True)
-
-    def _restore(self) -> None:
-        for s, h in self._previous.items():
-            signal.signal(s, h)
-        self._previous = {}
-
-    def __enter__(self):
-        if threading.current_thread() is threading.main_thread():
-            for s in (signal.SIGINT, signal.SIGTERM):
-                self._previous[s] = signal.signal(s, self._handle)
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self._restore()
 
 
 def task_experiment(task: str) -> str:

@@ -100,7 +100,9 @@ def check_scenes(val_scenes: list[str], train_scenes: list[str], test_scenes: li
 def check_record(rec: dict[str, Any], path: Path, regime: str, fold: str, row: str, train_scenes: list[str],
                  test_scenes: list[str]) -> dict[str, Any]:
     """A tuning record as the fold's evaluation needs it: this (regime, fold, row), validation scenes of the
-    training buildings only -> its chosen settings."""
+    training buildings only -> its chosen settings. ``rec`` is what rlsac.results.read_record accepted."""
+    if not isinstance(rec, dict):
+        raise RlsacError(f"{path}: not a tuning record (holds a {type(rec).__name__}, not a mapping)")
     for key, want in (("regime", regime), ("fold", fold), ("row", row)):
         if rec.get(key) != want:
             raise RlsacError(f"{path}: tuning record for {key} {rec.get(key)!r}, not {want!r}")

@@ -48,6 +48,8 @@ def verify(options: dict[str, Any], track: bool = True, report: Callable[[str], 
     o = {**DEFAULTS, **{k: v for k, v in options.items() if v is not None}}
     if o["tolerance"] is not None and not 0 <= o["tolerance"] < float("inf"):
         raise RlsacError(f"--tolerance must be a finite number >= 0, got {o['tolerance']}")
+    if o["sample"] is not None and o["sample"] < 1:  # before reading the pipeline (minutes on a large one)
+        raise RlsacError(f"--sample {o['sample']}: must be at least 1")
     root, stages = load_stages(o["repo"])
     selected = select(stages, o["stages"], o["sample"], o["seed"], o["include_train"])
     tracked = git_files(root)

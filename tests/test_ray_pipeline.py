@@ -249,6 +249,19 @@ def test_help_does_not_import_ray():
     assert out.strip() == "[]"
 
 
+def _wait_for_port(port: int, proc, timeout: float = 180.0) -> None:
+    import socket
+
+    end = time.monotonic() + timeout
+    while time.monotonic() < end and proc.poll() is None:
+        try:
+            socket.create_connection(("127.0.0.1", port), timeout=1.0).close()
+            return
+        except OSError:
+            time.sleep(0.5)
+    raise AssertionError(f"ray head on port {port} did not come up")
+
+
 def test_joins_a_ray_cluster_by_address(tmp_path):
     """`--address HOST:PORT` joins a cluster started with `ray start --head` (token authentication on: the
     module's local cluster made ~/.ray/auth_token) and runs the stages there."""
@@ -264,6 +277,7 @@ def test_joins_a_ray_cluster_by_address(tmp_path):
                             start_new_session=True, env=env)
     try:
         repo = make_repo(tmp_path / "repo", {"a": TOY["a"], "b": TOY["b"]})
+        _wait_for_port(port, head)  # the pipeline gives an address 10 s to answer (issue #49: no 400 s retries)
         r = subprocess.run([str(Path(sys.executable).parent / "rlsac"), "pipeline", "--repo", str(repo),
                             "--address", f"127.0.0.1:{port}", "--no-tracking"], capture_output=True, text=True,
                            env=env)
@@ -290,15 +304,23 @@ def test_an_interrupted_run_keeps_the_times_of_the_stages_it_finished(tmp_path, 
 
     repo = make_repo(tmp_path / "repo", {"a": TOY["a"], "b": TOY["b"]})
 
-    def interrupted(plan, o, ray_module, progress):
-        progress({"stage": plan["todo"][0], "status": "done", "seconds": 1.5})
-        raise KeyboardInterrupt
+    from rlsac.errors import Interrupted
+
+    def interrupted(plan, o, ray_module, progress, results, running, stop):
+        r = {"stage": plan["todo"][0], "status": "done", "seconds": 1.5}
+        results[r["stage"]] = r
+        progress(r)
+        running["task-of-b"] = plan["todo"][1]  # in flight when the signal came (issue #49)
+        raise Interrupted("interrupted by SIGTERM", 15)
 
     monkeypatch.setattr(pipeline_module, "schedule", interrupted)
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
     r = CliRunner().invoke(cli, ["pipeline", "--repo", str(repo)])
-    assert r.exit_code != 0
+    assert r.exit_code == 143, r.output  # the summary of what ran, then one error line, and the run KILLED
+    assert summary(r.stdout)[0].startswith("pipeline: 1 done, 0 skipped, 0 failed, 0 not run, 1 interrupted"), r.stdout
+    assert r.stderr.strip().splitlines()[-1] == "error: interrupted by SIGTERM", r.stderr
     runs = mlflow.MlflowClient(uri).search_runs(
         [mlflow.MlflowClient(uri).get_experiment_by_name("pipeline").experiment_id])
     assert len(runs) == 1 and runs[0].data.metrics.get("stage_s/a") == 1.5, runs[0].data.metrics
+    assert runs[0].info.status == "KILLED" and runs[0].data.tags["error"] == "interrupted by SIGTERM"

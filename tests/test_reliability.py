@@ -523,7 +523,7 @@ CASES = [
     # issue #28, item 3: options bounded by a fixed cap and by what the data allow; every params.yaml section
     # typed and checked at load, whichever command reads it (evaluate refuses a bad train or lines section too)
     ("eval-sets-per-step-huge", evaluate("--sets-per-step", "1000000000"), "sets_per_step must be in [1, 1024]"),
-    ("eval-sets-per-step-data", evaluate("--sets-per-step", "500"),
+    ("eval-sets-per-step-data", evaluate("--sets-per-step", "500", "--method", "uniform"),
      "sets_per_step 500 is more than the 190 distinct minimal sets of 2 points"),
     ("eval-lo-unused", evaluate(params="{p_eval_lo}"), "unknown LO score 'bogus'"),
     ("eval-lo-unused-f", evaluate(data="{fund}", params="{p_eval_lo_f}", **EVAL_F),
@@ -1240,3 +1240,310 @@ def test_a_checkpoint_with_non_finite_weights_is_refused(workdir, inputs):
     assert r.exit_code == 2, r.output
     assert r.stderr.strip() == f"error: {path}: non-finite weights in {name} (1 tensor(s)); a diverged training?"
     assert not (workdir / "ev").exists()
+
+
+# ----------------------------------------------------------- issue #49: readers that refuse, signals, fail fast
+
+
+def _nan_weights_checkpoint(path: Path) -> Path:
+    import torch
+
+    _tiny_checkpoint(path)
+    ckpt = torch.load(path, weights_only=False)
+    first = next(iter(ckpt["actor"]))
+    ckpt["actor"][first] = torch.full_like(ckpt["actor"][first], float("nan"))
+    torch.save(ckpt, path)
+    return path
+
+
+def _folds_tune_setup(root: Path, f: dict) -> None:
+    """--only ransac,rlsac with a NaN weight in the second row's model: ransac's committed record must stay."""
+    import shutil
+
+    (root / "data/folds/hard/castle").mkdir(parents=True)
+    shutil.copy(f["fund"], root / "data/folds/hard/castle/val.h5")
+    _nan_weights_checkpoint(root / "checkpoints/folds/hard/castle/rlsac.pt")
+    _committed(root / "reports/tuning/fundamental/hard/castle/ransac.json")
+    (root / "params.yaml").write_text(FOLDS_EVAL_PARAMS)
+
+
+def _folds_record_setup(record: str):
+    def setup(root: Path, f: dict) -> None:
+        import shutil
+
+        (root / "data/folds/hard/castle").mkdir(parents=True)
+        shutil.copy(f["fund"], root / "data/folds/hard/castle/test.h5")
+        _tiny_checkpoint(root / "checkpoints/folds/hard/castle/rlsac.pt")
+        _committed(root / "reports/tuning/fundamental/hard/castle/ransac.json", record)
+        (root / "params.yaml").write_text(FOLDS_EVAL_PARAMS)
+    return setup
+
+
+GOOD_RECORD = {"regime": "hard", "fold": "castle", "row": "ransac", "chosen": {"threshold_px": 1.0},
+               "val_scenes": ["fountain-P11"], "val": {"mAA": 0.5}}
+
+
+def _plot_nan_setup(root: Path, f: dict) -> None:
+    _committed(root / "nan.csv", "regime,method,iterations,mAA_R,mAA_t,n_pairs\nhard,ransac,100,nan,0.4,10\n")
+
+
+def _kind_mismatch_setup(root: Path, f: dict) -> None:
+    import torch
+
+    path = _tiny_checkpoint(root / "ck.pt", "line")
+    ckpt = torch.load(path, weights_only=False)
+    ckpt["kind"] = "ngransac"  # an RLSAC actor labelled NG-RANSAC: its network reads RLSAC's state channels
+    torch.save(ckpt, path)
+
+
+def _select_setup(summary: str, data: str = ""):
+    def setup(root: Path, f: dict) -> None:
+        import torch
+
+        path = _tiny_checkpoint(root / "ck.pt", "line")
+        ckpt = torch.load(path, weights_only=False)
+        ckpt["conf"]["data"] = data
+        torch.save(ckpt, path)
+        _committed(root / "kept/summary.json", summary)
+        _committed(root / "kept/errors.csv", "instance,err_deg\n0,0.1\n")
+        (root / "params.yaml").write_text("evaluate: {line: {iterations: 5}}\n")
+    return setup
+
+
+def _select(*extra):
+    return ["select", "--checkpoint", "ck.pt", "--data", "{lines}", "--kept-eval", "kept", "--out", "sel/o", *extra]
+
+
+def _folds_eval(only="ransac"):
+    return ["folds", "--stage", "evaluate", "--regime", "hard", "--fold", "castle", "--only", only]
+
+
+ISSUE49_TRACKED = [
+    ("folds-tune-second-row-nan-weights", _folds_tune_setup,
+     ["folds", "--stage", "tune", "--regime", "hard", "--fold", "castle", "--only", "ransac,rlsac"],
+     "rlsac.pt: non-finite weights"),
+    ("folds-record-list", _folds_record_setup("[]"), _folds_eval(), "ransac.json: not a tuning record (holds a list"),
+    ("folds-record-null", _folds_record_setup("null"), _folds_eval(), "not a tuning record (holds a NoneType"),
+    ("folds-record-chosen-empty", _folds_record_setup(json.dumps({**GOOD_RECORD, "chosen": {}})), _folds_eval(),
+     "'chosen' is {}"),
+    ("folds-record-val-scenes-empty", _folds_record_setup(json.dumps({**GOOD_RECORD, "val_scenes": []})),
+     _folds_eval(), "'val_scenes' is []"),
+    ("plot-nan-iterations-csv", _plot_nan_setup, _plot("which=folds", "folds_iterations_csv=nan.csv", "out_dir=out"),
+     "nan.csv: 'mAA_R' is nan in row 1"),
+    ("evaluate-kind-not-the-weights", _kind_mismatch_setup,
+     ["evaluate", "--task", "line", "--method", "ngransac", "--checkpoint", "ck.pt", "--data", "{lines}",
+      "--out-dir", "ev", "--params", "", "--iterations", "5"], "ck.pt: its network reads 5 input channels, not the 2"),
+    ("select-kept-eval-list", _select_setup("[]"), _select(), "not a valid summary.json (holds a list"),
+    ("select-kept-eval-corrupt", _select_setup("{not json"), _select(), "not a valid summary.json (JSONDecodeError)"),
+    ("select-training-file-absent", _select_setup(json.dumps({"mAA": 0.5}), data="gone/train.h5"), _select(),
+     "ck.pt: trained on data gone/train.h5, which is absent here"),
+]
+
+
+@pytest.mark.parametrize("setup, argv, fragment", [c[1:] for c in ISSUE49_TRACKED], ids=[c[0] for c in ISSUE49_TRACKED])
+def test_issue49_failure_writes_nothing_and_starts_no_run(workdir, inputs, setup, argv, fragment):
+    test_failure_with_tracking_writes_nothing_and_starts_no_run(workdir, inputs, setup, argv, fragment)
+
+
+ISSUE49_CASES = [
+    ("verify-sample-0", ["verify", "--sample", "0"], "--sample 0: must be at least 1"),
+    ("pipeline-unreachable-address", ["pipeline", "--address", "127.0.0.1:1"], "no Ray cluster answers there"),
+    ("pipeline-workers-over-cpus", ["pipeline", "--workers", "1000000000"], "--workers 1000000000: this machine has"),
+    ("evaluate-sets-per-step-not-read", evaluate("--sets-per-step", "4"), "--method ransac does not read it"),
+    ("evaluate-policy-every-not-read", evaluate("--policy-every", "2"), "policy_every 2: --method ransac does not"),
+]
+
+
+@pytest.mark.parametrize("argv, fragment", [c[1:] for c in ISSUE49_CASES], ids=[c[0] for c in ISSUE49_CASES])
+def test_issue49_bad_input_is_one_line_error(workdir, inputs, argv, fragment):
+    import time
+
+    t0 = time.monotonic()
+    test_bad_input_is_one_line_error_and_writes_nothing(workdir, inputs, argv, fragment)
+    assert time.monotonic() - t0 < 20  # within seconds: Ray's own connection retried for over 400 s
+
+
+# readers: each corrupt result file an error naming it (issue #49: coerced to NaN, a table lied at exit 0)
+LINE_RATE_DIR = Path(__file__).resolve().parents[1] / "reports/eval/lines"
+
+
+def _errors_edit(kind):
+    def edit(d: Path) -> None:
+        f = d / "errors.csv"
+        df = pd.read_csv(f)
+        if kind == "nan":
+            df["err_deg"] = np.nan
+        elif kind == "text":
+            df["err_deg"] = df["err_deg"].astype(object)
+            df.loc[3, "err_deg"] = "oops"
+        elif kind == "truncated":
+            df = df.iloc[:-26]
+        elif kind == "negative":
+            df.loc[0, "err_deg"] = -1.0
+        df.to_csv(f, index=False)
+    return edit
+
+
+def _summary_edit(value):
+    def edit(d: Path) -> None:
+        f = d / "summary.json"
+        s = json.loads(f.read_text())
+        if value is KeyError:
+            del s["mAA"]
+        else:
+            s["mAA"] = value
+        f.write_text(json.dumps(s))
+    return edit
+
+
+CORRUPT = {
+    "errors-nan": (_errors_edit("nan"), "errors.csv: 'err_deg' is nan in row 1"),
+    "errors-text": (_errors_edit("text"), "errors.csv: 'err_deg' holds 'oops', not a number"),
+    "errors-truncated": (_errors_edit("truncated"), "errors.csv: 974 rows, not the 1000 instances"),
+    "errors-negative": (_errors_edit("negative"), "'err_deg' is -1 in row 1, not a finite number >= 0"),
+    "summary-maa-text": (_summary_edit("high"), "summary.json: 'mAA' is 'high', not a finite number"),
+    "summary-maa-nan": (_summary_edit(float("nan")), "summary.json: 'mAA' is nan, not a finite number"),
+    "summary-maa-missing": (_summary_edit(KeyError), "summary.json: no 'mAA' in the summary"),
+}
+
+
+@pytest.mark.parametrize("name", sorted(CORRUPT))
+def test_corrupt_result_is_an_error_not_a_table(workdir, name):
+    """Table 1 from a copy of the committed line results, RANSAC at outlier rate 0.7 corrupted: exit 2 naming the
+    file, no table written (before: "Ours − RANSAC +0.701", the true value +0.048, at exit 0)."""
+    import shutil
+
+    edit, fragment = CORRUPT[name]
+    root = workdir / "eval" / "lines"
+    for d in ("ransac", "ours", "oracle"):
+        shutil.copytree(LINE_RATE_DIR / d, root / d)
+    edit(root / "ransac" / "o0.7")
+    r = CliRunner().invoke(cli, ["table", "--which", "1", "--eval-root", "eval", "--out-dir", "out", "--no-tracking"])
+    assert r.exit_code == 2, r.output
+    err = r.stderr.strip()
+    assert err.startswith("error: ") and "\n" not in err and fragment in err, err
+    assert "o0.7" in err and not (workdir / "out").exists()
+
+
+def test_absent_result_is_a_dash_and_counted(workdir):
+    import shutil
+
+    root = workdir / "eval" / "lines"
+    for d in ("ransac", "ours", "oracle"):
+        shutil.copytree(LINE_RATE_DIR / d, root / d)
+    shutil.rmtree(root / "ransac" / "o0.7")
+    r = CliRunner().invoke(cli, ["table", "--which", "1", "--eval-root", "eval", "--out-dir", "out", "--no-tracking"])
+    assert r.exit_code == 0, r.output
+    assert "result file(s) missing (shown as –)" in r.output
+    md = (workdir / "out" / "table1_lines.md").read_text()
+    assert "result file(s) absent: their cells show –" in md
+
+
+def test_readers_accept_every_committed_result():
+    from rlsac import results
+
+    root = Path(__file__).resolve().parents[1] / "reports"
+    for f in root.glob("eval/**/summary.json"):
+        results.read_summary(f)
+    for f in root.glob("eval/**/errors.csv"):
+        results.read_errors(f)
+    for f in root.glob("tuning/**/*.json"):
+        results.read_record(f)
+
+
+# signals: every command ends its run KILLED with the signal in its error tag, exit 128 + the signal
+
+
+def test_interrupt_on_signals_raises_interrupted_and_restores_the_handlers():
+    import signal
+
+    from rlsac.errors import Interrupted
+    from rlsac.signals import interrupt_on_signals
+
+    before = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(Interrupted) as e, interrupt_on_signals():
+        os.kill(os.getpid(), signal.SIGTERM)
+        import time
+
+        time.sleep(5)
+    assert e.value.exit_code == 143 and str(e.value) == "interrupted by SIGTERM"
+    assert signal.getsignal(signal.SIGTERM) is before
+
+
+@pytest.mark.parametrize("signame, code", [("SIGTERM", 143), ("SIGINT", 130)])
+def test_signal_ends_evaluate_killed_with_one_error_line(workdir, signame, code):
+    """`rlsac evaluate` (as every command: the CLI's rlsac.signals) stopped by a signal: its MLflow run ends KILLED
+    with the signal in its error tag, no output and no temporary file is left, one error line, exit 130 / 143."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    import mlflow
+
+    data = _lines(workdir / "l.h5", n=3000, n_points=100)
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    proc = subprocess.Popen([sys.executable, "-m", "rlsac.cli", "evaluate", "--task", "line", "--method", "ransac",
+                             "--data", str(data), "--iterations", "100000", "--out-dir", "ev", "--params", ""],
+                            cwd=workdir, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    client = mlflow.MlflowClient(os.environ["MLFLOW_TRACKING_URI"])
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and proc.poll() is None:  # until its run exists: the work has started
+        if (workdir / "mlflow.db").exists() and _all_runs():
+            break
+        time.sleep(0.5)
+    time.sleep(1.0)
+    proc.send_signal(getattr(signal, signame))
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == code, (out, err)
+    assert err.strip() == f"error: interrupted by {signame}", err
+    (run,) = _all_runs()
+    run = client.get_run(run.info.run_id)
+    assert run.info.status == "KILLED" and run.data.tags["error"] == f"interrupted by {signame}"
+    assert not (workdir / "ev").exists() or not any((workdir / "ev").iterdir())
+
+
+def test_runs_of_dead_processes_are_closed_by_the_next_command(workdir):
+    """A SIGKILL leaves its run RUNNING: the next command on the host ends it KILLED (tags host and pid)."""
+    import socket
+    import subprocess
+    import sys
+
+    import mlflow
+
+    from rlsac.tracking import start_run
+
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    client = mlflow.MlflowClient(os.environ["MLFLOW_TRACKING_URI"])
+    with start_run("lines", "alive"):
+        pass
+    exp = client.get_experiment_by_name("lines").experiment_id
+    orphan = client.create_run(exp, tags={"host": socket.gethostname(), "pid": dead.stdout.strip()}).info.run_id
+    elsewhere = client.create_run(exp, tags={"host": "another-host", "pid": dead.stdout.strip()}).info.run_id
+    mine = client.create_run(exp, tags={"host": socket.gethostname(), "pid": str(os.getpid())}).info.run_id
+    with start_run("lines", "next"):
+        pass
+    assert client.get_run(orphan).info.status == "KILLED"
+    assert "ended while the run was RUNNING" in client.get_run(orphan).data.tags["error"]
+    assert client.get_run(elsewhere).info.status == "RUNNING" and client.get_run(mine).info.status == "RUNNING"
+
+
+def test_pipeline_refuses_empty_stage_names_and_gpus_it_lacks(workdir):
+    import subprocess
+    import sys
+
+    import torch
+    import yaml
+
+    if torch.cuda.device_count():
+        pytest.skip("this machine has a GPU: --gpus-per-train 1 is satisfiable")
+    repo = workdir / "repo"
+    repo.mkdir()
+    subprocess.run(["git", "init", "-q"], cwd=repo, check=True)
+    subprocess.run([sys.executable, "-m", "dvc", "init", "-q"], cwd=repo, check=True)
+    (repo / "dvc.yaml").write_text(yaml.safe_dump({"stages": {"train_a": {"cmd": "echo a > a", "outs": ["a"]}}}))
+    for argv, fragment in ((["pipeline", "--repo", "repo", ","], "stages ',': names no stage"),
+                           (["pipeline", "--repo", "repo", "--gpus-per-train", "1"], "--gpus-per-train 1")):
+        r = CliRunner().invoke(cli, argv)
+        assert r.exit_code == 2 and fragment in r.stderr and "\n" not in r.stderr.strip(), r.output
+    assert not (repo / "a").exists() and _all_runs() == []

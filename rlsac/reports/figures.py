@@ -580,10 +580,12 @@ def read_inputs(o: dict[str, Any]) -> dict[str, Any]:
     which = set(o["which"])
     if "fundamental_iterations" in which:
         if o["iterations_csv"]:
-            try:
-                out["fundamental_iterations"] = pd.read_csv(o["iterations_csv"])
-            except (ValueError, OSError, UnicodeDecodeError) as e:
-                raise RlsacError(f"{o['iterations_csv']}: not a readable CSV ({e.__class__.__name__})") from None
+            from rlsac.results import read_table
+
+            out["fundamental_iterations"] = read_table(o["iterations_csv"], ("iterations", "mAA_R", "mAA_t"),
+                                                       "iterations CSV")
+            if out["fundamental_iterations"] is None:
+                raise RlsacError(f"{o['iterations_csv']}: no such file")
         else:
             from rlsac.reports.tables import iterations_csv
 

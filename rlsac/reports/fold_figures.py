@@ -21,6 +21,7 @@ import pandas as pd  # noqa: E402
 from rlsac import checkpoint  # noqa: E402
 from rlsac.errors import RlsacError  # noqa: E402
 from rlsac.reports import figfile  # noqa: E402
+from rlsac.results import read_table  # noqa: E402
 
 STYLE = {"uniform": ("tab:blue", "x"), "guided": ("tab:cyan", "<"), "prosac": ("olive", ">"),
          "ransac": ("tab:purple", "o"), "opencv_ransac": ("tab:gray", "s"),
@@ -41,6 +42,7 @@ def _save(fig, out_dir: Path, name: str) -> list[str]:
 
 
 COLUMNS = ("regime", "method", "iterations", "mAA_R", "mAA_t", "n_pairs")  # what the iterations figure reads
+NUMERIC = ("iterations", "mAA_R", "mAA_t", "n_pairs")
 
 
 def read_iterations(csv: str | Path, name: str = "folds_iterations") -> pd.DataFrame:
@@ -49,14 +51,15 @@ def read_iterations(csv: str | Path, name: str = "folds_iterations") -> pd.DataF
     if not csv.is_file():
         raise RlsacError(f"{csv}: no such file (run `rlsac table --which {name.split('_')[0]}` first)")
     try:
-        df = pd.read_csv(csv)
-    except (ValueError, OSError, UnicodeDecodeError) as e:  # pandas' ParserError and EmptyDataError are ValueErrors
+        df = pd.read_csv(csv, nrows=0)
+    except (ValueError, OSError) as e:  # pandas' ParserError and EmptyDataError are ValueErrors
         raise RlsacError(f"{csv}: not a readable CSV ({e.__class__.__name__})") from None
-    if df.empty:
-        raise RlsacError(f"{csv}: no results to plot")
     missing = [c for c in COLUMNS if c not in df]
     if missing:
         raise RlsacError(f"{csv}: no column(s) {missing} (run `rlsac table --which {name.split('_')[0]}` again)")
+    df = read_table(csv, NUMERIC, "iterations CSV")  # NaN in a plotted column failed inside matplotlib
+    if df.empty:
+        raise RlsacError(f"{csv}: no results to plot")
     return df
 
 

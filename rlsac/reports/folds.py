@@ -59,11 +59,10 @@ CONTROLS = ("uniform", "guided")  # the learned sampler against uniform sets, an
 
 
 def _errors(path: Path) -> pd.DataFrame | None:
-    f = path / "errors.csv"
-    if not f.is_file():
-        return None
-    df = pd.read_csv(f)
-    return df if {"err_R", "err_t"} <= set(df.columns) else None
+    """A cell's per-pair errors (rlsac.results: a corrupt or truncated file is an error naming it), None if absent."""
+    from rlsac.results import read_errors
+
+    return read_errors(path / "errors.csv", ("err_R", "err_t"))
 
 
 def collect(eval_root: str | Path = "reports/eval", sub: str = "folds") -> dict[tuple[str, str, int], pd.DataFrame]:
@@ -164,13 +163,20 @@ def _order(methods) -> list[str]:
 
 
 def load_records(records: str | Path = "reports/folds/data") -> dict[tuple[str, str], dict]:
+    """The folds' data records (rlsac folds --stage data); a corrupt one is an error naming it (issue #49: it was
+    skipped with a printed line, and its fold left out of the data table at exit 0)."""
+    from rlsac.errors import RlsacError
+
     out = {}
     root = Path(records)
     for f in sorted(root.glob("*/*.json")) if root.is_dir() else []:
         try:
-            out[(f.parent.name, f.stem)] = json.loads(f.read_text())
-        except (OSError, ValueError):
-            print(f"folds: unreadable data record {f}")
+            rec = json.loads(f.read_text())
+        except (OSError, ValueError) as e:
+            raise RlsacError(f"{f}: not a readable data record ({e.__class__.__name__})") from None
+        if not isinstance(rec, dict) or not isinstance(rec.get("splits"), dict):
+            raise RlsacError(f"{f}: not a data record of rlsac folds --stage data (no 'splits' mapping)")
+        out[(f.parent.name, f.stem)] = rec
     return out
 
 
@@ -496,17 +502,18 @@ SHORT = {"guide_temperature": "T", "lo_sigma_scale": "σ", "sets_per_step": "k",
 def _tuning_section(root: Path, regime: str, methods: list[str], folds: list[str]) -> str:
     """Per row and fold: the settings chosen on that fold's validation pairs (rlsac.tune records under
     ``root``/<regime>/<fold>/<row>.json) and their validation mAA."""
+    from rlsac.results import read_record
+
     rows = []
     for m in methods:
         row = {"method": NAMES.get(m, m)}
         for f in folds:
             path = root / regime / f / f"{m}.json"
-            try:
-                rec = json.loads(path.read_text())
-            except (OSError, ValueError):
+            rec = read_record(path)  # a corrupt record is an error naming it; an absent one is "–"
+            if rec is None:
                 row[f] = "–"
                 continue
-            c = rec.get("chosen", {})
+            c = rec["chosen"]
             parts = [f"{c.get('threshold_px', math.nan):g} px",
                      "no filter" if c.get("prefilter", 1.0) == 1.0 else f"SNN<{c['prefilter']:g}"]
             parts += [f"{SHORT.get(k, k)}={v if isinstance(v, bool) else f'{v:g}'}" for k, v in c.items()

@@ -24,8 +24,28 @@ from rlsac.errors import RlsacError
 from rlsac.io import atomic_path, write_text
 from rlsac.reports.folds import LIMIT, N_BOOT  # mAA@10 deg and the bootstrap's draws, as Table 2
 from rlsac.reports.tables import LINE_LIMIT_DEG  # Table 1's mAA limit, for the line models' records
+from rlsac.results import read_errors
 
 METRICS = ("R", "t")
+
+
+def _record(path: Path, need: set[str], keys: tuple[str, ...], errors: tuple[str, ...], what: str
+            ) -> tuple[dict[str, Any], pd.DataFrame]:
+    """A selection record ``path`` (.json) and its per-step errors (the .csv beside it, read by rlsac.results: a
+    NaN or text error is an error naming the file) -> (record, errors)."""
+    csv = path.with_suffix(".csv")
+    try:
+        rec = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise RlsacError(f"{path}: not a readable selection record ({e.__class__.__name__})") from None
+    if not isinstance(rec, dict) or not need <= set(rec):
+        raise RlsacError(f"{path}: not a {what}")
+    if not csv.is_file():
+        raise RlsacError(f"{path}: not a readable selection record (no {csv.name})")
+    frame = read_errors(csv, errors, per_instance=False)
+    if not set(keys) <= set(frame.columns):
+        raise RlsacError(f"{path}: not a {what}")
+    return rec, frame
 
 
 def read_runs(root: str | Path) -> list[dict[str, Any]]:
@@ -34,16 +54,9 @@ def read_runs(root: str | Path) -> list[dict[str, Any]]:
 
     out = []
     for path in sorted(Path(root).glob("*/*/*.json")):
-        csv = path.with_suffix(".csv")
-        try:
-            rec = json.loads(path.read_text())
-            errors = pd.read_csv(csv, dtype={"pair": str, "scene": str})
-        except (OSError, ValueError) as e:
-            raise RlsacError(f"{path}: not a readable selection record ({e.__class__.__name__})") from None
-        need = {"regime", "fold", "model", "kept_step", "last_step", "steps", "candidates", "history", "iterations"}
-        if not isinstance(rec, dict) or not need <= set(rec) or not {"step", "iterations", "err_R", "err_t"} <= set(
-                errors.columns):
-            raise RlsacError(f"{path}: not a selection record of rlsac.selection")
+        rec, errors = _record(path, {"regime", "fold", "model", "kept_step", "last_step", "steps", "candidates",
+                                     "history", "iterations"}, ("step", "iterations"), ("err_R", "err_t"),
+                              "selection record of rlsac.selection")
         base, seed = split_seed(rec["model"])
         out.append({**rec, "base": base, "seed": 0 if seed is None else seed, "errors": errors})
     return out
@@ -240,15 +253,9 @@ def read_line_runs(root: str | Path) -> list[dict[str, Any]]:
     """Every `rlsac select` record under ``root`` with its per-instance errors (``errors``), sorted by data and seed."""
     out = []
     for path in sorted(Path(root).glob("*.json")):
-        try:
-            rec = json.loads(path.read_text())
-            errors = pd.read_csv(path.with_suffix(".csv"))
-        except (OSError, ValueError) as e:
-            raise RlsacError(f"{path}: not a readable selection record ({e.__class__.__name__})") from None
-        need = {"data", "seed", "kept_step", "last_step", "steps", "candidates", "history", "inlier_ratio_step", "tie"}
-        if not isinstance(rec, dict) or not need <= set(rec) or not {"step", "instance", "err_deg"} <= set(
-                errors.columns):
-            raise RlsacError(f"{path}: not a line selection record of rlsac select")
+        rec, errors = _record(path, {"data", "seed", "kept_step", "last_step", "steps", "candidates", "history",
+                                     "inlier_ratio_step", "tie"}, ("step", "instance"), ("err_deg",),
+                              "line selection record of rlsac select")
         out.append({**rec, "set": Path(rec["data"]).stem, "errors": errors})
     return sorted(out, key=lambda r: (r["set"], r["seed"]))
 
