@@ -202,15 +202,16 @@ def test_evaluate_rlsac_uses_the_checkpoint_task_options(workdir, monkeypatch):
                          "env": {"steps_per_episode": 5, "residual_clip": 3.0, "candidates": 4}}
 
     def rlsac_estimate(task, batch, actor, iterations, env_conf, sampling, generator, policy_every, sets_per_step,
-                       confidence):
+                       confidence, state_threshold):
         seen.update(threshold=task.threshold, steps=env_conf.steps_per_episode, clip=env_conf.residual_clip,
                     candidates=env_conf.candidates, sampling=sampling, actor=actor, policy_every=policy_every,
-                    sets_per_step=sets_per_step, confidence=confidence)
+                    sets_per_step=sets_per_step, confidence=confidence, state_threshold=state_threshold)
         return ransac(task, batch, iterations, generator)
 
     from rlsac import checkpoint, rollout
 
     monkeypatch.setattr(checkpoint, "load_actor", load_actor)
+    monkeypatch.setattr(checkpoint, "state_scales", lambda path, device: {"residual_threshold": 0.3})
     monkeypatch.setattr(rollout, "rlsac_estimate", rlsac_estimate)
     synth("d.h5", 4)
     (workdir / "ck.pt").write_bytes(b"x")
@@ -218,7 +219,8 @@ def test_evaluate_rlsac_uses_the_checkpoint_task_options(workdir, monkeypatch):
                   "device": "cpu", "out_dir": "ev", "sets_per_step": 3, "confidence": 0.9}, track=False)
     # the checkpoint's own env settings (not code defaults) drive the test-time environment, with the options'
     assert seen == {"device": "cpu", "threshold": 0.2, "steps": 5, "clip": 3.0, "candidates": 4, "sampling": "max",
-                    "actor": "actor", "policy_every": 1, "sets_per_step": 3, "confidence": 0.9}
+                    "actor": "actor", "policy_every": 1, "sets_per_step": 3, "confidence": 0.9,
+                    "state_threshold": 0.3}  # the state's scale is the checkpoint's, not the evaluation threshold
     assert s["steps_per_episode"] == 5 and (workdir / "ev/errors.csv").is_file()
 
 
