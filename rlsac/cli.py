@@ -342,12 +342,13 @@ def select(tracking: bool, params_path: str, **options) -> None:
 
 
 @cli.command()
-@click.option("--which", type=click.Choice(["1", "2", "3", "iterations", "folds", "essential", "claims", "selection",
-                                           "all"]),
+@click.option("--which", type=click.Choice(["1", "2", "3", "iterations", "folds", "essential", "claims", "paper",
+                                           "selection", "all"]),
               default="all", show_default=True,
               help="Table 1 (lines), 2 (fundamental), 3 (ablations), the iterations CSV, Table 2 over the "
                    "leave-one-building-out folds, Table E (essential matrix, not in the paper), reports/claims.md "
-                   "(every claim against its seed-aware interval), reports/selection.md (kept vs last checkpoint), "
+                   "(every claim against its seed-aware interval), reports/paper.md (the paper's claims beside ours, "
+                   "one verdict each), reports/selection.md (kept vs last checkpoint), "
                    "or all.")
 @click.option("--eval-root", default="reports/eval", show_default=True, type=click.Path(file_okay=False),
               help="Root of the evaluation summaries (lines/, fundamental/, ablation/).")
