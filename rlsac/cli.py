@@ -241,6 +241,14 @@ def train(task: str, tracking: bool, params_path: str, sets: tuple[str, ...], **
 @click.option("--confidence", type=float, help="RLSAC / uniform / guided: stop an instance at RANSAC's termination "
                                                "bound for this confidence, 0 = use the whole budget (not in the "
                                                "paper) [default: params.yaml, else 0].")
+@click.option("--threshold-px", type=float, help="Two-view tasks: inlier threshold in pixels, as tuned per fold "
+                                                "(reports/tuning/) [default: the task's own threshold].")
+@click.option("--prefilter", type=float, help="Two-view tasks: drop matches whose SNN ratio is above this before "
+                                              "fitting, as tuned per fold [default: none].")
+@click.option("--tuning", type=click.Path(dir_okay=False),
+              help="A tuning record, reports/tuning/<task>/<regime>/<fold>/<row>.json: its chosen settings "
+                   "(threshold, pre-filter, the row's own knobs), so that a fold cell of Table 2 / E is reproduced "
+                   "by hand; it must be of this --task, --method and --checkpoint.")
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--batch-size", type=int, default=256, show_default=True)
 @click.option("--threads", type=int, help="torch CPU threads on cpu, 0 = torch's default [default: 1, the fastest "
@@ -257,7 +265,18 @@ def evaluate(tracking: bool, params_path: str, **options) -> None:
     from rlsac.evaluate import format_summary
 
     defaults = section(read_params(params_path), "evaluate", options["task"])
-    options = {**defaults, **{k: v for k, v in options.items() if v is not None}}
+    record = options.pop("tuning")
+    given = {k: v for k, v in options.items() if v is not None}
+    if record is not None:
+        from rlsac.tune import record_options
+
+        tuned = record_options(record, options["task"], options["method"], options["checkpoint"], defaults.get("lo"))
+        both = sorted(k for k in tuned if k in given and k in ("threshold_px", "prefilter"))
+        if both:  # which one wins would be a guess: refuse
+            raise RlsacError(f"--tuning {record} sets {both[0]}; give --{both[0].replace('_', '-')} or --tuning, "
+                             "not both")
+        defaults = {**defaults, **tuned}
+    options = {**defaults, **given}
     click.echo(format_summary(run(options, track=tracking)))
 
 
