@@ -162,6 +162,11 @@ def _error_tags(e: BaseException) -> dict[str, str]:
     return {"error": message[:5000], "error_type": e.__class__.__name__}
 
 
+# MLflow 3's UI opens an experiment on its GenAI overview ("Traces: 0") unless the experiment says it is model
+# training: with this tag it opens on the runs table (issue #47). The kind is the UI's, not a documented constant
+EXPERIMENT_KIND = ("mlflow.experimentKind", "custom_model_development")
+
+
 @contextlib.contextmanager
 def start_run(experiment: str, run_name: str, params: dict[str, Any] | None = None,
               tags: dict[str, str] | None = None, enabled: bool = True, run_id: str | None = None) -> Iterator[Run]:
@@ -188,7 +193,9 @@ def start_run(experiment: str, run_name: str, params: dict[str, Any] | None = No
     try:
         mlflow.set_tracking_uri(uri)
         with _store_lock(uri):
-            mlflow.set_experiment(experiment)
+            exp = mlflow.set_experiment(experiment)
+            if EXPERIMENT_KIND[0] not in (exp.tags or {}):  # an experiment of ours, new or from before the tag
+                mlflow.MlflowClient().set_experiment_tag(exp.experiment_id, *EXPERIMENT_KIND)
         old = None
         if run_id is not None:
             try:
