@@ -206,6 +206,8 @@ def check_other(argv: list[str], line: str) -> None:
         assert (ROOT / argv[1]).is_file(), line
     elif prog == "mlflow":
         check_mlflow(argv)
+    elif prog == "cmp":  # a by-hand result against the committed one (issue #47): that one must exist
+        assert len(argv) == 3 and (ROOT / argv[2]).is_file(), line
     else:
         raise AssertionError(f"a README command this test does not know how to check: {line}")
 
