@@ -97,7 +97,7 @@ def _iterations_figure(df: pd.DataFrame, out_dir: Path, name: str, diff_rows, fi
     style = _styles(methods, fixed)
     diffs = "dR" in df and df["dR"].notna().any()  # the table's paired differences to RLSAC, with 95% intervals
     per = 2 if diffs else 1
-    width = 12 if fixed else 15  # the appendix's legends need room
+    width = 14 if fixed else 15  # room for the legends beside the panels
     fig, axes = plt.subplots(per * len(regimes), 2, figsize=(width, 4 * per * len(regimes)), squeeze=False,
                              layout="constrained")
     fig.suptitle(f"Pooled mAA@10° against the budget: {title}")
@@ -121,11 +121,8 @@ def _iterations_figure(df: pd.DataFrame, out_dir: Path, name: str, diff_rows, fi
 
 
 def _legend(ax, fixed: bool) -> None:
-    """Every panel its own legend: inside for the paper figure's few rows, beside the panel for the appendix's."""
-    if fixed:
-        ax.legend(loc="best", fontsize=7)
-    else:
-        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=6, borderaxespad=0)
+    """Every panel its own legend, beside it: inside, it covered lines or bands somewhere (issue #47)."""
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7 if fixed else 6, borderaxespad=0)
 
 
 def _plot_diffs(axes, d: pd.DataFrame, regime: str, rows: list[str], style: dict) -> None:
