@@ -43,6 +43,7 @@ def test_the_papers_numbers_are_the_latex_sources():
     assert t2["t2-opencv_ransac-maaR"] == 0.116 and t2["t2-magsac-medt"] == -0.144
     assert t2["t1-ours-ransac-o0.7"] == 0.216
     assert t2["t3-rlsac-trainmax-prob-t"] == 0.091 and t2["f4-magsac-t-i100"] is None
+    assert t2["t2-opencv_ransac-maat"] == 0.134 and t2["t2-usac-medR"] == -0.11
 
 
 def _fold(root: Path, regime: str, fold: str, row: str, err_R, err_t, it: int = 1000):

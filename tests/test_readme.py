@@ -416,6 +416,8 @@ def test_the_readme_is_short_and_its_results_table_is_paper_md():
     rows = [line for line in glance.splitlines() if line.startswith("|")]
     assert 3 <= len(rows) <= 17 and all(line in text for line in rows), "README's table is not paper.md's"
     assert text.index(rows[0]) < text.index("## Documentation")
+    counts = re.search(r"^\d+ rows: (.*)\.$", paper_md, re.M)
+    assert f"In reports/paper.md: {counts.group(1)} (of {counts.group(0).split()[0]} rows)" in " ".join(text.split())
     for link in ("reports/paper.md", "reports/folds.md", "reports/claims.md"):
         assert f"]({link})" in text
     for page in PAGES:

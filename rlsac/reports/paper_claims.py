@@ -32,7 +32,7 @@ SECTION_T1_GEN = "§5 Ablation (Robustness and Generalization), Table 1"
 SECTION_T2 = "§4.3 Case Study 2, Table 2"
 SECTION_F4 = "§4.3, Figure 4 (fig:iterations; the 5th figure of the LaTeX source)"
 SECTION_T3 = "§5 Ablation, Table 3"
-FOLD_CONTROLS = (("RANSAC", "opencv_ransac"), ("USAC", "usac"), ("MAGSAC++", "magsac"))
+FOLD_CONTROLS = (("RANSAC (OpenCV)", "opencv_ransac"), ("USAC", "usac"), ("MAGSAC++", "magsac"))
 
 
 @dataclass(frozen=True)
@@ -68,22 +68,22 @@ def _t1(model: str, control: str, rate: float) -> float:
     return round(paper.TABLE1[model][rate][0] - paper.TABLE1[control][rate][0], 3)
 
 
-_T3_ROWS = (  # (table, label in paper.TABLE3, our ablated row, what the paper concludes)
-    ("Table 3 (a)", "Ours (w/o descriptors)", "rlsac-nodesc", "descriptors help: the full model beats it without"),
+_T3_ROWS = (  # (table, label in paper.TABLE3, our ablated row, the claim: the full model above the ablated one)
+    ("Table 3 (a)", "Ours (w/o descriptors)", "rlsac-nodesc", "with descriptors above without"),
     ("Table 3 (b)", "Ours (max sampling in training, max in testing)", "rlsac-trainmax",
-     "prob. training + max testing beats max / max"),
+     "prob. training, max testing above max / max"),
     ("Table 3 (b)", "Ours (max sampling in training, prob. in testing)", "rlsac-trainmax-prob",
-     "prob. training + max testing beats max / prob."),
+     "prob. training, max testing above max / prob."),
     ("Table 3 (b)", "Ours (prob. sampling in training, prob. in testing)", "rlsac-prob",
-     "prob. training + max testing beats prob. / prob."),
-    ("Table 3 (c)", "Ours (N=100 points)", "rlsac-n100", "N = 150 points beats N = 100"),
-    ("Table 3 (c)", "Ours (N=200 points)", "rlsac-n200", "N = 150 points beats N = 200"),
-    ("Table 3 (c)", "Ours (N=300 points)", "rlsac-n300", "N = 150 points beats N = 300"),
+     "prob. training, max testing above prob. / prob."),
+    ("Table 3 (c)", "Ours (N=100 points)", "rlsac-n100", "N = 150 points above N = 100"),
+    ("Table 3 (c)", "Ours (N=200 points)", "rlsac-n200", "N = 150 points above N = 200"),
+    ("Table 3 (c)", "Ours (N=300 points)", "rlsac-n300", "N = 150 points above N = 300"),
 )
 
 CLAIMS: tuple[PaperClaim, ...] = (
     *(PaperClaim(f"t1-ours-ransac-o{rate:g}", "Table 1", SECTION_T1,
-                 f"Ours above RANSAC at outlier rate {rate:g} (150 hypotheses)", LINE_METRIC,
+                 f"Ours above RANSAC at outlier rate {rate:g}", LINE_METRIC,
                  _t1("Ours", "RANSAC", rate), "lines", "ours", "ransac", 150, (f"{rate:g}",))
       for rate in paper.TABLE1_RATES),
     *(PaperClaim(f"t1-ours0.5-ours-o{rate:g}", "Table 1", SECTION_T1_GEN,
@@ -91,21 +91,20 @@ CLAIMS: tuple[PaperClaim, ...] = (
                  _t1("Ours-0.5", "Ours", rate), "lines", "ours-0.5", "ours", 150, (f"{rate:g}",))
       for rate in (0.6, 0.7)),
     *(PaperClaim(f"t2-{row}-{metric.split()[0][:3].lower()}{metric[-1]}", "Table 2", SECTION_T2,
-                 f"RLSAC vs {name} (1k iterations)", metric, _t2("Ours", name, metric),
+                 f"RLSAC vs {name}, 1k iterations", metric, _t2("Ours", name.split()[0], metric),
                  control=row, regimes=("easy", "hard"))
       for name, row in FOLD_CONTROLS for metric in F_METRICS),
     *(PaperClaim(f"f4-{row}-{metric[-1]}-i{it}", "Figure 4", SECTION_F4,
-                 f"RLSAC ahead of {name} at {it} iterations (a figure: direction only)", metric, None, control=row,
+                 f"RLSAC ahead of {name} at {it} iterations", metric, None, control=row,
                  iterations=it, regimes=("easy", "hard") if it == 100 else ("hard",))
       for it in (100, 10) for name, row in FOLD_CONTROLS for metric in ("mAA R", "mAA t")),
-    *(PaperClaim(f"t3-{row}-{metric[-1]}", table, SECTION_T3, f"full model above {row} ({why})", metric,
+    *(PaperClaim(f"t3-{row}-{metric[-1]}", table, SECTION_T3, f"{why} ({row})", metric,
                  _t3(label, metric), control=row)
       for table, label, row, why in _T3_ROWS for metric in ("mAA R", "mAA t")),
     PaperClaim("text-steps", "text", "§4.2 (fig:line) and §4.3 (fig:f_step)",
-               "the hypothesis improves step by step within an episode (best inlier ratio per step, policy vs "
-               "uniform)", "best inlier ratio per step", None, untestable=(
-                   "no per-step inlier ratios are committed: errors.csv keeps each pair's final estimate; measuring "
-                   "them needs new evaluation runs")),
+               "the hypothesis improves step by step within an episode (policy vs uniform)",
+               "best inlier ratio per step", None, untestable=(
+                   "the record keeps each pair's final estimate only, no per-step inlier ratios")),
 )
 
 # the README's table: at most 15 rows of paper.md, (key, regime)
