@@ -7,7 +7,8 @@ stand for the paper's (rlsac.reports.paper_report computes them):
 
     Table 1   lines: Ours (ours), RANSAC (ransac), Ours-0.5 (ours-0.5) at 150 hypotheses, mAA@0.5° of the angle
     Table 2   folds: RLSAC (rlsac) against OpenCV's RANSAC (opencv_ransac), USAC (usac) and MAGSAC++ (magsac), each
-              as the tutorial calls it (LO and polisher on: the paper's "recommended settings"), at 1k iterations
+              as the tutorial calls it (USAC and MAGSAC++ with their LO and polisher: the paper's "recommended
+              settings"), at 1k iterations
     Table 3   folds, hard regime: the full model (rlsac) against each ablated model
     Figure 4  folds: RLSAC against the same three at 100 iterations (the paper: "high accuracy with only 100")
 
