@@ -47,6 +47,14 @@ STUDIES = ("descriptors", "sampling", "points")
 WHATS = STUDIES + ("all", "generalisation")
 STAGES = ("all", "train", "evaluate")
 FULL = "full"  # the paper's model, checkpoints/fundamental.pt: the reference row of every study
+# Table 3 on the leave-one-building-out folds (issue #26): each study's DVC stages, as fnmatch patterns of stage names
+# (`rlsac pipeline` and `dvc repro --glob` take them), then `tables`. The 87-pair split this command trains and
+# evaluates on is retired (issue #25): no stage makes its data any more, so without them ablate prints these
+FOLD_STUDIES = {
+    "descriptors": ("fold_*_ablation*@*-rlsac-nodesc*",),  # (a): rlsac-nodesc and its training seeds
+    "sampling": ("fold_*_ablation*@*-rlsac-trainmax*", "fold_*_prob*@*"),  # (b): max in training; prob. at test
+    "points": ("fold_*_points*@*",),  # (c): the data with N points, a model and the uniform control per N
+}
 
 # Same as params.yaml ``ablation`` (which overrides each top-level key as a whole).
 DEFAULTS: dict[str, Any] = {
@@ -252,6 +260,14 @@ def ablate(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
     o = check_options(options)
     params = read_params(o["params"])
     pl = plan(o, params)
+    if o["what"] != "generalisation":
+        files = [t[k] for t in pl["models"].values() if t for k in ("data", "val_data")] if o["stage"] != "evaluate" \
+            else []
+        files += [e["data"] for e in pl["variants"].values()] if o["stage"] != "train" else []
+        missing = [f for f in files if not Path(f).is_file()]
+        if missing:  # the retired split's data: the study lives in the fold stages
+            return {"what": o["what"], "stage": o["stage"], "fold_stages": fold_commands(o["what"]),
+                    "missing": missing[0]}
     if int(o["threads"]) > 0:
         import torch
 
@@ -330,7 +346,22 @@ def rebuild_table(track: bool = True) -> str:
     return build({"which": "3"}, track=track)["files"]
 
 
+def fold_commands(what: str) -> list[str]:
+    """The commands that run a Table 3 study on the folds (``FOLD_STUDIES``) and rebuild its table."""
+    import shlex
+
+    pats = [p for study in (STUDIES if what == "all" else (what,)) for p in FOLD_STUDIES[study]]
+    quoted = " ".join(shlex.quote(p) for p in pats)
+    return [f"rlsac pipeline {quoted} tables --workers 2", f"dvc repro --glob {quoted} tables"]
+
+
 def format_summary(s: dict[str, Any]) -> str:
+    if "fold_stages" in s:
+        return "\n".join([
+            f"ablation {s['what']}: Table 3 runs on the leave-one-building-out folds (reports/table3_folds.md); the "
+            f"87-pair split this command used is retired ({s['missing']} is made by no stage). Its fold stages "
+            "and the table, with the stages they need (up to date on a clone once `dvc repro` rebuilt data/):",
+            *(f"  {c}" for c in s["fold_stages"])])
     lines = [f"ablation {s['what']} ({s['stage']}): trained {', '.join(s['trained']) or 'none'}; "
              f"kept existing {', '.join(s['skipped']) or 'none'}"]
     for name, r in s["variants"].items():

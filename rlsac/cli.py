@@ -244,6 +244,14 @@ def train(task: str, tracking: bool, params_path: str, sets: tuple[str, ...], **
 @click.option("--confidence", type=float, help="RLSAC / uniform / guided: stop an instance at RANSAC's termination "
                                                "bound for this confidence, 0 = use the whole budget (not in the "
                                                "paper) [default: params.yaml, else 0].")
+@click.option("--threshold-px", type=float, help="Two-view tasks: inlier threshold in pixels, as tuned per fold "
+                                                "(reports/tuning/) [default: the task's own threshold].")
+@click.option("--prefilter", type=float, help="Two-view tasks: drop matches whose SNN ratio is above this before "
+                                              "fitting, as tuned per fold [default: none].")
+@click.option("--tuning", type=click.Path(dir_okay=False),
+              help="A tuning record, reports/tuning/<task>/<regime>/<fold>/<row>.json: its chosen settings "
+                   "(threshold, pre-filter, the row's own knobs), so that a fold cell of Table 2 / E is reproduced "
+                   "by hand; it must be of this --task, --method and --checkpoint.")
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--batch-size", type=int, default=256, show_default=True)
 @click.option("--threads", type=int, help="torch CPU threads on cpu, 0 = torch's default [default: 1, the fastest "
@@ -260,7 +268,18 @@ def evaluate(tracking: bool, params_path: str, **options) -> None:
     from rlsac.evaluate import format_summary
 
     defaults = section(read_params(params_path), "evaluate", options["task"])
-    options = {**defaults, **{k: v for k, v in options.items() if v is not None}}
+    record = options.pop("tuning")
+    given = {k: v for k, v in options.items() if v is not None}
+    if record is not None:
+        from rlsac.tune import record_options
+
+        tuned = record_options(record, options["task"], options["method"], options["checkpoint"], defaults.get("lo"))
+        both = sorted(k for k in tuned if k in given and k in ("threshold_px", "prefilter"))
+        if both:  # which one wins would be a guess: refuse
+            raise RlsacError(f"--tuning {record} sets {both[0]}; give --{both[0].replace('_', '-')} or --tuning, "
+                             "not both")
+        defaults = {**defaults, **tuned}
+    options = {**defaults, **given}
     click.echo(format_summary(run(options, track=tracking)))
 
 
@@ -367,13 +386,14 @@ def select(tracking: bool, params_path: str, **options) -> None:
 
 
 @cli.command()
-@click.option("--which", type=click.Choice(["1", "2", "3", "iterations", "folds", "essential", "claims", "selection",
-                                           "scale", "all"]),
+@click.option("--which", type=click.Choice(["1", "2", "3", "iterations", "folds", "essential", "claims", "paper",
+                                           "selection", "scale", "all"]),
               default="all", show_default=True,
               help="Table 1 (lines), 2 (fundamental), 3 (ablations), the iterations CSV, Table 2 over the "
                    "leave-one-building-out folds, Table E (essential matrix, not in the paper), reports/claims.md "
-                   "(every claim against its seed-aware interval), reports/selection.md (kept vs last checkpoint), "
-                   "reports/scale.md (the training-scale study, issue #46; not in all), or all.")
+                   "(every claim against its seed-aware interval), reports/paper.md (the paper's claims beside ours, "
+                   "one verdict each), reports/selection.md (kept vs last checkpoint), reports/scale.md (the "
+                   "training-scale study, issue #46; not in all), or all.")
 @click.option("--eval-root", default="reports/eval", show_default=True, type=click.Path(file_okay=False),
               help="Root of the evaluation summaries (lines/, fundamental/, ablation/).")
 @click.option("--out-dir", default="reports", show_default=True, type=click.Path(file_okay=False))

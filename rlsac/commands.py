@@ -277,9 +277,15 @@ def _calibrate_lines(options: dict[str, Any], track: bool = True,
     with start_run("lines", f"calibrate-lines s{shown['seed']}x{n_seeds}", params=params,
                    tags={"command": "calibrate-lines"}, enabled=track) as run:
         ours, best, per_seed = {}, {}, {}
+        from rlsac.progress import tqdm
+
+        # one bar over the whole job (rates x data seeds; each run_method's own bar is a short inner one): the main
+        # job of the README printed nothing for its 40 s (issue #47). Drawn on a terminal only (rlsac.progress)
+        bar = tqdm(total=len(confs) * n_seeds, desc="calibrate-lines", unit="set")
         for rate, conf in confs.items():
             maa, med, omaa, omed = [], [], [], []
             for seed in seeds:
+                bar.set_postfix_str(f"rate {rate:g}, data seed {seed}", refresh=False)
                 c = dataclasses.replace(conf, seed=seed)
                 data = lines.generate(c)
                 errors, _ = run_method(task, lambda b, g: ransac(task, b, iterations, g), data, lines.to_batch,
@@ -292,10 +298,12 @@ def _calibrate_lines(options: dict[str, Any], track: bool = True,
                 so = task.summarize(errors)
                 omaa.append(so["mAA"])
                 omed.append(so["median_deg"])
+                bar.update()
             ours[rate], best[rate], per_seed[rate] = (np.mean(maa), np.mean(med)), (np.mean(omaa), np.mean(omed)), maa
             run.metrics({f"mAA_o{rate:g}": float(np.mean(maa)), f"median_deg_o{rate:g}": float(np.mean(med)),
                          f"mAA_sd_o{rate:g}": float(np.std(maa, ddof=1)) if len(maa) > 1 else 0.0,
                          f"oracle_mAA_o{rate:g}": float(np.mean(omaa))})
+        bar.close()
         table = calibration_table(ours, oracle=best, per_seed=per_seed)
         by_seed = np.array([per_seed[r] for r in sorted(per_seed)]).T  # (n_seeds, rates)
         all_within = float(np.mean(np.all(np.abs(by_seed - table["mAA_paper"].to_numpy()) <= 0.03, axis=1)))

@@ -205,6 +205,11 @@ def close_dead_runs(client=None) -> list[str]:
     return closed
 
 
+# MLflow 3's UI opens an experiment on its GenAI overview ("Traces: 0") unless the experiment says it is model
+# training: with this tag it opens on the runs table (issue #47). The kind is the UI's, not a documented constant
+EXPERIMENT_KIND = ("mlflow.experimentKind", "custom_model_development")
+
+
 @contextlib.contextmanager
 def start_run(experiment: str, run_name: str, params: dict[str, Any] | None = None,
               tags: dict[str, str] | None = None, enabled: bool = True, run_id: str | None = None) -> Iterator[Run]:
@@ -233,7 +238,9 @@ def start_run(experiment: str, run_name: str, params: dict[str, Any] | None = No
     try:
         mlflow.set_tracking_uri(uri)
         with _store_lock(uri):
-            mlflow.set_experiment(experiment)
+            exp = mlflow.set_experiment(experiment)
+            if EXPERIMENT_KIND[0] not in (exp.tags or {}):  # an experiment of ours, new or from before the tag
+                mlflow.MlflowClient().set_experiment_tag(exp.experiment_id, *EXPERIMENT_KIND)
         with contextlib.suppress(Exception):  # a store that cannot be searched still records this run
             close_dead_runs()
         old = None

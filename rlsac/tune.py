@@ -183,3 +183,30 @@ def _as_options(settings: dict[str, Any], base: dict[str, Any]) -> dict[str, Any
 def as_options(chosen: dict[str, Any], lo: dict[str, Any] | None) -> dict[str, Any]:
     """A record's chosen settings -> the evaluate options of the row (``lo``: the row's base LO conf)."""
     return _as_options(chosen, {"lo": lo})
+
+
+def record_options(path: str | Path, task: str, method: str, checkpoint: str | None,
+                   lo: dict[str, Any] | None) -> dict[str, Any]:
+    """``rlsac evaluate --tuning FILE``: a tuning record's chosen settings as evaluate options (``as_options``), so a
+    cell of Table 2 / Table E can be reproduced by hand. The record must be one of this task and method (its
+    ``method`` field: a -fast row's is ``rlsac``) and, for a learned row, of this checkpoint: settings tuned for
+    another row or model would be silently wrong. The evaluation's own checks (the test file's scenes against the
+    record's validation scenes) are the fold stage's; here the record names them in ``val_scenes``."""
+    import json
+
+    path = Path(path)
+    if not path.is_file():
+        raise RlsacError(f"--tuning {path}: no such file (records: reports/tuning/<task>/<regime>/<fold>/<row>.json)")
+    try:
+        rec = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise RlsacError(f"--tuning {path}: not a tuning record ({e.__class__.__name__})") from None
+    if not isinstance(rec, dict) or not isinstance(rec.get("chosen"), dict) or "method" not in rec:
+        raise RlsacError(f"--tuning {path}: not a tuning record (no 'chosen' settings or 'method')")
+    if rec.get("task") != task or rec["method"] != method:
+        raise RlsacError(f"--tuning {path}: a record of task {rec.get('task')!r}, method {rec['method']!r}, not "
+                         f"task {task!r}, method {method!r}")
+    want = rec.get("checkpoint")
+    if want and (not checkpoint or Path(checkpoint).resolve() != Path(want).resolve()):
+        raise RlsacError(f"--tuning {path}: tuned for checkpoint {want}, not {checkpoint or 'none'} (--checkpoint)")
+    return as_options(rec["chosen"], lo)

@@ -51,3 +51,18 @@ def test_ci_false_and_explicit_switches(monkeypatch):
     assert "5/5" in _drawn(io.StringIO(), disable=None)
     monkeypatch.setenv("RLSAC_PROGRESS", "0")
     assert _drawn(_Tty()) == ""
+
+
+def test_calibrate_lines_shows_its_progress_on_a_terminal_only(tmp_path, monkeypatch, capsys):
+    """The README's main job draws one bar over its rate x seed sets (issue #47: it printed nothing while it ran);
+    redirected, as under dvc repro or CI, it draws none."""
+    from rlsac.commands import calibrate_lines
+
+    opts = {"n_instances": 8, "n_seeds": 2, "seed": 123, "iterations": 5, "out": str(tmp_path / "cal")}
+    monkeypatch.setenv("RLSAC_PROGRESS", "1")
+    calibrate_lines(opts, track=False, params_path=None)
+    err = capsys.readouterr().err
+    assert "calibrate-lines" in err and "14/14" in err and "rate 0.7, data seed 124" in err
+    monkeypatch.setenv("RLSAC_PROGRESS", "0")
+    calibrate_lines(opts, track=False, params_path=None)
+    assert "calibrate-lines" not in capsys.readouterr().err

@@ -1,8 +1,9 @@
-"""Every command the README (and experiments/README.md) shows, and every example in the ``--help`` texts, is
-accepted as written: ``rlsac`` commands by the CLI parser, their ``--set KEY=VALUE`` overrides by the
+"""Every command the README, the docs/ pages (and experiments/README.md) show, and every example in the ``--help``
+texts, is accepted as written: ``rlsac`` commands by the CLI parser, their ``--set KEY=VALUE`` overrides by the
 configuration they override, ``dvc`` commands by DVC's parser with real stage names, ``mlflow`` commands by
 MLflow's. Nothing heavy is run; the fresh-clone line is checked against what CI installs. Every 95% interval the
-README and reports/peers.md quote is one the generated tables hold.
+README, docs/ and reports/peers.md quote is one the generated tables hold, and every three-decimal number of the
+README and docs/ is one a generated file holds; the README's results table is reports/paper.md's (issue #47).
 """
 
 from __future__ import annotations
@@ -28,7 +29,10 @@ from rlsac.reports import figures
 from rlsac.train import TrainConf
 
 ROOT = Path(__file__).resolve().parents[1]
-DOCS = [ROOT / "README.md", ROOT / "experiments" / "README.md"]
+PAGES = sorted((ROOT / "docs").glob("*.md"))  # the README's reference pages (issue #47)
+DOCS = [ROOT / "README.md", ROOT / "experiments" / "README.md", *PAGES]
+# the pages that must show commands (the test would otherwise pass on a page whose commands it failed to find)
+COMMAND_PAGES = [ROOT / "experiments" / "README.md", ROOT / "docs" / "commands.md", ROOT / "docs" / "reproducing.md"]
 FENCE = re.compile(r"^```(\w*)\n(.*?)^```", re.S | re.M)
 INLINE = re.compile(r"`((?:rlsac|dvc|mlflow|\.venv/bin/\w+) [^`]+)`")
 PLACEHOLDER = re.compile(r"<[^>]+>|\.\.\.|\bCKPT\b|\bFILE\b|\bDIR\b|\bNAME\b|\bN\b|\bCOMMAND\b")
@@ -202,6 +206,8 @@ def check_other(argv: list[str], line: str) -> None:
         assert (ROOT / argv[1]).is_file(), line
     elif prog == "mlflow":
         check_mlflow(argv)
+    elif prog == "cmp":  # a by-hand result against the committed one (issue #47): that one must exist
+        assert len(argv) == 3 and (ROOT / argv[2]).is_file(), line
     else:
         raise AssertionError(f"a README command this test does not know how to check: {line}")
 
@@ -232,7 +238,7 @@ def ci_runs_readme_blocks() -> list[str]:
 @pytest.mark.parametrize("doc", DOCS, ids=lambda p: p.relative_to(ROOT).as_posix())
 def test_every_code_block_command_is_accepted(doc):
     found = block_commands(doc.read_text())
-    assert found
+    assert found or doc.name != "README.md" and doc not in COMMAND_PAGES  # a page without commands: nothing to check
     for line, argv in found:
         check(argv, line)
 
@@ -240,7 +246,7 @@ def test_every_code_block_command_is_accepted(doc):
 @pytest.mark.parametrize("doc", DOCS, ids=lambda p: p.relative_to(ROOT).as_posix())
 def test_every_inline_command_is_accepted(doc):
     found = inline_commands(doc.read_text())
-    assert found
+    assert found or doc not in COMMAND_PAGES
     for text, argv, complete in found:
         check(argv, text, complete)
 
@@ -264,9 +270,9 @@ def test_readme_starts_with_the_two_fresh_clone_commands():
 
 
 def test_every_rlsac_command_is_documented():
-    text = (ROOT / "README.md").read_text()
+    text = (ROOT / "docs" / "commands.md").read_text()
     for name in cli.commands:
-        assert f"`rlsac {name}" in text, f"rlsac {name} missing from the README's command table"
+        assert f"`rlsac {name}" in text, f"rlsac {name} missing from docs/commands.md's command table"
     assert "--method oracle" in text
 
 
@@ -337,7 +343,7 @@ if __name__ == "__main__":  # print what is checked
 # ------------------------------------------------------------------------------------ quoted intervals
 INTERVAL = re.compile(r"([+\-−]?\d\.\d{3}) \[([+\-−]?\d\.\d{3}), ([+\-−]?\d\.\d{3})\]")
 # the pages that quote the pipeline's results by hand, and the generated files they quote from (`rlsac table`)
-QUOTING = [ROOT / "README.md", ROOT / "reports" / "peers.md", ROOT / "reports" / "folds.md"]
+QUOTING = [ROOT / "README.md", ROOT / "reports" / "peers.md", ROOT / "reports" / "folds.md", *PAGES]
 
 
 def quoted_intervals(text: str) -> set[tuple[float, float, float]]:
@@ -349,14 +355,15 @@ def quoted_intervals(text: str) -> set[tuple[float, float, float]]:
 
 
 def generated_intervals(reports: Path) -> set[tuple[float, float, float]]:
-    files = sorted(reports.glob("table*.md")) + [reports / "claims.md", reports / "selection.md"]
+    files = sorted(reports.glob("table*.md")) + [reports / "claims.md", reports / "selection.md", reports / "paper.md"]
     return set().union(*(quoted_intervals(f.read_text()) for f in files if f.is_file()))
 
 
 @pytest.mark.parametrize("doc", QUOTING, ids=lambda p: p.name)
 def test_every_quoted_interval_is_one_of_the_generated_tables(doc):
     """A number the README or a hand-written report quotes with its 95% interval is one that `rlsac table` wrote
-    (reports/table*.md, claims.md, selection.md): no interval computed by hand, none left from an earlier record."""
+    (reports/table*.md, claims.md, selection.md, paper.md): no interval computed by hand, none left from an earlier
+    record."""
     stale = sorted(quoted_intervals(doc.read_text()) - generated_intervals(ROOT / "reports"))
     assert not stale, f"{doc.name}: {len(stale)} interval(s) in no generated table, e.g. {stale[:3]}"
 
@@ -366,3 +373,52 @@ def test_interval_check_finds_a_stale_quote(tmp_path):
     assert generated_intervals(tmp_path) == {(-0.05, -0.075, -0.027), (0.0, -0.021, 0.021)}
     quoted = quoted_intervals("loses in t (−0.050 [−0.073,\n  −0.025]); R −0.000 [−0.021, +0.021]")
     assert quoted - generated_intervals(tmp_path) == {(-0.05, -0.073, -0.025)}
+
+
+# ------------------------------------------------------------------------------------ quoted point values (issue #47)
+POINT = re.compile(r"(?<![\w.])([+\-−]?)(\d+\.\d{3})(?!\d)")
+# files `rlsac table`, `rlsac calibrate-lines` and benchmarks/line_landscape.py write (the hand-written pages are not)
+GENERATED = ("table*.md", "claims.md", "selection.md", "paper.md", "calibration_*.md", "*.csv", "metrics.json")
+
+
+def point_values(text: str) -> set[float]:
+    """Every number with three decimals (the tables' precision) of a text, signed (no sign: positive)."""
+    return {round(float(v) * (-1 if sign in "-−" and sign else 1), 3) + 0.0 for sign, v in POINT.findall(text)}
+
+
+def generated_values(reports: Path) -> set[float]:
+    """Every three-decimal number the generated files print as such (a longer float is not rounded to match)."""
+    return set().union(*(point_values(f.read_text()) for pattern in GENERATED for f in sorted(reports.glob(pattern))))
+
+
+@pytest.mark.parametrize("doc", [ROOT / "README.md", *PAGES], ids=lambda p: p.relative_to(ROOT).as_posix())
+def test_every_quoted_number_is_a_generated_one(doc):
+    """A three-decimal number the README or a docs/ page quotes (an mAA, a difference, an interval end) is one a
+    generated report holds: no number typed from an earlier record."""
+    stale = sorted(point_values(doc.read_text()) - generated_values(ROOT / "reports"))
+    assert not stale, f"{doc.name}: {len(stale)} number(s) in no generated file, e.g. {stale[:5]}"
+
+
+def test_point_value_check_finds_a_stale_number(tmp_path):
+    (tmp_path / "claims.md").write_text("| 0.735 ± 0.019 | −0.013 [−0.034, +0.009] |")
+    (tmp_path / "x.csv").write_text("a,b\n0.73649,-0.500\n")
+    assert generated_values(tmp_path) == {0.735, 0.019, -0.013, -0.034, 0.009, -0.5}
+    assert point_values("RLSAC 0.736 (−0.013), 0.735, 0.500") - generated_values(tmp_path) == {0.736, 0.5}
+
+
+def test_the_readme_is_short_and_its_results_table_is_paper_md():
+    """The README's first screen is the answer (issue #47): under 2,500 words, and its results table is the "At a
+    glance" table of the generated reports/paper.md, row for row, with at most 15 rows."""
+    text = (ROOT / "README.md").read_text()
+    assert len(text.split()) < 2500
+    paper_md = (ROOT / "reports" / "paper.md").read_text()
+    glance = paper_md.split("## At a glance", 1)[1].split("\n## ", 1)[0]
+    rows = [line for line in glance.splitlines() if line.startswith("|")]
+    assert 3 <= len(rows) <= 17 and all(line in text for line in rows), "README's table is not paper.md's"
+    assert text.index(rows[0]) < text.index("## Documentation")
+    counts = re.search(r"^\d+ rows: (.*)\.$", paper_md, re.M)
+    assert f"In reports/paper.md: {counts.group(1)} (of {counts.group(0).split()[0]} rows)" in " ".join(text.split())
+    for link in ("reports/paper.md", "reports/folds.md", "reports/claims.md"):
+        assert f"]({link})" in text
+    for page in PAGES:
+        assert f"](docs/{page.name})" in text, f"docs/{page.name} is not linked from the README"

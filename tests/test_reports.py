@@ -251,3 +251,30 @@ def test_cli_table_failing_half_way_leaves_every_table_as_it_was(tree, monkeypat
     assert r.exit_code == 2 and "error: a claim's rows could not be read" in r.output, r.output
     assert sorted(p.name for p in out.iterdir()) == ["table1_lines.md"]
     assert (out / "table1_lines.md").read_text() == "the record's table\n"
+
+
+def test_figure_4_shows_the_papers_rows_and_the_appendix_every_row(tmp_path, monkeypatch):
+    """Issue #47: Figure 4 (folds_iterations) draws the paper's methods and our controls only, each panel with its
+    own legend; every other row (here PROSAC, a peer) is in the appendix figure folds_iterations_all."""
+    import pandas as pd
+
+    from rlsac.reports import fold_figures
+
+    rows = [{"regime": "hard", "method": m, "iterations": it, "mAA_R": 0.5, "mAA_t": 0.4, "n_pairs": 6,
+             "dR": 0.01, "dR_lo": -0.01, "dR_hi": 0.03, "dt": 0.0, "dt_lo": -0.02, "dt_hi": 0.02}
+            for m in ("rlsac", "uniform", "magsac", "prosac") for it in (10, 100)]
+    legends = {}
+    real_save = fold_figures._save
+
+    def save(fig, out_dir, name):
+        legends[name] = [sorted(t.get_text() for t in ax.get_legend().get_texts()) for ax in fig.axes]
+        return real_save(fig, out_dir, name)
+
+    monkeypatch.setattr(fold_figures, "_save", save)
+    files, _ = fold_figures.plot_folds_iterations(pd.DataFrame(rows), tmp_path)
+    assert [Path(f).name for f in files] == ["folds_iterations.png", "folds_iterations.pdf",
+                                             "folds_iterations_all.png", "folds_iterations_all.pdf"]
+    main, appendix = legends["folds_iterations"], legends["folds_iterations_all"]
+    assert len(main) == 4 and main[0] == ["magsac", "rlsac", "uniform"]
+    assert main[2] == ["RLSAC − magsac", "RLSAC − uniform"]
+    assert appendix[0] == ["magsac", "prosac", "rlsac", "uniform"] and "RLSAC − prosac" in appendix[2]

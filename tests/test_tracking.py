@@ -53,3 +53,24 @@ def test_parallel_processes_on_a_fresh_store(tmp_path):
     runs = _runs(uri)
     assert sorted(r.data.metrics["value"] for r in runs) == [0.0, 1.0, 2.0]
     assert all(r.info.status == "FINISHED" for r in runs)
+
+
+def test_experiments_open_on_the_runs_table(tmp_path, monkeypatch):
+    """Issue #47: MLflow 3 opens an untagged experiment on its GenAI overview; ours are tagged as model training
+    (the UI's experiment kind), new ones and ones made before the tag alike, and the tag is set once."""
+    import mlflow
+
+    from rlsac.tracking import EXPERIMENT_KIND
+
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
+    monkeypatch.chdir(tmp_path)
+    client = mlflow.MlflowClient(uri)
+    old = client.create_experiment("lines")  # an experiment from before the tag
+    with start_run("lines", "r1") as run:
+        run.metrics({"mAA": 0.5})
+    with start_run("fundamental", "r2"):
+        pass
+    for name in ("lines", "fundamental"):
+        assert client.get_experiment_by_name(name).tags.get(EXPERIMENT_KIND[0]) == "custom_model_development"
+    assert client.get_experiment_by_name("lines").experiment_id == old

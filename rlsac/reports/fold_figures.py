@@ -63,54 +63,91 @@ def read_iterations(csv: str | Path, name: str = "folds_iterations") -> pd.DataF
     return df
 
 
+# Figure 4 proper (issue #47): the paper's methods (OpenCV's RANSAC, USAC, MAGSAC++ as the tutorial calls them), RLSAC,
+# and our controls (uniform and SNN-guided sets in RLSAC's environment, our RANSAC); every other row goes to the
+# appendix figure <name>_all, so that a panel stays readable (26 lines, five of them black, before)
+PAPER_ROWS = ("opencv_ransac", "usac", "magsac", "ransac", "uniform", "guided", "rlsac")
+PAPER_DIFF_ROWS = ("opencv_ransac", "usac", "magsac", "ransac", "uniform", "guided")
+MARKERS = ("o", "s", "^", "v", "D", "<", ">", "p", "h", "X", "P", "*", "d", "8", "H")
+
+
+def _styles(methods: list[str], fixed: bool) -> dict[str, tuple[str, str]]:
+    """A colour and marker per method: ``STYLE``'s for the paper figure (fixed, distinct there); for the appendix one
+    of tab20's colours and a marker each, in order, so that no two of its rows look alike."""
+    if fixed:
+        return {m: STYLE.get(m, ("black", ".")) for m in methods}
+    cmap = plt.get_cmap("tab20")
+    return {m: (cmap(i % 20), MARKERS[i % len(MARKERS)]) for i, m in enumerate(methods)}
+
+
 def plot_folds_iterations(csv: str | Path | pd.DataFrame, out_dir: Path, name: str = "folds_iterations"
                           ) -> tuple[list[str], str]:
     """Pooled mAA against the budget from a fold table's iterations CSV (Table 2 folds: folds_iterations,
-    Table E: essential_iterations; or the frame ``read_iterations`` read), saved as ``name``."""
+    Table E: essential_iterations; or the frame ``read_iterations`` read), saved as ``name`` with the paper's rows
+    and the controls (``PAPER_ROWS``), and as ``<name>_all`` with every row (the appendix)."""
     df = csv if isinstance(csv, pd.DataFrame) else read_iterations(csv, name)
+    main = [m for m in PAPER_ROWS if m in set(df["method"])]
+    paths = _iterations_figure(df[df["method"].isin(main)], out_dir, name, PAPER_DIFF_ROWS, fixed=True,
+                               title="the paper's methods and our controls")
+    paths += _iterations_figure(df, out_dir, f"{name}_all", DIFF_ROWS + PAPER_DIFF_ROWS, fixed=False,
+                                title="every row (appendix)")
+    return paths, ""
+
+
+def _iterations_figure(df: pd.DataFrame, out_dir: Path, name: str, diff_rows, fixed: bool, title: str) -> list[str]:
     regimes = sorted(df["regime"].unique())
+    methods = list(dict.fromkeys(df["method"]))
+    style = _styles(methods, fixed)
     diffs = "dR" in df and df["dR"].notna().any()  # the table's paired differences to RLSAC, with 95% intervals
     per = 2 if diffs else 1
-    fig, axes = plt.subplots(per * len(regimes), 2, figsize=(11, 4 * per * len(regimes)), squeeze=False,
+    width = 14 if fixed else 15  # room for the legends beside the panels
+    fig, axes = plt.subplots(per * len(regimes), 2, figsize=(width, 4 * per * len(regimes)), squeeze=False,
                              layout="constrained")
+    fig.suptitle(f"Pooled mAA@10° against the budget: {title}")
     for r, regime in enumerate(regimes):
         d = df[df["regime"] == regime]
         if diffs:
-            _plot_diffs(axes[per * r + 1], d, regime)
-        for c, (col, what) in enumerate((("mAA_R", "rotation"), ("mAA_t", "translation"))):
+            _plot_diffs(axes[per * r + 1], d, regime, [m for m in dict.fromkeys(diff_rows) if m in methods], style)
+        for c, (col, what) in enumerate((("mAA_R", "R"), ("mAA_t", "t"))):
             ax = axes[per * r, c]
             for m, g in d.groupby("method", sort=False):
                 g = g.sort_values("iterations")
-                colour, marker = STYLE.get(m, ("black", "."))
+                colour, marker = style[m]
                 ax.plot(g["iterations"], g[col], marker=marker, color=colour, label=m)
             ax.set_xscale("log")
             ax.set_xlabel("iterations (hypotheses per pair)")
-            ax.set_ylabel(f"pooled mAA@10° ({what})")
-            ax.set_title(f"{regime} regime, {int(d['n_pairs'].max())} test pairs over all folds")
+            ax.set_ylabel(f"mAA@10° {what}")
+            ax.set_title(f"{regime} regime ({int(d['n_pairs'].max())} test pairs): {what}", fontsize=10)
             ax.grid(alpha=0.3)
-    axes[0, 1].legend(loc="lower right", fontsize=7, ncol=2)
-    return _save(fig, out_dir, name), ""
+            _legend(ax, fixed)
+    return _save(fig, out_dir, name)
 
 
-def _plot_diffs(axes, d: pd.DataFrame, regime: str) -> None:
-    """RLSAC minus each of ``DIFF_ROWS`` against the budget, pooled, with the paired 95% interval as a band (the
-    table stores method - RLSAC; the sign is flipped so that above zero means RLSAC is ahead)."""
-    for c, (col, what) in enumerate((("dR", "rotation"), ("dt", "translation"))):
+def _legend(ax, fixed: bool) -> None:
+    """Every panel its own legend, beside it: inside, it covered lines or bands somewhere (issue #47)."""
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7 if fixed else 6, borderaxespad=0)
+
+
+def _plot_diffs(axes, d: pd.DataFrame, regime: str, rows: list[str], style: dict) -> None:
+    """RLSAC minus each of ``rows`` against the budget, pooled, with the paired 95% interval as a band (the table
+    stores method - RLSAC; the sign is flipped so that above zero means RLSAC is ahead)."""
+    fixed = all(style[m] == STYLE.get(m, ("black", ".")) for m in rows)
+    for c, (col, what) in enumerate((("dR", "R"), ("dt", "t"))):
         ax = axes[c]
-        for m in DIFF_ROWS:
+        for m in rows:
             g = d[d["method"] == m].sort_values("iterations")
             if g.empty or g[col].isna().all():
                 continue
-            colour, marker = STYLE.get(m, ("black", "."))
+            colour, marker = style[m]
             ax.plot(g["iterations"], -g[col], marker=marker, color=colour, label=f"RLSAC − {m}")
-            ax.fill_between(g["iterations"], -g[f"{col}_hi"], -g[f"{col}_lo"], color=colour, alpha=0.12)
+            ax.fill_between(g["iterations"], -g[f"{col}_hi"], -g[f"{col}_lo"], color=colour, alpha=0.12, lw=0)
         ax.axhline(0.0, color="black", lw=0.8)
         ax.set_xscale("log")
         ax.set_xlabel("iterations (hypotheses per pair)")
-        ax.set_ylabel(f"RLSAC − method, pooled mAA@10° ({what})")
-        ax.set_title(f"{regime}: paired differences, 95% interval (bootstrap over pairs)")
+        ax.set_ylabel(f"RLSAC − method, mAA@10° {what}")
+        ax.set_title(f"{regime}: RLSAC − method in {what}, 95% interval over pairs", fontsize=10)
         ax.grid(alpha=0.3)
-    axes[1].legend(loc="best", fontsize=7, ncol=2)
+        _legend(ax, fixed)
 
 
 def read_checkpoints(ckpt_root: str | Path) -> dict[Path, dict]:
@@ -159,7 +196,15 @@ def plot_learning_curves(ckpt_root: str | Path | dict, out_dir: Path) -> tuple[l
     kept = {p.stem + "@" + f"{p.parent.parent.name}/{p.parent.name}": ck.get("step") for p, ck in read.items()}
     selection = {split_seed(p.stem)[0]: ck.get("selection", "val_mAA") for p, ck in read.items()}
     models = sorted(selection)
-    fig, axes = plt.subplots(2, len(models), figsize=(5.5 * len(models), 7), squeeze=False)
+    # a grid (issue #47: eight models made one 4547 x 847 px row): at most four models a row, each its two panels
+    # (validation mAA over validation inlier ratio) in one column
+    ncols = min(4, len(models))
+    nrows = -(-len(models) // ncols)
+    fig, grid = plt.subplots(2 * nrows, ncols, figsize=(4.6 * ncols, 6.4 * nrows), squeeze=False, layout="constrained")
+    axes = {(r, c): grid[2 * (c // ncols) + r, c % ncols] for c in range(len(models)) for r in range(2)}
+    for k in range(len(models), nrows * ncols):  # empty cells of the last row
+        grid[2 * (k // ncols), k % ncols].set_visible(False)
+        grid[2 * (k // ncols) + 1, k % ncols].set_visible(False)
     for r, key in enumerate(("charts/val_mAA", "charts/val_inlier_ratio")):
         for (model, where), table in seed_curves(read, key).items():
             ax = axes[r, models.index(model)]
@@ -174,10 +219,11 @@ def plot_learning_curves(ckpt_root: str | Path | dict, out_dir: Path) -> tuple[l
                     ax.plot([step], [table.loc[step, run]], "o", mfc="none", ms=10, color=line.get_color())
     for c, model in enumerate(models):
         axes[0, c].set_title(f"{model}\n(kept actors circled; selection: {selection[model]})", fontsize=9)
-        axes[0, c].set_ylabel("validation mAA@10° (seed mean, min-max band)")
-        axes[1, c].set_ylabel("validation mean inlier ratio")
+        axes[0, c].set_ylabel("val. mAA@10° (seed mean, min-max)", fontsize=8)
+        axes[1, c].set_ylabel("val. mean inlier ratio", fontsize=8)
         for r in range(2):
-            axes[r, c].set_xlabel("SAC step")
+            axes[r, c].set_xlabel("SAC step", fontsize=8)
+            axes[r, c].tick_params(labelsize=7)
             axes[r, c].grid(alpha=0.3)
-        axes[0, c].legend(fontsize=8)
+        axes[0, c].legend(fontsize=6)
     return _save(fig, out_dir, "learning_curves"), ""

@@ -396,6 +396,17 @@ def seed_comparison(res, seeded: dict[str, list[str]], regime: str, model: str, 
     are missing."""
     from rlsac.metrics import seed_bootstrap_maa
 
+    got = seed_errors(res, seeded, regime, model, control, it, col, building)
+    if got is None:
+        return None
+    a, b, fold = got
+    return seed_bootstrap_maa(a, b, LIMIT, strata=fold, n_boot=N_BOOT, seed=0), a.shape[1]
+
+
+def seed_errors(res, seeded: dict[str, list[str]], regime: str, model: str, control: str, it: int, col: str,
+                building: str | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The errors ``seed_comparison`` compares: (S_model, M) and (S_control, M) in column ``col`` on the pairs every
+    run has, and each pair's test building (M,); None when a run or common pairs are missing."""
     runs, controls = seeded.get(model, [model]), seeded.get(control, [control])
     frames = [res.get((regime, m, it)) for m in runs + controls]
     got = None if any(f is None for f in frames) else _aligned(frames, col)
@@ -406,8 +417,7 @@ def seed_comparison(res, seeded: dict[str, list[str]], regime: str, model: str, 
         err, fold = err[:, fold == building], fold[fold == building]
         if not err.shape[1]:
             return None
-    return (seed_bootstrap_maa(err[:len(runs)], err[len(runs):], LIMIT, strata=fold, n_boot=N_BOOT, seed=0),
-            err.shape[1])
+    return err[:len(runs)], err[len(runs):], fold
 
 
 def _seed_cells(s: dict) -> tuple[str, str, str]:
