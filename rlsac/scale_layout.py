@@ -32,8 +32,11 @@ def protocol(params: dict[str, Any]) -> dict[str, Any]:
         raise RlsacError(f"scale.arms {bad or s['arms']}: each one of {', '.join(ARMS)}")
     for key in ("seeds", "steps", "iterations", "final_iterations"):
         vals = s[key]
-        if not isinstance(vals, list) or not vals or not all(isinstance(v, int) and v >= 0 for v in vals):
-            raise RlsacError(f"scale.{key} must be a non-empty list of non-negative integers, got {vals!r}")
+        empty_ok = key == "final_iterations"  # [] = the last actor is tested at ``iterations`` only
+        if not isinstance(vals, list) or (not vals and not empty_ok) or not all(
+                isinstance(v, int) and v >= 0 for v in vals):
+            raise RlsacError(f"scale.{key} must be a {'' if empty_ok else 'non-empty '}list of non-negative integers, "
+                             f"got {vals!r}")
     s["steps"] = sorted(set(s["steps"]))
     return s
 
