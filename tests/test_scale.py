@@ -80,3 +80,17 @@ def test_a_corrupt_result_is_refused_not_read_as_missing(workdir):
     (workdir / "f" / "summary.json").write_text(json.dumps({"n": 3}))
     with pytest.raises(RlsacError, match="truncated"):
         report.read_errors(workdir / "f" / "errors.csv")
+
+
+def test_the_positive_control_is_read_into_words():
+    """A ratio whose policy reaches the guided sampler's mass says when; one that does not says how far it got."""
+    def result(ratio, pis):
+        rows = [{"step": 100 * i, "updates": 90 * i, "pi_inliers": p, "mAA_R": 0.5, "mAA_t": 0.4}
+                for i, p in enumerate(pis)]
+        return {"inlier_ratio": ratio, "controls": {"uniform": {"pi_inliers": ratio, "mAA_R": 0.1, "mAA_t": 0.1},
+                                                    "guided (T=0.1)": {"pi_inliers": 0.98, "mAA_R": 1, "mAA_t": 0.9}},
+                "curves": [{"seed": 0, "rows": rows}]}
+
+    text = "\n".join(report._positive_control({"results": [result(0.6, [0.6, 0.9, 0.95]), result(0.3, [0.3, 0.4])]}))
+    assert "reaches the guided sampler's (0.980) within 0.05 at step 200 (about 180 updates)" in text
+    assert "after 100 steps (about 90 updates) the policy's mass on the inliers is 0.400" in text
