@@ -3,7 +3,7 @@
 
 params.yaml ``scale``: one fold of the benchmark; data arms (what an episode sees); training seeds; the steps at
 which each run's actor is kept (one run per arm and seed gives the whole curve: with a constant learning rate, the
-actor after k steps is the actor of a k-step run); the budgets every kept actor is tested at (``iterations``) and
+actor after k steps is the actor of a k-step run); the budget every kept actor is tested at (``iterations``) and
 those only the last one is (``final_iterations``: Table 2's 1000, ten times the CPU time).
 """
 
@@ -30,7 +30,9 @@ def protocol(params: dict[str, Any]) -> dict[str, Any]:
     bad = [a for a in s["arms"] if a not in ARMS]
     if bad or not s["arms"]:
         raise RlsacError(f"scale.arms {bad or s['arms']}: each one of {', '.join(ARMS)}")
-    for key in ("seeds", "steps", "iterations", "final_iterations"):
+    if not isinstance(s["iterations"], int) or s["iterations"] < 1:  # one budget: one stage's output folder
+        raise RlsacError(f"scale.iterations must be a positive integer (one budget), got {s['iterations']!r}")
+    for key in ("seeds", "steps", "final_iterations"):
         vals = s[key]
         empty_ok = key == "final_iterations"  # [] = the last actor is tested at ``iterations`` only
         if not isinstance(vals, list) or (not vals and not empty_ok) or not all(

@@ -60,7 +60,7 @@ def collect(s: dict[str, Any], eval_root: Path = Path("reports/eval")) -> dict[s
     """Every evaluation of the study and of its controls -> errors per (arm, step, budget) as (seeds, pairs)."""
     fold, regime = s["fold"], s["regime"]
     keys, strata, out, missing = None, None, {"runs": {}, "controls": {}}, []
-    for it in sorted(set(s["iterations"]) | set(s["final_iterations"])):
+    for it in sorted({s["iterations"], *s["final_iterations"]}):
         for c in CONTROLS:
             d = eval_root / "folds" / regime / fold / c / f"i{it}"
             if not (d / "errors.csv").is_file():
@@ -70,7 +70,7 @@ def collect(s: dict[str, Any], eval_root: Path = Path("reports/eval")) -> dict[s
             out["controls"][(c, it)] = (r[None], t[None])
             strata = np.array([k.split("/")[0] for k in keys])
         for arm in s["arms"]:
-            for k in (s["steps"] if it in s["iterations"] else s["steps"][-1:]):
+            for k in (s["steps"] if it == s["iterations"] else s["steps"][-1:]):
                 rs, ts = [], []
                 for seed in s["seeds"]:
                     d = Path(eval_root) / lay.eval_dir(fold, it, arm, seed, k).relative_to("reports/eval")
@@ -312,7 +312,7 @@ def figure(s: dict, comp: pd.DataFrame, out_dir: Path) -> list[str]:
 
     from rlsac.reports.figfile import save
 
-    its = sorted(set(s["iterations"]) | set(s["final_iterations"]))
+    its = sorted({s["iterations"], *s["final_iterations"]})
     fig, axes = plt.subplots(len(its), 2, figsize=(10, 3.6 * len(its)), squeeze=False)
     colours = {"fixed": "tab:blue", "redraw": "tab:orange"}
     for i, it in enumerate(its):
