@@ -577,8 +577,9 @@ def build(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
                     df = builders[key](eval_root, out_dir)
                     files += list(df.attrs["files"].values())
                 missing += df.attrs["missing"]
-            metrics(eval_root, out_dir)
-            files.append(str(out_dir / "metrics.json"))
+            if which != "scale":  # metrics.json is the tables stage's output; the scale study's report is its own stage
+                metrics(eval_root, out_dir)
+                files.append(str(out_dir / "metrics.json"))
         for f in files:
             run.artifact(f)
     return {"which": which, "files": ", ".join(files), "n_missing": len(missing), "missing": missing,
