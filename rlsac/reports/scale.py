@@ -151,15 +151,15 @@ def choose(s: dict[str, Any], curves: pd.DataFrame) -> dict[str, Any] | None:
     return {"arm": arm, "step": int(step), "val_mAA": best, "table": at.reset_index()}
 
 
-def _pairs_line(s: dict, out_dir: Path) -> str:
+def _pairs_line(s: dict, out_dir: Path, min_matches: int | None = None) -> str:
     """How many training pairs the fold has: its data record (rlsac folds --stage data)."""
     path = out_dir / "folds" / "data" / s["regime"] / f"{s['fold']}.json"
     if not path.is_file():
         return ""
     splits = json.loads(path.read_text())["splits"]
     return (f" The fold's training buildings give {splits['train']['pairs']} training and {splits['val']['pairs']} "
-            "validation pairs: every pair the import keeps (at least 100 SNN < 0.8 matches), so more real pairs "
-            "cannot come from these buildings; the pool multiplies the inputs per pair, not the pairs.")
+            f"validation pairs: every pair the import keeps (at least {min_matches} SNN < 0.8 matches), so more real "
+            "pairs cannot come from these buildings; the pool multiplies the inputs per pair, not the pairs.")
 
 
 def _cell(row, key: str) -> str:
@@ -180,13 +180,14 @@ def build(params: dict[str, Any], eval_root: str | Path = "reports/eval", out_di
     with atomic_path(files[1]) as tmp:
         comp.round(6).to_csv(tmp, index=False)
     with atomic_path(files[0]) as tmp:
-        tmp.write_text(markdown(s, comp, curves, chosen, got["missing"], Path(out_dir), same_as_record(s, Path(root))))
+        tmp.write_text(markdown(s, comp, curves, chosen, got["missing"], Path(out_dir), same_as_record(s, Path(root)),
+                                (params.get("fundamental") or {}).get("min_matches")))
     files += figure(s, comp, out_dir)  # beside scale.md: reports/figures/ is the figures stage's own output
     return {"files": files, "missing": got["missing"]}
 
 
 def markdown(s: dict, comp: pd.DataFrame, curves: pd.DataFrame, chosen: dict | None, missing: list[str],
-             out_dir: Path, record_line: str = "") -> str:
+             out_dir: Path, record_line: str = "", min_matches: int | None = None) -> str:
     arms = ", ".join(f"`{a}` = {ARM_LABEL[a]}" for a in s["arms"])
     lines = [
         "# Is RLSAC starved? The training-scale study (issue #46)", "",
@@ -208,7 +209,7 @@ def markdown(s: dict, comp: pd.DataFrame, curves: pd.DataFrame, chosen: dict | N
         "pair-episodes). The record's fold recipe is 300 steps x 16 episodes (4,800 episodes, about 280 updates) on "
         "the fold's training pairs; this study goes to 10x the steps and, in the redraw arm, gives every episode a "
         "fresh draw of 150 of a pair's 1000 lowest-SNN matches with the images swapped at random, so an input "
-        "essentially never repeats." + _pairs_line(s, out_dir) + record_line, ""]
+        "essentially never repeats." + _pairs_line(s, out_dir, min_matches) + record_line, ""]
     if not comp.empty:
         lines += ["## Test pairs: RLSAC against the controls", "",
                   "| arm | steps | budget | RLSAC mAA_R | RLSAC mAA_t | − uniform R | − uniform t | − guided R | "
@@ -262,12 +263,12 @@ def _verdict(comp: pd.DataFrame) -> list[str]:
                              f"({b[f'vs_{c}_R']:+.3f} [{b[f'vs_{c}_R_lo']:+.3f}, {b[f'vs_{c}_R_hi']:+.3f}]) and "
                              f"{_where(b[f'vs_{c}_t_lo'], b[f'vs_{c}_t_hi'])} it in t ({b[f'vs_{c}_t']:+.3f} "
                              f"[{b[f'vs_{c}_t_lo']:+.3f}, {b[f'vs_{c}_t_hi']:+.3f}])")
-        out.append("; ".join(parts) + ".")
-    return out + [""]
+        out += ["; ".join(parts) + ".", ""]
+    return out
 
 
 def _positive_control(pc: dict) -> list[str]:
-    rows = ["## The learner's positive control (benchmarks/positive_control.py, reports/positive_control.md)", "",
+    rows = ["## The learner's positive control (stage positive_control, reports/positive_control.md)", "",
             "Synthetic pairs whose SNN channel separates the true inliers by construction; π(inliers) is the policy's "
             "probability mass on them at its first step.", "", "| sampler | π(inliers) | mAA_R | mAA_t |",
             "| --- | --- | --- | --- |"]
