@@ -332,9 +332,11 @@ def figure(s: dict, comp: pd.DataFrame, out_dir: Path) -> list[str]:
                     if f"{c}_{m}" in sub:
                         ax.axhline(float(sub[f"{c}_{m}"].iloc[0]), color="black", ls=style, label=c)
             ax.set_xscale("log")
-            ax.set_xlabel("training steps (one SAC update each; log scale)")
+            ax.set_xticks(s["steps"], [str(k) for k in s["steps"]])
+            ax.minorticks_off()
+            ax.set_xlabel("training steps (16 episodes + one SAC update each; log scale)")
             ax.set_ylabel(f"mAA@10° {m}")
             ax.set_title(f"{s['fold']}, {it} hypotheses: mAA {m}")
-            ax.legend(fontsize=8, loc="lower right")
+            ax.legend(fontsize=8, loc="best")
     fig.tight_layout()
     return save(fig, out_dir, "scale_curve", dpi=110)
