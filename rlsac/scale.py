@@ -129,7 +129,7 @@ def evaluate_run(p: dict, params: dict, s: dict, arm: str, seed: int, o: dict, t
              "sets_per_step": 1, "confidence": 0.0, **settings, "data": str(test), "iterations": int(it),
              "out_dir": str(lay.eval_dir(s["fold"], it, arm, seed, k)),
              "tags": {"benchmark": "scale", "fold": s["fold"], "arm": arm, "seed": str(seed), "step": str(k)}}
-            for it in (s["final_iterations"] if final else [s["iterations"]])
+            for it in ([s["final_iterations"]] if final else [s["iterations"]]) if it > 0
             for k in (s["steps"][-1:] if final else s["steps"])]
     check_all(jobs, track)  # every checkpoint and the test file read before the first evaluation writes
     out = []

@@ -4,7 +4,7 @@
 params.yaml ``scale``: one fold of the benchmark; data arms (what an episode sees); training seeds; the steps at
 which each run's actor is kept (one run per arm and seed gives the whole curve: with a constant learning rate, the
 actor after k steps is the actor of a k-step run); the budget every kept actor is tested at (``iterations``) and
-those only the last one is (``final_iterations``: Table 2's 1000, ten times the CPU time).
+the budget only the last one is (``final_iterations``: Table 2's 1000, ten times the CPU time; 0 = none).
 """
 
 from __future__ import annotations
@@ -30,15 +30,14 @@ def protocol(params: dict[str, Any]) -> dict[str, Any]:
     bad = [a for a in s["arms"] if a not in ARMS]
     if bad or not s["arms"]:
         raise RlsacError(f"scale.arms {bad or s['arms']}: each one of {', '.join(ARMS)}")
-    if not isinstance(s["iterations"], int) or s["iterations"] < 1:  # one budget: one stage's output folder
-        raise RlsacError(f"scale.iterations must be a positive integer (one budget), got {s['iterations']!r}")
-    for key in ("seeds", "steps", "final_iterations"):
+    for key, low in (("iterations", 1), ("final_iterations", 0)):  # one budget each: one stage's output folder
+        if not isinstance(s[key], int) or isinstance(s[key], bool) or s[key] < low:
+            raise RlsacError(f"scale.{key} must be an integer >= {low} (one budget{'; 0 = none' if low == 0 else ''}), "
+                             f"got {s[key]!r}")
+    for key in ("seeds", "steps"):
         vals = s[key]
-        empty_ok = key == "final_iterations"  # [] = the last actor is tested at ``iterations`` only
-        if not isinstance(vals, list) or (not vals and not empty_ok) or not all(
-                isinstance(v, int) and v >= 0 for v in vals):
-            raise RlsacError(f"scale.{key} must be a {'' if empty_ok else 'non-empty '}list of non-negative integers, "
-                             f"got {vals!r}")
+        if not isinstance(vals, list) or not vals or not all(isinstance(v, int) and v >= 0 for v in vals):
+            raise RlsacError(f"scale.{key} must be a non-empty list of non-negative integers, got {vals!r}")
     s["steps"] = sorted(set(s["steps"]))
     return s
 

@@ -15,7 +15,7 @@ from rlsac.reports import scale as report
 from rlsac.scale_layout import protocol
 
 SCALE = {"fold": "castle", "regime": "hard", "pool": 1000, "arms": ["fixed", "redraw"], "seeds": [0, 1],
-         "steps": [30, 10], "iterations": 100, "final_iterations": [1000], "settings_from": "uniform",
+         "steps": [30, 10], "iterations": 100, "final_iterations": 1000, "settings_from": "uniform",
          "val_every": 10}
 
 

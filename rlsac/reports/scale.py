@@ -56,11 +56,16 @@ def _errors(path: Path, keys: pd.Index | None) -> tuple[np.ndarray, np.ndarray, 
     return df["err_R"].to_numpy(np.float64), df["err_t"].to_numpy(np.float64), idx
 
 
+def _budgets(s: dict[str, Any]) -> list[int]:
+    """Every budget of the study: the one every actor is tested at, and the last actor's (0 = none)."""
+    return sorted({s["iterations"], s["final_iterations"]} - {0})
+
+
 def collect(s: dict[str, Any], eval_root: Path = Path("reports/eval")) -> dict[str, Any]:
     """Every evaluation of the study and of its controls -> errors per (arm, step, budget) as (seeds, pairs)."""
     fold, regime = s["fold"], s["regime"]
     keys, strata, out, missing = None, None, {"runs": {}, "controls": {}}, []
-    for it in sorted({s["iterations"], *s["final_iterations"]}):
+    for it in _budgets(s):
         for c in CONTROLS:
             d = eval_root / "folds" / regime / fold / c / f"i{it}"
             if not (d / "errors.csv").is_file():
@@ -313,7 +318,7 @@ def figure(s: dict, comp: pd.DataFrame, out_dir: Path) -> list[str]:
 
     from rlsac.reports.figfile import save
 
-    its = sorted({s["iterations"], *s["final_iterations"]})
+    its = _budgets(s)
     fig, axes = plt.subplots(len(its), 2, figsize=(10, 3.6 * len(its)), squeeze=False)
     colours = {"fixed": "tab:blue", "redraw": "tab:orange"}
     for i, it in enumerate(its):
