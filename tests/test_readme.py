@@ -355,15 +355,16 @@ def quoted_intervals(text: str) -> set[tuple[float, float, float]]:
 
 
 def generated_intervals(reports: Path) -> set[tuple[float, float, float]]:
-    files = sorted(reports.glob("table*.md")) + [reports / "claims.md", reports / "selection.md", reports / "paper.md"]
+    files = sorted(reports.glob("table*.md")) + [reports / f"{n}.md" for n in ("claims", "selection", "paper", "scale",
+                                                                            "positive_control")]
     return set().union(*(quoted_intervals(f.read_text()) for f in files if f.is_file()))
 
 
 @pytest.mark.parametrize("doc", QUOTING, ids=lambda p: p.name)
 def test_every_quoted_interval_is_one_of_the_generated_tables(doc):
     """A number the README or a hand-written report quotes with its 95% interval is one that `rlsac table` wrote
-    (reports/table*.md, claims.md, selection.md, paper.md): no interval computed by hand, none left from an earlier
-    record."""
+    (reports/table*.md, claims.md, selection.md, paper.md, scale.md, positive_control.md): no interval computed by
+    hand, none left from an earlier record."""
     stale = sorted(quoted_intervals(doc.read_text()) - generated_intervals(ROOT / "reports"))
     assert not stale, f"{doc.name}: {len(stale)} interval(s) in no generated table, e.g. {stale[:3]}"
 
@@ -378,7 +379,8 @@ def test_interval_check_finds_a_stale_quote(tmp_path):
 # ------------------------------------------------------------------------------------ quoted point values (issue #47)
 POINT = re.compile(r"(?<![\w.])([+\-−]?)(\d+\.\d{3})(?!\d)")
 # files `rlsac table`, `rlsac calibrate-lines` and benchmarks/line_landscape.py write (the hand-written pages are not)
-GENERATED = ("table*.md", "claims.md", "selection.md", "paper.md", "calibration_*.md", "*.csv", "metrics.json")
+GENERATED = ("table*.md", "claims.md", "selection.md", "paper.md", "scale.md", "positive_control.md",
+             "calibration_*.md", "*.csv", "metrics.json")
 
 
 def point_values(text: str) -> set[float]:

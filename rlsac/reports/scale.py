@@ -261,7 +261,8 @@ def _verdict(comp: pd.DataFrame) -> list[str]:
         g = g.sort_values("step")
         a, b = g.iloc[0], g.iloc[-1]
         parts = [f"**{arm}, {it} hypotheses:** from {a['step']} to {b['step']} steps RLSAC's mAA_R moves "
-                 f"{b['mAA_R'] - a['mAA_R']:+.3f} and mAA_t {b['mAA_t'] - a['mAA_t']:+.3f} (seed means)"]
+                 f"{b['mAA_R'] - a['mAA_R']:+.3f} and mAA_t {b['mAA_t'] - a['mAA_t']:+.3f} (seed means)"
+                 if len(g) > 1 else f"**{arm}, {it} hypotheses** (the last actor only)"]
         for c in CONTROLS:
             if f"vs_{c}_R_lo" in b and not pd.isna(b[f"vs_{c}_R_lo"]):
                 parts.append(f"at {b['step']} steps it is {_where(b[f'vs_{c}_R_lo'], b[f'vs_{c}_R_hi'])} {c} in R "
