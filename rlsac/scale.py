@@ -19,6 +19,7 @@ The test pairs are read once per actor, after training; nothing here chooses any
 from __future__ import annotations
 
 import time
+from pathlib import Path
 from typing import Any
 
 from rlsac import scale_layout as lay
@@ -103,15 +104,55 @@ def train_options(p: dict, params: dict, s: dict, arm: str, seed: int, o: dict) 
 
 
 def train_run(p: dict, params: dict, s: dict, arm: str, seed: int, o: dict, track: bool) -> dict[str, Any]:
+    """The run in its legs (scale.legs): a leg a saved state of this run has reached is skipped, the next one
+    resumes from that state. Each leg stores the conf it was run with (total_steps = its end, its snapshots), so a
+    run re-made from nothing writes the same files as one extended leg by leg across sessions."""
+    from rlsac.config import deep_update
     from rlsac.train import train
 
     opts = train_options(p, params, s, arm, seed, o)
     if arm == "redraw" and not lay.pool_file(s["fold"]).is_file():
         raise RlsacError(f"{lay.pool_file(s['fold'])}: no pool file (run `rlsac scale --stage pool` first)")
     lay.run_dir(s["fold"], arm, seed).mkdir(parents=True, exist_ok=True)
-    summ = train(opts, track=track)
+    done, summ = saved_step(opts), None
+    for end in s["legs"]:
+        if done >= end:
+            continue
+        leg = deep_update(opts, {"sac": {"total_steps": int(end)}, "ckpt_every": int(end), "resume": done > 0,
+                                 "snapshot_steps": [k for k in opts["snapshot_steps"] if k <= end]})
+        summ = train(leg, track=track)
+        done = end
+    if summ is None:  # every leg was there: what the checkpoint says
+        from rlsac import checkpoint
+
+        kept = checkpoint.read(Path(opts["out"]))
+        summ = {"checkpoint": opts["out"], "steps": done, "best_step": kept.get("step"), "seconds": 0.0}
     return {"run": lay.run_name(arm, seed), "checkpoint": summ["checkpoint"], "steps": summ["steps"],
             "best_step": summ["best_step"], "train_seconds": summ["seconds"]}
+
+
+def saved_step(opts: dict) -> int:
+    """The step of the training state beside ``opts["out"]`` when this run's own configuration wrote it (its legs'
+    ends and snapshots aside), else 0: a state of another recipe is never resumed, the run starts over."""
+    import torch
+
+    from rlsac.config import build
+    from rlsac.train import TrainConf, stored_conf
+
+    state = Path(opts["out"]).with_suffix(".state.pt")
+    if not state.is_file():
+        return 0
+    try:
+        st = torch.load(state, map_location="cpu", weights_only=False)
+    except Exception:  # noqa: BLE001 (any unreadable state: start over, as for a missing one)
+        return 0
+
+    def key(conf: dict) -> dict:
+        conf = {k: v for k, v in conf.items() if k not in ("snapshot_steps", "ckpt_every", "resume")}
+        return {**conf, "sac": {k: v for k, v in conf.get("sac", {}).items() if k != "total_steps"}}
+
+    here = stored_conf(build(TrainConf, opts, "train"))
+    return int(st.get("step", 0)) if key(st.get("conf", {})) == key(here) else 0
 
 
 def evaluate_run(p: dict, params: dict, s: dict, arm: str, seed: int, o: dict, track: bool,

@@ -4,7 +4,9 @@
 params.yaml ``scale``: one fold of the benchmark; data arms (what an episode sees); training seeds; the steps at
 which each run's actor is kept (one run per arm and seed gives the whole curve: with a constant learning rate, the
 actor after k steps is the actor of a k-step run); the budget every kept actor is tested at (``iterations``) and
-the budget only the last one is (``final_iterations``: Table 2's 1000, ten times the CPU time; 0 = none).
+the budget only the last one is (``final_iterations``: Table 2's 1000, ten times the CPU time; 0 = none); the legs a
+run is trained in (``legs``: each leg resumes the last one's saved state, so a longer study extends its runs instead
+of re-running them; a resumed leg starts new episodes at its first step, which makes the legs part of the recipe).
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ def protocol(params: dict[str, Any]) -> dict[str, Any]:
     """params.yaml ``scale``, checked: fold, regime, pool, arms, seeds, steps, iterations, settings_from."""
     s = dict(section(params, "scale"))
     need = ("fold", "regime", "pool", "arms", "seeds", "steps", "iterations", "final_iterations", "settings_from",
-            "val_every")
+            "val_every", "legs")
     missing = [k for k in need if k not in s]
     if missing or set(s) - set(need):
         raise RlsacError(f"params.yaml scale: needs exactly {', '.join(need)} (missing {missing}, "
@@ -39,6 +41,11 @@ def protocol(params: dict[str, Any]) -> dict[str, Any]:
         if not isinstance(vals, list) or not vals or not all(isinstance(v, int) and v >= 0 for v in vals):
             raise RlsacError(f"scale.{key} must be a non-empty list of non-negative integers, got {vals!r}")
     s["steps"] = sorted(set(s["steps"]))
+    legs = s["legs"]
+    if (not isinstance(legs, list) or not legs or not all(isinstance(v, int) and v > 0 for v in legs)
+            or legs != sorted(set(legs)) or legs[-1] != s["steps"][-1]):
+        raise RlsacError(f"scale.legs must be increasing positive integers ending at the largest step "
+                         f"{s['steps'][-1]}, got {legs!r}")
     return s
 
 
