@@ -33,6 +33,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from rlsac.kernels import linear_for
+
 MEMORY_CHANNELS = 3  # the environment's memory channels, appended after the data channels (rlsac.env.MEMORY_DIM)
 # Row x point pairs per chunk of the rollout path: per-step tensors stay at ~4096 x 128 floats (2 MB) and
 # the neighbour max's three (points, episodes x 32) buffers fit the 2 MB L2. CPU ms per instance and
@@ -188,6 +190,12 @@ class PointNet(nn.Module):
             nn.Linear(conf.head_width, conf.head_width // 2), nn.LeakyReLU(0.2),
             nn.Linear(conf.head_width // 2, 1),
         )
+        self.linear = F.linear  # the training path's dense products (set_kernels); the rollout path keeps ATen's
+
+    def set_kernels(self, name: str) -> PointNet:
+        """The training path's products from kernels ``name`` (rlsac.kernels.KERNELS); not saved with the weights."""
+        self.linear = linear_for(name)
+        return self
 
     def graph(self, state: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
         """kNN graph of the coordinate channels (R, N, k); fixed per instance, so callers cache it."""
@@ -225,28 +233,28 @@ class PointNet(nn.Module):
                 idx = knn(x, self.conf.k, mask)
                 flat = (idx + rows).view(R * N, k).t().reshape(-1)
             w2, wd, bias = conv.split()
-            b = F.linear(x, w2).reshape(R * N, -1)
+            b = self.linear(x, w2).reshape(R * N, -1)
             nb = _NeighbourMax.apply(b, flat, k).view(R, N, -1)
-            x = _leaky(F.linear(x, wd, bias) + nb)
+            x = _leaky(self.linear(x, wd, bias) + nb)
             feats.append(x)
         local = torch.cat(feats, dim=-1) if len(feats) > 1 else feats[0]
-        return self._head(local, None if mask is None else ~mask[..., None])
+        return self._head(local, None if mask is None else ~mask[..., None], self.linear)
 
-    def _head(self, local: torch.Tensor, invalid: torch.Tensor | None) -> torch.Tensor:
+    def _head(self, local: torch.Tensor, invalid: torch.Tensor | None, linear=F.linear) -> torch.Tensor:
         """local (A, N, ..., L) per-point features, points on dim 1 -> (A, N, ...) values.
 
-        invalid: broadcastable to the pooled channels, True where a point is padding."""
+        invalid: broadcastable to the pooled channels, True where a point is padding; linear: the products."""
         lin_g, h0, h1, h2 = self.glob[0], self.head[0], self.head[2], self.head[4]
         L, G = local.shape[-1], lin_g.out_features
         w = torch.cat([lin_g.weight, h0.weight[:, :L]], dim=0)
         bias = torch.cat([lin_g.bias, lin_g.bias.new_zeros(h0.out_features)])
-        y = F.linear(local, w, bias)  # glob pre-activation | head's local term
+        y = linear(local, w, bias)  # glob pre-activation | head's local term
         g = y[..., :G]
         if invalid is not None:
             g = g.masked_fill(invalid, float("-inf"))
         g = _leaky(g.amax(dim=1, keepdim=True))  # max pool before the (increasing) activation: same value
-        h = _leaky(y[..., G:] + F.linear(g, h0.weight[:, L:], h0.bias))  # global term once per row
-        return F.linear(_leaky(h1(h)), h2.weight, h2.bias).squeeze(-1)
+        h = _leaky(y[..., G:] + linear(g, h0.weight[:, L:], h0.bias))  # global term once per row
+        return linear(_leaky(linear(h, h1.weight, h1.bias)), h2.weight, h2.bias).squeeze(-1)
 
     # ------------------------------------------------------------------ rollout path (inference)
     @torch.no_grad()

@@ -28,6 +28,7 @@ from rlsac.env import EnvConf
 from rlsac.episodes import EpisodeConf, RedrawnPairs, pool_tensors
 from rlsac.errors import Interrupted, RlsacError
 from rlsac.io import atomic_path, check_writable, clean_stale_temps, load_torch
+from rlsac.kernels import KERNELS
 from rlsac.ngransac import NGRansacConf
 from rlsac.policy import PolicyConf
 from rlsac.rollout import in_channels, rlsac_estimate
@@ -72,11 +73,15 @@ class TrainConf:
     episodes: EpisodeConf = field(default_factory=EpisodeConf)
     # also write the actor of these steps (a scale curve from one run: <out stem>.step<k>.pt beside ``out``)
     snapshot_steps: list[int] = field(default_factory=list)
+    # the SAC update's dense products (rlsac.kernels): "aten", the record's; "onednn", the same function about 1.5x
+    # faster on CPU under the portable pins, other last bits (not in the paper: an implementation choice)
+    kernels: str = "aten"
 
     # checked by rlsac.config.build for every source (params.yaml, --set); nested sections have their own
     ranges = {"task": TASKS, "method": TRAINED_METHODS, "device": ("auto", "cpu", "cuda"), "seed": "[0, 4294967295]",
               "threads": "[0, inf)", "val_instances": "[1, inf)", "val_iterations": "[1, inf)",
-              "val_every": "[1, inf)", "ckpt_every": "[1, inf)", "selection": SELECTIONS, "snapshot_steps": "[1, inf)"}
+              "val_every": "[1, inf)", "ckpt_every": "[1, inf)", "selection": SELECTIONS, "snapshot_steps": "[1, inf)",
+              "kernels": KERNELS}
 
 
 # the sections of one trained method only: a checkpoint stores its own method's (an RLSAC checkpoint's conf, and so its
@@ -86,7 +91,7 @@ OWN_SECTIONS = {"rlsac": ("env", "sac"), "ngransac": ("ngransac",)}
 
 # options added after the record, left out of a stored configuration while at their default: the record's
 # checkpoints (and so their bytes) are what they were (rlsac verify --include-train)
-LATER_DEFAULTS = {"episodes": to_dict(EpisodeConf()), "snapshot_steps": []}
+LATER_DEFAULTS = {"episodes": to_dict(EpisodeConf()), "snapshot_steps": [], "kernels": "aten"}
 
 
 def stored_conf(conf: TrainConf) -> dict:
@@ -138,7 +143,7 @@ def train(options: dict, track: bool = True, snapshots: list | None = None) -> d
     gen = seed_everything(conf.seed)
     if device.type != "cpu":
         gen = torch.Generator(device=device).manual_seed(conf.seed)
-    agent = SACAgent(in_channels(task), conf.policy, conf.sac).to(device)
+    agent = SACAgent(in_channels(task), conf.policy, conf.sac).to(device).set_kernels(conf.kernels)
     episodes = None
     if conf.episodes.pool:  # issue #46: a fresh draw of each pair's pool per episode
         pool, _ = read_batch(conf.task, conf.episodes.pool, device)

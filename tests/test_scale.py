@@ -94,3 +94,41 @@ def test_the_positive_control_is_read_into_words():
     text = "\n".join(report._positive_control({"results": [result(0.6, [0.6, 0.9, 0.95]), result(0.3, [0.3, 0.4])]}))
     assert "reaches the guided sampler's (0.980) within 0.05 at step 200 (about 180 updates)" in text
     assert "after 100 steps (about 90 updates) the policy's mass on the inliers is 0.400" in text
+
+
+def test_a_run_is_trained_in_legs_and_resumes_only_its_own_state(workdir, monkeypatch):
+    """Legs [10, 30]: the first leg from nothing, the second resuming its state with the conf of a 30-step run; a run
+    whose legs are all there trains nothing; a state of another recipe (another seed) is never resumed."""
+    import torch
+
+    import rlsac.scale as runner
+    import rlsac.train as train_mod
+    from rlsac.config import build
+
+    calls = []
+
+    def fake_train(opts, track=True):
+        calls.append({k: opts.get(k) for k in ("resume", "snapshot_steps", "ckpt_every")}
+                     | {"steps": opts["sac"]["total_steps"]})
+        conf = build(train_mod.TrainConf, opts, "train")
+        torch.save({"step": conf.sac.total_steps, "conf": train_mod.stored_conf(conf)}, workdir / "final.state.pt")
+        torch.save({"step": conf.sac.total_steps}, workdir / "final.pt")
+        return {"checkpoint": opts["out"], "steps": conf.sac.total_steps, "best_step": 0, "seconds": 1.0}
+
+    def fake_options(p, params, s, arm, seed, o):
+        return {"task": "line", "data": "x.h5", "out": str(workdir / "final.pt"), "seed": seed,
+                "sac": {"total_steps": 30}, "snapshot_steps": [10, 20, 30], "ckpt_every": 30}
+
+    monkeypatch.setattr(train_mod, "train", fake_train)
+    monkeypatch.setattr(runner, "train_options", fake_options)
+    s = protocol({"scale": SCALE})
+    runner.train_run({}, {}, s, "fixed", 0, {}, track=False)
+    assert calls == [{"resume": False, "snapshot_steps": [10], "ckpt_every": 10, "steps": 10},
+                     {"resume": True, "snapshot_steps": [10, 20, 30], "ckpt_every": 30, "steps": 30}]
+    calls.clear()
+    out = runner.train_run({}, {}, s, "fixed", 0, {}, track=False)
+    assert calls == [] and out["steps"] == 30  # every leg there: nothing trained
+    runner.train_run({}, {}, s, "fixed", 1, {}, track=False)  # seed 1 finds seed 0's state: starts over
+    assert [c["resume"] for c in calls] == [False, True]
+    with pytest.raises(RlsacError, match="scale.legs"):
+        protocol({"scale": {**SCALE, "legs": [10, 20]}})  # the last leg must end at the largest step
