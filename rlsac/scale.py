@@ -8,9 +8,8 @@ Stages (params.yaml ``scale``, rlsac.scale_layout):
             arm ``fixed`` sees the training file's 150 points of a pair in every episode (the record), arm ``redraw``
             a fresh 150 of the pair's pool per episode with the images swapped at random (rlsac.episodes);
   control   the learner's positive control on synthetic pairs (rlsac.positive_control, params positive_control);
-  evaluate  every kept actor on the fold's test pairs at every budget of ``iterations`` (``evaluate-final``: the last
-            one at ``final_iterations``), with the inlier threshold
-            and pre-filter tuned on the fold's validation pairs for ``settings_from`` (the uniform control): the
+  evaluate  every kept actor on the fold's test pairs at ``iterations`` (``evaluate-final``: the actors of
+            ``final_steps`` at ``final_iterations``), with the inlier threshold and pre-filter tuned on the fold's validation pairs for ``settings_from`` (the uniform control): the
             policy's state no longer depends on the threshold (checkpoint state_scales), so the sampler-free
             control's setting scores both alike, and RLSAC - uniform is the sampler alone.
 The test pairs are read once per actor, after training; nothing here chooses anything on them.
@@ -171,7 +170,7 @@ def evaluate_run(p: dict, params: dict, s: dict, arm: str, seed: int, o: dict, t
              "out_dir": str(lay.eval_dir(s["fold"], it, arm, seed, k)),
              "tags": {"benchmark": "scale", "fold": s["fold"], "arm": arm, "seed": str(seed), "step": str(k)}}
             for it in ([s["final_iterations"]] if final else [s["iterations"]]) if it > 0
-            for k in (s["steps"][-1:] if final else s["steps"])]
+            for k in (s["final_steps"] if final else s["steps"])]
     check_all(jobs, track)  # every checkpoint and the test file read before the first evaluation writes
     out = []
     for opts in jobs:

@@ -4,7 +4,8 @@
 params.yaml ``scale``: one fold of the benchmark; data arms (what an episode sees); training seeds; the steps at
 which each run's actor is kept (one run per arm and seed gives the whole curve: with a constant learning rate, the
 actor after k steps is the actor of a k-step run); the budget every kept actor is tested at (``iterations``) and
-the budget only the last one is (``final_iterations``: Table 2's 1000, ten times the CPU time; 0 = none); the legs a
+the budget only the actors of ``final_steps`` are (``final_iterations``: Table 2's 1000, ten times the CPU time; 0 =
+none); the legs a
 run is trained in (``legs``: each leg resumes the last one's saved state, so a longer study extends its runs instead
 of re-running them; a resumed leg starts new episodes at its first step, which makes the legs part of the recipe).
 """
@@ -24,7 +25,7 @@ def protocol(params: dict[str, Any]) -> dict[str, Any]:
     """params.yaml ``scale``, checked: fold, regime, pool, arms, seeds, steps, iterations, settings_from."""
     s = dict(section(params, "scale"))
     need = ("fold", "regime", "pool", "arms", "seeds", "steps", "iterations", "final_iterations", "settings_from",
-            "val_every", "legs")
+            "val_every", "legs", "final_steps")
     missing = [k for k in need if k not in s]
     if missing or set(s) - set(need):
         raise RlsacError(f"params.yaml scale: needs exactly {', '.join(need)} (missing {missing}, "
@@ -46,6 +47,11 @@ def protocol(params: dict[str, Any]) -> dict[str, Any]:
             or legs != sorted(set(legs)) or legs[-1] != s["steps"][-1]):
         raise RlsacError(f"scale.legs must be increasing positive integers ending at the largest step "
                          f"{s['steps'][-1]}, got {legs!r}")
+    fin = s["final_steps"]
+    if not isinstance(fin, list) or not set(fin) <= set(s["steps"]) or (s["final_iterations"] > 0 and not fin):
+        raise RlsacError(f"scale.final_steps must be a list of steps of scale.steps {s['steps']} (one at least when "
+                         f"final_iterations > 0), got {fin!r}")
+    s["final_steps"] = sorted(set(fin))
     return s
 
 

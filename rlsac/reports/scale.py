@@ -75,7 +75,7 @@ def collect(s: dict[str, Any], eval_root: Path = Path("reports/eval")) -> dict[s
             out["controls"][(c, it)] = (r[None], t[None])
             strata = np.array([k.split("/")[0] for k in keys])
         for arm in s["arms"]:
-            for k in (s["steps"] if it == s["iterations"] else s["steps"][-1:]):
+            for k in (s["steps"] if it == s["iterations"] else s["final_steps"]):
                 rs, ts = [], []
                 for seed in s["seeds"]:
                     d = Path(eval_root) / lay.eval_dir(fold, it, arm, seed, k).relative_to("reports/eval")
