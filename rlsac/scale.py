@@ -9,9 +9,10 @@ Stages (params.yaml ``scale``, rlsac.scale_layout):
             a fresh 150 of the pair's pool per episode with the images swapped at random (rlsac.episodes);
   control   the learner's positive control on synthetic pairs (rlsac.positive_control, params positive_control);
   evaluate  every kept actor on the fold's test pairs at ``iterations`` (``evaluate-final``: the actors of
-            ``final_steps`` at ``final_iterations``), with the inlier threshold and pre-filter tuned on the fold's validation pairs for ``settings_from`` (the uniform control): the
-            policy's state no longer depends on the threshold (checkpoint state_scales), so the sampler-free
-            control's setting scores both alike, and RLSAC - uniform is the sampler alone.
+            ``final_steps`` at ``final_iterations``), with the inlier threshold and pre-filter tuned on the fold's
+            validation pairs for ``settings_from`` (the uniform control): the policy's state no longer depends on
+            the threshold (checkpoint state_scales), so the sampler-free control's setting scores both alike, and
+            RLSAC - uniform is the sampler alone.
 The test pairs are read once per actor, after training; nothing here chooses anything on them.
 """
 
