@@ -103,14 +103,15 @@ def load_plan(repo_dir: str | os.PathLike, names: str | None = None) -> dict:
         run_set = set(runnable)
         deps = {addr[s]: sorted(addr[d] for d in graph.successors(s) if d in run_set) for s in runnable}
         todo: list[str] = []
+        why: dict[str, str] = {}
         from dvc.lock import LockError
 
         for attempt in range(LOCK_TRIES):
             try:
                 with repo.lock:
-                    todo = []
+                    todo, why = [], _reasons(runnable, addr, deps)
                     for s in runnable:  # an upstream stage that runs makes everything downstream of it run
-                        if any(d in todo for d in deps[addr[s]]) or s.changed():
+                        if any(d in todo for d in deps[addr[s]]) or why[addr[s]] != UP_TO_DATE:
                             todo.append(addr[s])
                 break
             except LockError as e:  # another dvc process holds the repository or a stage's outputs (or has
@@ -120,8 +121,45 @@ def load_plan(repo_dir: str | os.PathLike, names: str | None = None) -> dict:
                 time.sleep(1.0)
     finally:
         repo.close()
-    return {"root": root, "order": [addr[s] for s in runnable], "deps": deps, "todo": todo,
+    return {"root": root, "order": [addr[s] for s in runnable], "deps": deps, "todo": todo, "why": why,
             "selected": sorted(addr[s] for s in ordered)}
+
+
+# Why a stage is out of date (the dry run's plan): its own change; an upstream stage's change; only its outputs are
+# missing (git-ignored data a clean clone lacks: re-made from unchanged inputs, they are what dvc.lock recorded); only
+# inputs that such a stage re-makes are missing (up to date once they are back); nothing.
+CHANGED, UPSTREAM, REGENERATE, AFTER_DATA, UP_TO_DATE = ("changed", "upstream changed", "outputs missing",
+                                                        "inputs missing", "up to date")
+
+
+def _reasons(runnable: list, addr: dict, deps: dict) -> dict[str, str]:
+    """{address: one of the reasons above}, in dependency order. A missing input counts as a change unless a stage
+    that only re-makes missing outputs makes it (its path is one of their outputs)."""
+    why: dict[str, str] = {}
+    remade: set[str] = set()  # output paths of the stages that only re-make missing outputs
+    for s in runnable:
+        a = addr[s]
+        changed = [d for d in s.deps if d.changed()]
+        own = s.changed_stage() or any(not (str(d.fs_path) in remade and not d.exists) for d in changed)
+        if own:
+            why[a] = CHANGED
+        elif any(why[u] in (CHANGED, UPSTREAM) for u in deps[a]):
+            why[a] = UPSTREAM
+        elif s.changed_outs():
+            why[a] = REGENERATE
+            remade.update(str(o.fs_path) for o in s.outs)
+        else:
+            why[a] = AFTER_DATA if changed else UP_TO_DATE
+    return why
+
+
+def _groups(addresses: list[str]) -> dict[str, int]:
+    """Stage group (the name before ``@``) -> how many of ``addresses`` it holds, in first-seen order."""
+    out: dict[str, int] = {}
+    for a in addresses:
+        g = a.split("@", 1)[0]
+        out[g] = out.get(g, 0) + 1
+    return out
 
 
 # ------------------------------------------------------------------------------------------- one stage (task)
@@ -368,7 +406,7 @@ def pipeline(options: dict[str, Any], track: bool = True) -> dict:
     base = {"root": str(plan["root"]), "n_selected": len(plan["order"]), "todo": plan["todo"], "run_id": None}
     if o["dry_run"]:
         return {**base, "dry_run": True, "results": {a: {"stage": a, "status": "skipped"} for a in skipped},
-                "counts": {"skipped": len(skipped)}, "wall_s": 0.0, "workers": None}
+                "counts": {"skipped": len(skipped)}, "wall_s": 0.0, "workers": None, "why": plan["why"]}
     check_store(track, "pipeline")
     params = {k: o[k] for k in ("stages", "workers", "address", "gpus_per_train", "gpu_stages")}
     params.update(repo=str(plan["root"]), n_todo=len(plan["todo"]))
@@ -472,16 +510,33 @@ def _shown(path: str) -> str:
     return path if rel.startswith("..") else rel
 
 
+def _plan_lines(s: dict, by: dict) -> list[str]:
+    """The dry run: the count, the stages to run; where some only re-make missing outputs (a clean clone's data),
+    what runs after them, one line per stage group."""
+    lines = [f"pipeline (dry run): {len(s['todo'])} to run, {len(by['skipped'])} up to date of {s['n_selected']} stages"]
+    if s["todo"]:
+        lines.append(f"to run   {_names(s['todo'])}")
+    why = s.get("why") or {}
+    remake = [a for a in s["todo"] if why.get(a) == REGENERATE]
+    if not remake:
+        return lines
+    after = [a for a in s["todo"] if why.get(a) in (CHANGED, UPSTREAM)]
+    waiting = [a for a in s["todo"] if why.get(a) == AFTER_DATA]
+    lines += [f"plan: {len(remake)} stages re-make missing outputs from unchanged inputs ({_names(remake)}); "
+              f"once they match dvc.lock, {len(after)} run and {len(waiting) + len(by['skipped'])} are up to date",
+              "  group                          run  up to date"]
+    run_g, all_g = _groups(after), _groups([a for a in s["why"] if a not in remake])
+    for g, n in all_g.items():
+        lines.append(f"  {g:<30} {run_g.get(g, 0):>3}  {n - run_g.get(g, 0):>10}")
+    return lines
+
+
 def format_summary(s: dict) -> str:
     """The one-screen summary: counts, then one line per status (names cut to a line), failed stages one per
     line with the error's first line and their log (the first 10)."""
     by = {k: [a for a, r in s["results"].items() if r["status"] == k] for k in STATUSES}
     if s["dry_run"]:
-        lines = [f"pipeline (dry run): {len(s['todo'])} to run, {len(by['skipped'])} up to date "
-                 f"of {s['n_selected']} stages"]
-        if s["todo"]:
-            lines.append(f"to run   {_names(s['todo'])}")
-        return "\n".join(lines)
+        return "\n".join(_plan_lines(s, by))
     head = ", ".join(f"{len(by[k])} {k}" for k in STATUSES if k != "interrupted" or by[k])
     lines = [f"pipeline: {head} of {s['n_selected']} stages in {s['wall_s']:.1f} s"
              + (f" ({s['workers']} CPUs)" if s["workers"] else "")]

@@ -105,6 +105,22 @@ def test_two_workers_match_sequential_dvc_repro(tmp_path):
     assert (par / "c.txt").read_text() == "ca"
 
 
+def test_the_dry_run_plans_after_the_missing_data(tmp_path):
+    """A clean clone lacks the git-ignored outputs of its data stages: the dry run says they only re-make missing
+    outputs, that what needs only them is up to date once they are back, and what changed runs, per stage group."""
+    repo = make_repo(tmp_path / "repo", TOY)
+    assert dvc(repo, "repro").returncode == 0
+    (repo / "a.txt").unlink()  # a's output, as a clean clone lacks it
+    (repo / "dvc.yaml").write_text((repo / "dvc.yaml").read_text().replace("'d'", "'D'"))  # d changed
+    r = run_pipeline("--repo", str(repo), "--dry-run", "--no-tracking")
+    assert r.exit_code == 0, r.output
+    lines = summary(r.output)
+    assert lines[0] == "pipeline (dry run): 4 to run, 0 up to date of 4 stages", r.output
+    assert lines[2] == ("plan: 1 stages re-make missing outputs from unchanged inputs (a); once they match dvc.lock, "
+                        "1 run and 2 are up to date"), r.output
+    assert [ln.split() for ln in lines[4:]] == [["b", "0", "1"], ["c", "0", "1"], ["d", "1", "0"]], r.output
+
+
 def test_failed_stage_stops_dependents_only(tmp_path):
     stages = {**TOY,
               "c": {"cmd": f"{PY} -c \"import sys; print('working'); sys.exit('error: c broke here')\"",
