@@ -513,7 +513,8 @@ def _shown(path: str) -> str:
 def _plan_lines(s: dict, by: dict) -> list[str]:
     """The dry run: the count, the stages to run; where some only re-make missing outputs (a clean clone's data),
     what runs after them, one line per stage group."""
-    lines = [f"pipeline (dry run): {len(s['todo'])} to run, {len(by['skipped'])} up to date of {s['n_selected']} stages"]
+    lines = [f"pipeline (dry run): {len(s['todo'])} to run, {len(by['skipped'])} up to date of {s['n_selected']} "
+             "stages"]
     if s["todo"]:
         lines.append(f"to run   {_names(s['todo'])}")
     why = s.get("why") or {}
