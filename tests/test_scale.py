@@ -73,13 +73,13 @@ def test_the_report_pairs_seeds_and_pairs_on_known_values(workdir):
 def test_a_corrupt_result_is_refused_not_read_as_missing(workdir):
     d = workdir / "e"
     _write(d, [1.0, np.nan], [1.0, 2.0], ["a", "a"])
-    with pytest.raises(RlsacError, match="non-finite"):
-        report.read_errors(d / "errors.csv")
+    with pytest.raises(RlsacError, match="not a finite number"):
+        report._errors(d, None)
     (d / "summary.json").write_text(json.dumps({"n": 3}))
     _write(workdir / "f", [1.0, 2.0], [1.0, 2.0], ["a", "a"])
     (workdir / "f" / "summary.json").write_text(json.dumps({"n": 3}))
     with pytest.raises(RlsacError, match="truncated"):
-        report.read_errors(workdir / "f" / "errors.csv")
+        report._errors(workdir / "f", None)
 
 
 def test_the_positive_control_is_read_into_words():
