@@ -197,7 +197,8 @@ def markdown(s: dict, comp: pd.DataFrame, curves: pd.DataFrame, chosen: dict | N
         "**Scale against the paper's.** The paper trains 100 epochs on 12 scenes of about 100k pairs each (about 10^8 "
         "pair-episodes). The record's fold recipe is 300 steps x 16 episodes (4,800 episodes, about 280 updates) on "
         "the fold's training pairs; this study goes to " + f"{max(s['steps']) // min(s['steps'])}x the steps and, "
-        "in the redraw arm, gives every episode a fresh draw of 150 of a pair's 1000 lowest-SNN matches with the images swapped at random, so an input "
+        "in the redraw arm, gives every episode a fresh draw of 150 of a pair's 1000 lowest-SNN matches with the "
+        "images swapped at random, so an input "
         "essentially never repeats." + _pairs_line(s, out_dir, min_matches) + record_line, ""]
     if not comp.empty:
         lines += ["## Test pairs: RLSAC against the controls", "",
