@@ -339,11 +339,14 @@ def folds(tracking: bool, **options) -> None:
 
 
 @cli.command()
-@click.option("--stage", type=click.Choice(["pool", "train", "evaluate", "evaluate-final", "control"]), required=True,
+@click.option("--stage", type=click.Choice(["pool", "train", "evaluate", "evaluate-final", "control", "fit"]),
+              required=True,
               help="pool: the fold's training pairs with the pool's points each (data/scale/<fold>/pool.h5); train: "
                    "one run of an arm and seed with its step snapshots; evaluate: every snapshot on the fold's test "
                    "pairs at scale.iterations (evaluate-final: those of scale.final_steps at "
-                   "scale.final_iterations); control: the learner's positive control on synthetic pairs.")
+                   "scale.final_iterations); control: the learner's positive control on synthetic pairs; fit: the "
+                   "synthetic generator's statistics fitted to the fold's training pairs, beside its own "
+                   "(reports/synthetic_fit.json).")
 @click.option("--arm", help="With train / evaluate: fixed (the training file's points) or redraw (a fresh draw of the "
                             "pool per episode, images swapped at random).")
 @click.option("--seed", type=int, help="With train / evaluate: a training seed of params.yaml scale.seeds.")

@@ -25,7 +25,7 @@ from typing import Any
 from rlsac import scale_layout as lay
 from rlsac.errors import RlsacError
 
-STAGES = ("pool", "train", "evaluate", "evaluate-final", "control")
+STAGES = ("pool", "train", "evaluate", "evaluate-final", "control", "fit")
 
 
 def scale(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
@@ -47,7 +47,7 @@ def scale(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
     if s["fold"] not in p["test"] or s["regime"] not in p["regimes"]:
         raise RlsacError(f"scale.fold {s['fold']!r} / scale.regime {s['regime']!r}: not a fold / regime of params "
                          "folds")
-    if stage != "pool":
+    if stage not in ("pool", "fit"):
         arm, seed = options.get("arm"), options.get("seed")
         if arm not in s["arms"] or seed is None or int(seed) not in s["seeds"]:
             raise RlsacError(f"scale --stage {stage} needs --arm (one of {', '.join(s['arms'])}) and --seed (one of "
@@ -59,6 +59,8 @@ def scale(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
     t0 = time.time()
     if stage == "pool":
         out = make_pool(p, params, s, track)
+    elif stage == "fit":
+        out = fit_synthetic(s)
     elif stage == "train":
         out = train_run(p, params, s, options["arm"], int(options["seed"]), options, track)
     else:
@@ -81,6 +83,46 @@ def make_pool(p: dict, params: dict, s: dict, track: bool) -> dict[str, Any]:
                        out=str(lay.pool_file(s["fold"])))
     made = prepare(conf, track=track, progress=False)
     return {"pool": made["out"], "pairs": made["pairs"]}
+
+
+def fit_synthetic(s: dict) -> dict[str, Any]:
+    """The synthetic generator's statistics fitted to the fold's training pairs (the fixed arm's inputs, inliers by the
+    training reward's threshold), then ``synthetic_pairs`` pairs drawn with them and measured the same way: both, and
+    the comparison, in reports/synthetic_fit.json (scale.md shows them)."""
+    import json
+
+    import numpy as np
+    import torch
+
+    from rlsac.data import match_statistics as ms
+    from rlsac.data import read_batch
+    from rlsac.data.synthetic_pairs import SyntheticPairsConf, generate
+    from rlsac.folds import data_dir
+    from rlsac.io import atomic_path
+    from rlsac.tasks.fundamental import FundamentalTask
+
+    task = FundamentalTask()
+    path = data_dir(s["regime"], s["fold"]) / "train.h5"
+    if not path.is_file():
+        raise RlsacError(f"{path}: no training file (run `rlsac folds --stage data` first)")
+    real, _ = read_batch("fundamental", str(path), "cpu")
+    real = {k: (v.double() if k == "coords" else v) for k, v in real.items()}
+    n = int(real["mask"].shape[1])
+    fitted = ms.fit({k: (v.numpy() if torch.is_tensor(v) else v) for k, v in real.items()},
+                    task.true_inliers(real).numpy())
+    t0 = time.process_time()
+    syn = generate(SyntheticPairsConf(n_pairs=int(s["synthetic_pairs"]), n_points=n, snn="fitted", statistics=fitted,
+                                      seed=0))
+    per_s = int(s["synthetic_pairs"]) / max(time.process_time() - t0, 1e-9)
+    tb = {k: (torch.as_tensor(v).double() if k == "coords" else torch.as_tensor(v)) for k, v in syn.items()
+          if isinstance(v, np.ndarray) and v.dtype != object}
+    mine = ms.fit(syn, task.true_inliers(tb).numpy())
+    out = Path("reports") / "synthetic_fit.json"
+    with atomic_path(out) as tmp:
+        tmp.write_text(json.dumps({"fold": s["fold"], "regime": s["regime"], "real": fitted, "synthetic": mine,
+                                   "comparison": ms.compare(fitted, mine)}, indent=1) + "\n")
+    return {"file": str(out), "real_pairs": fitted["pairs"], "synthetic_pairs": mine["pairs"],
+            "pairs_per_cpu_minute": round(60 * per_s)}
 
 
 def train_options(p: dict, params: dict, s: dict, arm: str, seed: int, o: dict) -> dict[str, Any]:
@@ -188,6 +230,10 @@ def format_summary(s: dict[str, Any]) -> str:
                 + f" -> {', '.join(s['files'])}")
     if s["stage"] == "pool":
         return f"scale pool ({s['seconds']} s): {s['pairs']} pairs -> {s['pool']}"
+    if s["stage"] == "fit":
+        return (f"synthetic fit ({s['seconds']} s): statistics of {s['real_pairs']} training pairs, "
+                f"{s['synthetic_pairs']} synthetic pairs drawn with them ({s['pairs_per_cpu_minute']} per CPU minute) "
+                f"-> {s['file']}")
     if s["stage"] == "train":
         return (f"scale train {s['run']} ({s['seconds']} s): {s['steps']} steps, kept step {s['best_step']} -> "
                 f"{s['checkpoint']} and its step snapshots")

@@ -16,7 +16,7 @@ from rlsac.scale_layout import protocol
 
 SCALE = {"fold": "castle", "regime": "hard", "pool": 1000, "arms": ["fixed", "redraw"], "seeds": [0, 1],
          "steps": [30, 10], "iterations": 100, "final_iterations": 1000, "settings_from": "uniform",
-         "val_every": 10, "legs": [10, 30], "final_steps": [30]}
+         "val_every": 10, "legs": [10, 30], "final_steps": [30], "synthetic_pairs": 20}
 
 
 def test_protocol_checks_every_key():

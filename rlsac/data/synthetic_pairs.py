@@ -4,19 +4,24 @@ noise and outliers, with ground-truth poses, so every fundamental-matrix method 
 Used by the learner's positive control (issue #46, item 2d; benchmarks/positive_control.py): with
 ``snn="separable"`` the SNN channel separates the true inliers by construction (inliers U(0, 0.5), outliers
 U(0.5, 1)), so a sampler that reads it can reach the oracle; ``snn="uninformative"`` draws it U(0, 1) for every
-point. The descriptor channels are noise at the scale of RootSIFT (U(0, 0.2)): they carry nothing.
+point; ``snn="fitted"`` draws what a real training set's matches show (``statistics``, rlsac.data.match_statistics):
+each pair's inlier ratio from the real pairs' ratios, the SNN ratio of inliers and of outliers from their real
+quantiles, the outliers' image positions from their real histograms (the inliers' come from the scene's geometry).
+The descriptor channels are noise at the scale of RootSIFT (U(0, 0.2)): they carry nothing.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
+from rlsac.data import match_statistics as ms
 from rlsac.data.fundamental import N_FEATURES
 from rlsac.errors import RlsacError
 
-SNN_MODES = ("separable", "uninformative")
+SNN_MODES = ("separable", "uninformative", "fitted")
 
 
 @dataclass
@@ -30,6 +35,7 @@ class SyntheticPairsConf:
     height: float = 750.0
     focal: float = 800.0
     seed: int = 0
+    statistics: dict[str, Any] = field(default_factory=dict)  # snn="fitted": match_statistics.fit of real pairs
 
     def check(self) -> None:
         if self.n_pairs < 1 or self.n_points < 8:
@@ -38,6 +44,9 @@ class SyntheticPairsConf:
             raise RlsacError(f"inlier_ratio must be in (0, 1], got {self.inlier_ratio}")
         if self.snn not in SNN_MODES:
             raise RlsacError(f"snn must be one of {SNN_MODES}, got {self.snn!r}")
+        need = ("inlier_ratio", "snn_inliers", "snn_outliers", "position1_outliers", "position2_outliers")
+        if self.snn == "fitted" and any(not self.statistics.get(k) for k in need):
+            raise RlsacError(f"snn='fitted' needs statistics with {', '.join(need)} (rlsac.data.match_statistics.fit)")
 
 
 def _rotation(axis: np.ndarray, deg: float) -> np.ndarray:
@@ -58,8 +67,10 @@ def generate(conf: SyntheticPairsConf) -> dict[str, np.ndarray]:
     feats = np.zeros((P, N, N_FEATURES), np.float32)
     inl = np.zeros((P, N), bool)
     Rs, ts = np.zeros((P, 3, 3)), np.zeros((P, 3))
-    n_in = max(8, int(round(N * conf.inlier_ratio)))
+    st = conf.statistics
     for p in range(P):
+        ratio = rng.choice(st["inlier_ratio"]) if conf.snn == "fitted" else conf.inlier_ratio
+        n_in = min(N, max(8, int(round(N * ratio))))
         R = _rotation(rng.normal(size=3), rng.uniform(5, 25))
         t = np.array([1.0, rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3)])
         t /= np.linalg.norm(t)
@@ -72,12 +83,18 @@ def generate(conf: SyntheticPairsConf) -> dict[str, np.ndarray]:
             ok = (X2[:, 2] > 0) & (x1 >= 0).all(1) & (x1 < [W, H]).all(1) & (x2 >= 0).all(1) & (x2 < [W, H]).all(1)
             pts = np.concatenate([pts, np.concatenate([x1, x2], 1)[ok]])
         pts = pts[:n_in] + rng.normal(scale=conf.noise_px, size=(n_in, 4))
-        outl = rng.uniform([0, 0, 0, 0], [W, H, W, H], size=(N - n_in, 4))
+        if conf.snn == "fitted":  # where real outliers lie in each image
+            outl = np.concatenate([ms.sample_positions(rng, st["position1_outliers"], N - n_in) * [W, H],
+                                   ms.sample_positions(rng, st["position2_outliers"], N - n_in) * [W, H]], 1)
+        else:
+            outl = rng.uniform([0, 0, 0, 0], [W, H, W, H], size=(N - n_in, 4))
         order = rng.permutation(N)
         coords[p] = np.concatenate([pts, outl])[order]
         inl[p] = (np.arange(N) < n_in)[order]
         if conf.snn == "separable":
             snn = np.where(inl[p], rng.uniform(0.0, 0.5, N), rng.uniform(0.5, 1.0, N))
+        elif conf.snn == "fitted":
+            snn = np.where(inl[p], ms.sample_snn(rng, st["snn_inliers"], N), ms.sample_snn(rng, st["snn_outliers"], N))
         else:
             snn = rng.uniform(0.0, 1.0, N)
         feats[p, :, :4], feats[p, :, 4] = coords[p], snn

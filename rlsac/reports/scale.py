@@ -227,6 +227,7 @@ def markdown(s: dict, comp: pd.DataFrame, curves: pd.DataFrame, chosen: dict | N
     pc = out_dir / "positive_control.json"
     if pc.is_file():
         lines += _positive_control(json.loads(pc.read_text()))
+    lines += _synthetic_fit(out_dir / "synthetic_fit.json")
     lines += _throughput(out_dir / "speed_training.json", s)
     lines += ["## Figure", "", "![mAA against training steps](scale_curve.png)", ""]
     if missing:
@@ -240,6 +241,24 @@ def _legs_line(s: dict) -> str:
         return ""
     return (f", in legs ending at steps {', '.join(map(str, s['legs']))}: each leg resumes the last one's saved state "
             "(agent, optimisers, replay buffer, generator) and starts new episodes at its first step (scale.legs)")
+
+
+def _synthetic_fit(path: Path) -> list[str]:
+    """The synthetic generator's fitted statistics beside the real ones (stage synthetic_fit)."""
+    if not path.is_file():
+        return []
+    d = json.loads(path.read_text())
+    rows = ["## The synthetic generator, fitted to the fold's training pairs (stage synthetic_fit, "
+            "reports/synthetic_fit.json)", "",
+            "For a pretraining arm (not run yet): `rlsac.data.synthetic_pairs` with `snn=\"fitted\"` draws each "
+            "pair's inlier ratio, the SNN ratio of inliers and of outliers, and the outliers' image positions from "
+            f"what the {d['real']['pairs']} training pairs of fold `{d['fold']}` ({d['regime']} regime, inliers by "
+            "the training reward's threshold) show; the inliers' positions come from a random scene's geometry, and "
+            f"the descriptor channels are noise. Measured the same way on {d['synthetic']['pairs']} synthetic pairs:",
+            "",
+            "| statistic | real | synthetic |", "| --- | --- | --- |"]
+    rows += [f"| {r['statistic']} | {r['real']:.3f} | {r['synthetic']:.3f} |" for r in d["comparison"]]
+    return rows + [""]
 
 
 def _throughput(path: Path, s: dict) -> list[str]:
