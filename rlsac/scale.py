@@ -132,7 +132,7 @@ def train_options(p: dict, params: dict, s: dict, arm: str, seed: int, o: dict) 
 
     base = fold_train_options(p, params, s["regime"], s["fold"], "rlsac",
                               {"device": o.get("device") or "cpu", "threads": int(o.get("threads") or 1)})
-    steps = s["steps"]
+    steps = lay.arm_steps(s, arm)
     extra: dict[str, Any] = {"seed": int(seed), "out": str(lay.run_dir(s["fold"], arm, seed) / "final.pt"),
                              "sac": {"total_steps": int(steps[-1])}, "snapshot_steps": [int(k) for k in steps],
                              "val_every": int(s["val_every"]), "ckpt_every": int(steps[-1]),
@@ -157,7 +157,7 @@ def train_run(p: dict, params: dict, s: dict, arm: str, seed: int, o: dict, trac
         raise RlsacError(f"{lay.pool_file(s['fold'])}: no pool file (run `rlsac scale --stage pool` first)")
     lay.run_dir(s["fold"], arm, seed).mkdir(parents=True, exist_ok=True)
     done, summ = saved_step(opts), None
-    for end in s["legs"]:
+    for end in lay.arm_legs(s, arm):
         if done >= end:
             continue
         leg = deep_update(opts, {"sac": {"total_steps": int(end)}, "ckpt_every": int(end), "resume": done > 0,
@@ -213,7 +213,7 @@ def evaluate_run(p: dict, params: dict, s: dict, arm: str, seed: int, o: dict, t
              "out_dir": str(lay.eval_dir(s["fold"], it, arm, seed, k)),
              "tags": {"benchmark": "scale", "fold": s["fold"], "arm": arm, "seed": str(seed), "step": str(k)}}
             for it in ([s["final_iterations"]] if final else [s["iterations"]]) if it > 0
-            for k in (s["final_steps"] if final else s["steps"])]
+            for k in (lay.arm_final_steps(s, arm) if final else lay.arm_steps(s, arm))]
     check_all(jobs, track)  # every checkpoint and the test file read before the first evaluation writes
     out = []
     for opts in jobs:

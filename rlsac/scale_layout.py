@@ -3,11 +3,12 @@
 
 params.yaml ``scale``: one fold of the benchmark; data arms (what an episode sees); training seeds; the steps at
 which each run's actor is kept (one run per arm and seed gives the whole curve: with a constant learning rate, the
-actor after k steps is the actor of a k-step run); the budget every kept actor is tested at (``iterations``) and
-the budget only the actors of ``final_steps`` are (``final_iterations``: Table 2's 1000, ten times the CPU time; 0 =
-none); the legs a
-run is trained in (``legs``: each leg resumes the last one's saved state, so a longer study extends its runs instead
-of re-running them; a resumed leg starts new episodes at its first step, which makes the legs part of the recipe).
+actor after k steps is the actor of a k-step run) and how far each arm goes (``arm_steps``: an arm not carried
+forward stops earlier); the budget every kept actor is tested at (``iterations``) and the budget only the actors of
+``final_steps`` are (``final_iterations``: Table 2's 1000, ten times the CPU time; 0 = none); the legs a run is
+trained in (``legs``: each leg resumes the last one's saved state, so a longer study extends its runs instead of
+re-running them; a resumed leg starts new episodes at its first step, which makes the legs part of the recipe); the
+synthetic pairs drawn with the statistics fitted to the fold (``synthetic_pairs``).
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ def protocol(params: dict[str, Any]) -> dict[str, Any]:
     """params.yaml ``scale``, checked: fold, regime, pool, arms, seeds, steps, iterations, settings_from."""
     s = dict(section(params, "scale"))
     need = ("fold", "regime", "pool", "arms", "seeds", "steps", "iterations", "final_iterations", "settings_from",
-            "val_every", "legs", "final_steps", "synthetic_pairs")
+            "val_every", "legs", "final_steps", "synthetic_pairs", "arm_steps")
     missing = [k for k in need if k not in s]
     if missing or set(s) - set(need):
         raise RlsacError(f"params.yaml scale: needs exactly {', '.join(need)} (missing {missing}, "
@@ -52,7 +53,28 @@ def protocol(params: dict[str, Any]) -> dict[str, Any]:
         raise RlsacError(f"scale.final_steps must be a list of steps of scale.steps {s['steps']} (one at least when "
                          f"final_iterations > 0), got {fin!r}")
     s["final_steps"] = sorted(set(fin))
+    last = s["arm_steps"]
+    if (not isinstance(last, dict) or set(last) - set(s["arms"])
+            or any(not isinstance(v, int) or v not in s["steps"] for v in last.values())):
+        raise RlsacError(f"scale.arm_steps must map arms of scale.arms to a step of scale.steps {s['steps']} (how far "
+                         f"that arm's runs go; an arm left out goes to the largest), got {last!r}")
     return s
+
+
+def arm_steps(s: dict[str, Any], arm: str) -> list[int]:
+    """The steps an arm's runs go to: scale.steps up to its scale.arm_steps (the largest where it has none)."""
+    last = s["arm_steps"].get(arm, s["steps"][-1])
+    return [k for k in s["steps"] if k <= last]
+
+
+def arm_legs(s: dict[str, Any], arm: str) -> list[int]:
+    """The legs of an arm's runs: scale.legs up to its last step, which ends the last leg."""
+    last = arm_steps(s, arm)[-1]
+    return [k for k in s["legs"] if k < last] + [last]
+
+
+def arm_final_steps(s: dict[str, Any], arm: str) -> list[int]:
+    return [k for k in s["final_steps"] if k in arm_steps(s, arm)]
 
 
 def pool_file(fold: str) -> Path:

@@ -16,7 +16,8 @@ from rlsac.scale_layout import protocol
 
 SCALE = {"fold": "castle", "regime": "hard", "pool": 1000, "arms": ["fixed", "redraw"], "seeds": [0, 1],
          "steps": [30, 10], "iterations": 100, "final_iterations": 1000, "settings_from": "uniform",
-         "val_every": 10, "legs": [10, 30], "final_steps": [30], "synthetic_pairs": 20}
+         "val_every": 10, "legs": [10, 30], "final_steps": [30], "synthetic_pairs": 20,
+         "arm_steps": {}}
 
 
 def test_protocol_checks_every_key():
@@ -26,6 +27,8 @@ def test_protocol_checks_every_key():
         protocol({"scale": {**SCALE, "arms": ["pretrained"]}})
     with pytest.raises(RlsacError, match="missing \\['val_every'\\]"):
         protocol({"scale": {k: v for k, v in SCALE.items() if k != "val_every"}})
+    with pytest.raises(RlsacError, match="scale.arm_steps"):
+        protocol({"scale": {**SCALE, "arm_steps": {"fixed": 20}}})  # not a step of the study
     with pytest.raises(RlsacError, match="scale.seeds must be"):
         protocol({"scale": {**SCALE, "seeds": []}})
 

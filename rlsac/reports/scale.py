@@ -59,7 +59,7 @@ def collect(s: dict[str, Any], eval_root: Path = Path("reports/eval")) -> dict[s
             out["controls"][(c, it)] = (r[None], t[None])
             strata = np.array([k.split("/")[0] for k in keys])
         for arm in s["arms"]:
-            for k in (s["steps"] if it == s["iterations"] else s["final_steps"]):
+            for k in (lay.arm_steps(s, arm) if it == s["iterations"] else lay.arm_final_steps(s, arm)):
                 rs, ts = [], []
                 for seed in s["seeds"]:
                     d = Path(eval_root) / lay.eval_dir(fold, it, arm, seed, k).relative_to("reports/eval")
@@ -237,10 +237,13 @@ def markdown(s: dict, comp: pd.DataFrame, curves: pd.DataFrame, chosen: dict | N
 
 
 def _legs_line(s: dict) -> str:
+    stops = "".join(f"; arm `{a}` stops at {k} steps (scale.arm_steps)" for a, k in s["arm_steps"].items()
+                    if k < s["steps"][-1])
     if len(s["legs"]) < 2:
-        return ""
-    return (f", in legs ending at steps {', '.join(map(str, s['legs']))}: each leg resumes the last one's saved state "
-            "(agent, optimisers, replay buffer, generator) and starts new episodes at its first step (scale.legs)")
+        return stops
+    return stops + (f"; the runs go in legs ending at steps {', '.join(map(str, s['legs']))}: each leg resumes the "
+                     "last one's saved state (agent, optimisers, replay buffer, generator) and starts new episodes at "
+                     "its first step (scale.legs)")
 
 
 def _synthetic_fit(path: Path) -> list[str]:
