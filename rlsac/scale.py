@@ -60,7 +60,7 @@ def scale(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
     if stage == "pool":
         out = make_pool(p, params, s, track)
     elif stage == "fit":
-        out = fit_synthetic(s)
+        out = fit_synthetic(s, track)
     elif stage == "train":
         out = train_run(p, params, s, options["arm"], int(options["seed"]), options, track)
     else:
@@ -85,7 +85,7 @@ def make_pool(p: dict, params: dict, s: dict, track: bool) -> dict[str, Any]:
     return {"pool": made["out"], "pairs": made["pairs"]}
 
 
-def fit_synthetic(s: dict) -> dict[str, Any]:
+def fit_synthetic(s: dict, track: bool = True) -> dict[str, Any]:
     """The synthetic generator's statistics fitted to the fold's training pairs (the fixed arm's inputs, inliers by the
     training reward's threshold), then ``synthetic_pairs`` pairs drawn with them and measured the same way: both, and
     the comparison, in reports/synthetic_fit.json (scale.md shows them)."""
@@ -100,7 +100,9 @@ def fit_synthetic(s: dict) -> dict[str, Any]:
     from rlsac.folds import data_dir
     from rlsac.io import atomic_path
     from rlsac.tasks.fundamental import FundamentalTask
+    from rlsac.tracking import check_store, start_run
 
+    check_store(track, "scale")
     task = FundamentalTask()
     path = data_dir(s["regime"], s["fold"]) / "train.h5"
     if not path.is_file():
@@ -118,9 +120,17 @@ def fit_synthetic(s: dict) -> dict[str, Any]:
           if isinstance(v, np.ndarray) and v.dtype != object}
     mine = ms.fit(syn, task.true_inliers(tb).numpy())
     out = Path("reports") / "synthetic_fit.json"
-    with atomic_path(out) as tmp:
-        tmp.write_text(json.dumps({"fold": s["fold"], "regime": s["regime"], "real": fitted, "synthetic": mine,
-                                   "comparison": ms.compare(fitted, mine)}, indent=1) + "\n")
+    comparison = ms.compare(fitted, mine)
+    with start_run("scale", f"synthetic fit {s['fold']}", params={"fold": s["fold"], "regime": s["regime"],
+                                                                   "synthetic_pairs": int(s["synthetic_pairs"])},
+                   enabled=track) as run:
+        with atomic_path(out) as tmp:
+            tmp.write_text(json.dumps({"fold": s["fold"], "regime": s["regime"], "real": fitted, "synthetic": mine,
+                                       "comparison": comparison}, indent=1) + "\n")
+        run.metrics({"pairs_per_cpu_minute": 60 * per_s,
+                     **{f"synthetic/{i:02d}": r["synthetic"] for i, r in enumerate(comparison)},
+                     **{f"real/{i:02d}": r["real"] for i, r in enumerate(comparison)}})
+        run.artifact(out, "synthetic_fit")
     return {"file": str(out), "real_pairs": fitted["pairs"], "synthetic_pairs": mine["pairs"],
             "pairs_per_cpu_minute": round(60 * per_s)}
 
