@@ -286,9 +286,10 @@ def _throughput(path: Path, s: dict) -> list[str]:
              "pass), memory-bound element-wise work that eager PyTorch runs op by op."]
     if per_tr:
         lo, hi = min(per_tr), max(per_tr)
-        lines += ["", f"More data per update does not come cheaper per transition on this CPU: {per_tr[lo]:.0f} "
-                      f"transitions per CPU second at batch {lo}, {per_tr[hi]:.0f} at batch {hi} (the update's cost "
-                      "is proportional to the points it carries)."]
+        lines += ["", f"More data per update comes little cheaper per transition on this CPU: {per_tr[lo]:.0f} "
+                      f"transitions per CPU second at batch {lo}, {per_tr[hi]:.0f} at batch {hi} "
+                      f"({per_tr[hi] / per_tr[lo]:.2f}x for {hi // lo}x the batch: the update's cost grows nearly in "
+                      "proportion to the points it carries)."]
     lines += ["", f"At the record's speed a {max(s['steps'])}-update run is {hours[max(s['steps'])]:.1f} CPU-hours of "
                   f"updates and a 30k-update run {hours[30_000]:.1f} per model and seed, before collection and "
                   "validation. No GPU was lent to the session that made this study; reports/device.md measured the "
