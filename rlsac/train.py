@@ -22,7 +22,7 @@ import torch
 
 from rlsac import checkpoint
 from rlsac.config import build, to_dict
-from rlsac.data import n_unusable, read_batch, slice_batch
+from rlsac.data import n_unusable, slice_batch
 from rlsac.devices import resolve_device
 from rlsac.env import EnvConf
 from rlsac.episodes import EpisodeConf, RedrawnPairs, pool_tensors
@@ -33,7 +33,7 @@ from rlsac.policy import PolicyConf
 from rlsac.rollout import in_channels, rlsac_estimate
 from rlsac.sac import ReplayBuffer, SACAgent, SACConf, seed_everything, train_loop
 from rlsac.signals import StopOnSignal as _StopOnSignal  # shared with every command (rlsac.signals)
-from rlsac.tasks import TASKS, Task, get_task, task_class
+from rlsac.tasks import TASKS, Task, get_task, read_batch, task_class
 from rlsac.tracking import check_store, start_run
 
 SELECTIONS = ("inlier_ratio", "val_mAA", "last")

@@ -10,12 +10,12 @@ import pytest
 import torch
 
 from rlsac.checkpoint import env_conf, load_actor
-from rlsac.data import load
 from rlsac.data.lines import LineDataConf, generate, write
 from rlsac.env import EnvConf
 from rlsac.policy import PolicyConf
 from rlsac.rollout import rlsac_estimate
 from rlsac.sac import SACAgent, SACConf, train_loop
+from rlsac.tasks import load
 from rlsac.tasks.line import LineTask
 from rlsac.train import train, validation_metrics
 
