@@ -75,20 +75,12 @@ def select_fold(p: dict, params: dict, regime: str, fold: str, model: str, o: di
     from rlsac import checkpoint
     from rlsac.config import section
     from rlsac.evaluate import check_options, resolve_device, score
-    from rlsac.folds import (
-        data_dir,
-        eval_dir,
-        row_options,
-        rows,
-        scene_list,
-        split_scenes,
-        train_options,
-        tuned_settings,
-    )
+    from rlsac.protocol import data_dir, eval_dir, row_options, rows, scene_list, split_scenes, train_options
     from rlsac.results import read_errors, read_summary
     from rlsac.tasks import task_class
     from rlsac.tracking import check_store, start_run
     from rlsac.train import selection_score
+    from rlsac.tune import tuned_settings
 
     row = rows(p, fold, regime)[model]
     iterations = list(p["select_iterations"])

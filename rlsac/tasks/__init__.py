@@ -9,6 +9,7 @@ from __future__ import annotations
 from rlsac.tasks.registry import (  # noqa: F401
     TASKS,
     Task,
+    as_numpy,
     get_task,
     load,
     opencv_threshold,

@@ -157,3 +157,8 @@ def read_batch(task: str, path, device: str | torch.device = "cpu", idx=slice(No
     cls = task_class(task)
     arrays, attrs = cls.read(path)
     return cls.to_batch(arrays, idx, device), attrs
+
+
+def as_numpy(v):
+    """torch tensor (any device) or array -> numpy (what ``Task.errors`` reads)."""
+    return v.detach().cpu().numpy() if torch.is_tensor(v) else np.asarray(v) if isinstance(v, np.ndarray) else v
