@@ -68,8 +68,8 @@ def protocol(params: dict[str, Any]) -> dict[str, Any]:
     """``DEFAULTS`` with each key replaced by params.yaml ``folds``'s, checked for consistency (rlsac.protocol.read),
     its rows' methods against `rlsac evaluate`'s and each model's recipe a TrainConf."""
     from rlsac.config import build
+    from rlsac.learners.harness import TrainConf
     from rlsac.methods import METHODS
-    from rlsac.train import TrainConf
 
     return read(params, METHODS, lambda recipe, where: build(TrainConf, recipe, where))
 
@@ -227,7 +227,8 @@ def train_models(p: dict, params: dict, regime: str, fold: str, models: list[str
     """Train ``models`` of the fold one after the other; every model's configuration, outputs and the fold's two
     data files are checked before the first one starts (issue #28, item 2). -> {model: train summary}"""
     from rlsac.data.fundamental import read
-    from rlsac.train import check, train
+    from rlsac.learners.harness import check
+    from rlsac.train import train
 
     for model in models:
         d = data_dir(regime, fold, derived_models(p).get(model, {"points": None})["points"])
