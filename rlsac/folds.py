@@ -1,4 +1,5 @@
-"""Leave-one-building-out benchmark for the fundamental matrix (``rlsac folds``, params.yaml ``folds``).
+"""The runner of the leave-one-building-out benchmark (``rlsac folds``, params.yaml ``folds``): its data, train, tune,
+evaluate and select stages of one fold. Its vocabulary (rows, names, paths) is rlsac.protocol's.
 
 The six Strecha scenes show four buildings. Fold ``b`` tests on every pair of building ``b`` and trains
 on the other buildings, validating on a held-out ``val_fraction`` of their pairs (a stable hash of the

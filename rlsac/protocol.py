@@ -1,6 +1,9 @@
-"""The fold benchmark's vocabulary, shared by its runners (rlsac.folds, rlsac.selection, rlsac.scale) and the reports
-that read their results: params.yaml ``folds`` read and checked (``read``), its rows, models and training seeds and
-their names (<model>-s<seed>, <row>-n<N>), and where each stage writes (data, checkpoints, evaluations, tuning records).
+"""The protocol's vocabulary: the fold benchmark's rows, names and result paths, and how results are compared, shared
+by its runners (rlsac.folds, rlsac.selection, rlsac.scale) and the reports that read their results.
+
+params.yaml ``folds`` read and checked (``read``); its rows, models and training seeds and their names (<model>-s<seed>,
+<row>-n<N>); where each stage writes (data, checkpoints, evaluations, tuning records); the mAA limits and bootstrap
+draws of the reports.
 
 Imports nothing above rlsac.config: a report reads the names here, never a runner.
 """

@@ -1,10 +1,14 @@
-"""Readers of the result files the reports and checks read back: an evaluation's errors.csv and summary.json, a
-tuning record, an iterations CSV. Each refuses a corrupt file (``RlsacError``: "<file>: <what>", exit 2) and returns
-None for an absent one, so a table shows an absent cell as "–" but never a number made from text, NaN or a truncated
-file (issue #49: coercing bad values to NaN printed a wrong "+0.701" at exit 0).
+"""The results as the reports read them: refusing readers of each result file (an evaluation's errors.csv and
+summary.json, a tuning record, an iterations CSV) and the tidy tables made from reports/eval (Table 1's seed runs,
+the fold benchmark's cells, data records and seed runs).
 
-Low in the import graph on purpose (errors, pandas, json only): the runners (folds, selection, evaluate) and every
-report module read through it, so there is one definition of a valid result file.
+Each reader refuses a corrupt file (``RlsacError``: "<file>: <what>", exit 2) and returns None for an absent one, so a
+table shows an absent cell as "–" but never a number made from text, NaN or a truncated file (issue #49: coercing bad
+values to NaN printed a wrong "+0.701" at exit 0).
+
+Below the runners and the reports (it imports the protocol's names, rlsac.protocol, and the method registry to check
+a cell's configuration): the runners (folds, selection, tune) and every report module read through it, so there is
+one definition of a valid result file, and a report never needs a runner.
 """
 
 from __future__ import annotations

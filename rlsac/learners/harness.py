@@ -1,7 +1,10 @@
-"""The training harness the learned samplers share (rlsac.learners: RLSAC's agent, NG-RANSAC's network): ``TrainConf``
-(the options of `rlsac train`, every learner's sections), the configuration a checkpoint stores, the training and
-validation data, the validation summary and the selection key that keeps an actor, the MLflow experiment and run
-parameters, and the learner registry (``register_learner``; `rlsac train --method` picks from ``LEARNERS``).
+"""The training harness the learned samplers share (rlsac.learners): their options, data, validation, selection key,
+stored configuration and MLflow run, and the learner registry.
+
+``TrainConf`` holds the options of `rlsac train` (every learner's sections); ``stored_conf`` the configuration a
+checkpoint keeps; ``load_data`` the training and validation batches; ``validation_summary`` and ``selection_score`` the
+validation metrics and the one that keeps an actor; ``task_experiment`` / ``logged_conf`` the MLflow experiment and run
+parameters; ``register_learner`` / ``LEARNERS`` the registry `rlsac train --method` picks from.
 
 The checkpoint format is rlsac.checkpoint's (an actor payload; NG-RANSAC's with kind "ngransac").
 """
