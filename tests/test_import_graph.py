@@ -40,8 +40,9 @@ LAYERS = (
     ("rlsac.protocol", "rlsac.scale_layout", "rlsac.data*"),
     # the estimation problems
     ("rlsac.tasks*",),
-    # sampling, scoring, the environment, SAC, the checkpoint format, NG-RANSAC's network
-    ("rlsac.lo", "rlsac.baselines", "rlsac.env", "rlsac.rollout", "rlsac.sac", "rlsac.checkpoint", "rlsac.ngransac"),
+    # sampling, scoring, the environment (in its parts), SAC, the checkpoint format, NG-RANSAC's network
+    ("rlsac.lo", "rlsac.baselines", "rlsac.env", "rlsac.env_state", "rlsac.env_bookkeeping", "rlsac.env_scoring",
+     "rlsac.rollout", "rlsac.sac", "rlsac.checkpoint", "rlsac.ngransac"),
     # the registries over them (methods, learners on their harness), evaluation, tuning, the result readers
     ("rlsac.methods", "rlsac.learners*", "rlsac.train", "rlsac.evaluate", "rlsac.tune", "rlsac.results"),
     # the reports: tables and figures from the results
