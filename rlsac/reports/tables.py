@@ -26,7 +26,7 @@ from rlsac.io import all_or_nothing, atomic_path, staged, write_json, write_text
 from rlsac.metrics import paired_bootstrap_maa
 from rlsac.protocol import LINE_LIMIT_DEG, PAIRED_BOOT
 from rlsac.reports import paper
-from rlsac.results import (  # noqa: F401  (line_runs_at: also rlsac.reports.tables')
+from rlsac.results import (  # noqa: F401  (LINE_SEED_MODELS, line_runs_at: re-exported, as before issue #48)
     LINE_SEED_MODELS,
     line_errors,
     line_runs_at,
