@@ -35,7 +35,7 @@ LAYERS = (
     # foundations: errors, numeric modes, configs and params, files, devices, signals, MLflow, maths, the network
     ("rlsac", "rlsac.errors", "rlsac.numerics", "rlsac.config", "rlsac.io", "rlsac.devices", "rlsac.progress",
      "rlsac.signals", "rlsac.tracking", "rlsac.geometry", "rlsac.metrics", "rlsac.sampling", "rlsac.policy",
-     "rlsac.episodes"),
+     "rlsac.episodes", "rlsac.kernels"),
     # the protocol's vocabulary (names, paths, budgets) and the data files
     ("rlsac.protocol", "rlsac.scale_layout", "rlsac.data*"),
     # the estimation problems
