@@ -18,12 +18,12 @@ import time
 
 import torch
 
-from rlsac.data import read_batch
 from rlsac.env import EnvConf, SampleConsensusEnv
 from rlsac.episodes import FixedPairs, RedrawnPairs, pool_tensors
 from rlsac.policy import PolicyConf
 from rlsac.rollout import in_channels
 from rlsac.sac import ReplayBuffer, SACAgent, SACConf, seed_everything
+from rlsac.tasks import read_batch
 from rlsac.tasks.fundamental import FundamentalTask
 
 

@@ -39,7 +39,7 @@ def batches(path: str, n: int, gen: torch.Generator, channels: int, k: int, size
     random data channels where the file is missing."""
     task = FundamentalTask()
     if Path(path).is_file():
-        from rlsac.data import read_batch
+        from rlsac.tasks import read_batch
 
         data, _ = read_batch("fundamental", path, "cpu")
         feats, mask = task.features(data), data["mask"]

@@ -122,7 +122,7 @@ def protocol(params: dict[str, Any]) -> dict[str, Any]:
     """``DEFAULTS`` with each top-level key replaced by params.yaml ``ablation``'s, every key typed and checked
     (issue #28, item 3), each model's training recipe a valid TrainConf."""
     from rlsac.config import SEED_RANGE, build, check_mapping, check_value, deep_update, over_defaults, section
-    from rlsac.train import TrainConf
+    from rlsac.learners.harness import TrainConf
 
     p = over_defaults(params, "ablation", DEFAULTS)
     p["iterations"] = check_value("ablation.iterations", p["iterations"], int, "[1, inf)")
@@ -328,8 +328,8 @@ def model_options(t: dict[str, Any], o: dict[str, Any]) -> dict[str, Any]:
 
 def check_model(t: dict[str, Any], track: bool) -> None:
     """A model's training data files (read and validated) and configuration, before any model trains."""
+    from rlsac.learners.harness import check
     from rlsac.tasks import task_class
-    from rlsac.train import check
 
     for key in ("data", "val_data"):
         if t.get(key) and not Path(t[key]).is_file():

@@ -3,7 +3,7 @@ figures, the benchmarks and the tests through the functions below.
 
 A checkpoint is ``torch.save`` of a dict:
     actor        the Actor's state_dict (rlsac.policy)
-    conf         the resolved training configuration (rlsac.train.TrainConf as a dict): task, task_options,
+    conf         the resolved training configuration (rlsac.learners.harness.TrainConf as a dict): task, task_options,
                  env (the environment it was trained in), policy (the network's shape), sac, selection, ...
     in_channels  the actor's input channels (the task's data features + the environment's memory)
     step         the training step of this actor; val: its validation metrics; selection: how it was kept
@@ -14,7 +14,7 @@ A checkpoint is ``torch.save`` of a dict:
                  with the residual feature at the evaluation threshold, as the record made them (``state_scales``)
     kind         absent for an RLSAC actor; "ngransac" for NG-RANSAC's sampling network (rlsac.ngransac: the same
                  keys, ``actor`` its weights, ``in_channels`` the task's data features, no environment memory)
-Training state for ``--resume`` (rlsac.train) is a separate file beside it and never read here.
+Training state for ``--resume`` (rlsac.learners.sac) is a separate file beside it and never read here.
 """
 
 from __future__ import annotations
@@ -131,7 +131,7 @@ def env_conf(ckpt_conf: dict | None, steps_per_episode: int | None = None) -> En
 
 def task_options(ckpt_conf: dict[str, Any]) -> dict[str, Any]:
     """Task options stored in a checkpoint conf: ``task`` as a dict of options (with an optional
-    ``name``), or ``task`` as the task name beside a ``task_options`` dict (rlsac.train.TrainConf)."""
+    ``name``), or ``task`` as the task name beside a ``task_options`` dict (rlsac.learners.harness.TrainConf)."""
     stored = ckpt_conf.get("task")
     if isinstance(stored, dict):
         return dict(stored)

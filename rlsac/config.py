@@ -262,7 +262,7 @@ PARAM_SECTIONS = {
     "lines_data": "rlsac.commands:check_lines_data",
     "lines": "rlsac.commands:check_lines",
     "calibration": "rlsac.commands:check_calibration",
-    "train": "rlsac.train:check_params",
+    "train": "rlsac.learners.harness:check_params",
     "evaluate": "rlsac.evaluate:check_params",
     "fundamental": "rlsac.folds:check_fundamental",
     "folds": "rlsac.folds:protocol",

@@ -1,4 +1,4 @@
-"""--device auto|cpu|cuda."""
+"""--device auto|cpu|cuda: the torch device (``resolve_device``) or its name (``device_name``)."""
 
 from __future__ import annotations
 
@@ -15,3 +15,8 @@ def resolve_device(name: str) -> torch.device:
     if name not in ("cpu", "cuda"):
         raise RlsacError(f"--device must be auto, cpu or cuda, got {name!r}")
     return torch.device(name)
+
+
+def device_name(device: str | None) -> str:
+    """"auto" (or None) -> "cuda" if available else "cpu"; "cuda" without a GPU is a user error."""
+    return str(resolve_device((device or "auto").lower()))

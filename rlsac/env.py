@@ -1,4 +1,6 @@
-"""The sample-consensus environment of RLSAC (paper Sec. 3.2-3.5), batched on one torch device.
+"""The sample-consensus environment of RLSAC (paper Sec. 3.2-3.5), batched on one torch device: ``EnvConf`` and
+``SampleConsensusEnv``, composed of its state encoding (rlsac.env_state), episode bookkeeping (rlsac.env_bookkeeping)
+and scoring (rlsac.env_scoring).
 
 Rows are laid out instance-major: B instances x E parallel episodes = R = B E rows. Every episode
 starts from a uniformly random minimal set; each later minimal set comes from the policy. The state
@@ -28,12 +30,11 @@ from dataclasses import dataclass, field
 
 import torch
 
-from rlsac.baselines import finalize
-from rlsac.lo import Best, LOConf, finish, score_sets, update_best
-from rlsac.sampling import gather_points, set_keys, uniform_minimal_sets
+from rlsac.env_bookkeeping import EpisodeBookkeeping
+from rlsac.env_scoring import Scoring
+from rlsac.env_state import MEMORY_DIM, StateEncoding  # noqa: F401  (MEMORY_DIM: also rlsac.env's)
+from rlsac.lo import LOConf
 from rlsac.tasks import Task
-
-MEMORY_DIM = 3
 
 
 @dataclass
@@ -54,8 +55,10 @@ class EnvConf:
               "residual_clip": "(0, inf)", "candidates": "[1, inf)", "reward": ("inlier_ratio", "improvement")}
 
 
-class SampleConsensusEnv:
-    """Batched environment. Call ``reset`` with a batch, then alternate ``choose`` and ``step``."""
+class SampleConsensusEnv(StateEncoding, EpisodeBookkeeping, Scoring):
+    """Batched environment. Call ``reset`` with a batch, then alternate ``choose`` and ``step``. Its parts: the
+    state encoding (``state``), the episode bookkeeping (``active``, ``select``, ``select_many``, ``confident``) and
+    the scoring (``result``); ``reset`` and ``step`` compose them."""
 
     def __init__(self, task: Task, conf: EnvConf, training: bool, state_threshold: float | None = None):
         """state_threshold: the residual scale of the policy's state (in the task's residual unit); None = the
@@ -65,7 +68,7 @@ class SampleConsensusEnv:
         self.task, self.conf, self.training = task, conf, training
         self.state_threshold = float(task.threshold if state_threshold is None else state_threshold)
 
-    # ---------------------------------------------------------------- setup
+    # ---------------------------------------------------------------- an episode: start, transition
     def reset(self, batch: dict, features: torch.Tensor, episodes: int = 1, budget: int | None = None,
               generator: torch.Generator | None = None, first: torch.Tensor | None = None,
               sets_per_step: int = 1, confidence: float = 0.0) -> torch.Tensor:
@@ -81,144 +84,17 @@ class SampleConsensusEnv:
         """
         coords, mask = batch["coords"], batch["mask"]
         B, N, _ = coords.shape
-        E, psi, dev = episodes, self.conf.steps_per_episode, coords.device
-        self.B, self.E, self.N, self.k = B, E, N, int(sets_per_step)
+        self.B, self.E, self.N, self.k = B, episodes, N, int(sets_per_step)
         self.confidence = float(confidence)
         self.gen = generator
         self.inst_coords, self.inst_mask = coords, mask
-        self.coords = coords.repeat_interleave(E, 0)
-        self.mask = mask.repeat_interleave(E, 0)
-        self.data = features.repeat_interleave(E, 0)
-        self.n_valid = self.mask.sum(-1).clamp_min(1)
-        self.budget = budget if budget is not None else E * psi * self.k
-        R = B * E
-        self.ep_first = torch.arange(R, device=dev) % E * psi  # (R,) first step of each row's episode (instance-major)
-        self.set_index = torch.arange(self.k, device=dev)
-        self.t = 0
-        self.used = torch.full((B, E * psi * self.k), -1, dtype=torch.int64, device=dev)
-        self.spent = torch.zeros(B, dtype=torch.long, device=dev)  # hypotheses per instance so far
-        self.history = torch.zeros((R, N), device=dev)
-        self.action = torch.full((R, N), -1.0, device=dev)
-        self.residual = torch.ones((R, N), device=dev)
-        self.done = torch.zeros(R, dtype=torch.bool, device=dev)
-        self.count = torch.full((R,), -1, dtype=torch.long, device=dev)
-        self.same_count = torch.zeros(R, dtype=torch.long, device=dev)
-        self.ep_best = torch.full((R,), -1, dtype=torch.long, device=dev)
-        self.no_better = torch.zeros(R, dtype=torch.long, device=dev)
-        self.best = Best.empty(B, dev)  # best hypothesis per instance (rlsac.lo.update_best, LO if conf.lo)
-        self.best_count = self.best.count
-        self.best_hyp: torch.Tensor | None = None
-        self.hypotheses = 0
+        self.coords = coords.repeat_interleave(episodes, 0)
+        self.mask = mask.repeat_interleave(episodes, 0)
+        self._start_state(features)
+        self._start_bookkeeping(budget)
+        self._start_scoring()
         self.step(self.select_random() if first is None else first)
         return self.state()
-
-    def state(self) -> torch.Tensor:
-        return torch.cat([self.data, self.memory()], dim=-1)
-
-    def memory(self) -> torch.Tensor:
-        """(R, N, 3): action, residual, history."""
-        return torch.stack([self.action, self.residual, self.history], dim=-1)
-
-    @property
-    def active(self) -> torch.Tensor:
-        """(R,) rows that still produce hypotheses: episode running and within the budget."""
-        return ~self.done & ((self.ep_first + self.t) * self.k < self.budget)
-
-    def counted(self, active: torch.Tensor) -> torch.Tensor:
-        """(R, k) the sets of this step within the budget: row e's j-th set is hypothesis (e psi + t) k + j;
-        active (R,) = ``self.active``."""
-        first = (self.ep_first + self.t) * self.k
-        return active[:, None] & (first[:, None] + self.set_index < self.budget)
-
-    # ---------------------------------------------------------------- acting
-    def select(self, logits: torch.Tensor, sample: bool = False, random: bool = False) -> torch.Tensor:
-        """Pick an unused minimal set per row from per-point scores. logits (R, N) -> idx (R, m).
-
-        Candidate 0 is the top-m (max sampling) or a draw without replacement from softmax(logits)
-        (probabilistic sampling, Gumbel top-m); further candidates are always draws from the policy's
-        probabilities, as the paper prescribes for a duplicate, then uniform sets in case the policy
-        is too peaked to offer an unused one. ``random`` = uniform sets only.
-        """
-        m, K = self.task.sample_size, self.conf.candidates
-        R, N = logits.shape
-        logits = logits.masked_fill(~self.mask, float("-inf"))
-        uniform = uniform_minimal_sets(self.mask, m, K, self.gen)
-        if random:
-            cand = uniform
-        else:
-            u = torch.rand((R, K, N), generator=self.gen, device=logits.device).clamp_(1e-12, 1 - 1e-12)
-            gumbel = logits[:, None, :] - torch.log(-torch.log(u))
-            cand = gumbel.topk(m, dim=-1).indices
-            if not sample:
-                cand[:, 0] = logits.topk(m, dim=-1).indices
-            # a peaked policy may keep drawing used sets: uniform sets come last as the fallback
-            cand = torch.cat([cand, uniform], dim=1)
-        K = cand.shape[1]
-        keys = set_keys(cand, N)  # (R, K)
-        inst = torch.arange(R, device=logits.device) // self.E
-        taken = (keys[:, :, None] == self.used[inst][:, None, :]).any(-1)  # (R, K)
-        rows = torch.arange(R, device=logits.device)
-        earlier = torch.ones(self.E, self.E, dtype=torch.bool, device=logits.device).tril(-1)
-        act = self.active.view(self.B, self.E)
-        for _ in range(K):
-            # each row's first candidate not used before (the last one if all were: a rare repeat)
-            free = ~taken
-            ptr = torch.where(free.any(-1), free.float().argmax(-1), torch.full_like(rows, K - 1))
-            chosen = keys[rows, ptr].view(self.B, self.E)
-            same = (chosen[:, :, None] == chosen[:, None, :]) & act[:, :, None] & act[:, None, :]
-            dup = (same & earlier).any(-1).flatten() & free.any(-1)
-            if not dup.any():
-                break
-            taken[rows[dup], ptr[dup]] = True  # an earlier episode of the instance took it this step
-        return cand[rows, ptr]
-
-    def select_random(self) -> torch.Tensor:
-        """Uniformly random unused minimal sets: (R, m) by ``select``, or (R, k, m) by ``select_many`` for k > 1."""
-        if self.k == 1:
-            return self.select(self.action, random=True)
-        return self.select_many(self.action, random=True)
-
-    def select_many(self, logits: torch.Tensor, sample: bool = False, random: bool = False) -> torch.Tensor:
-        """k = ``sets_per_step`` unused minimal sets per row from per-point scores. logits (R, N) -> (R, k, m).
-
-        Candidates in order: the top-m (max sampling) or a Gumbel top-m draw, then 2k - 1 more draws without
-        replacement from softmax(logits) (``random``: 2k uniform sets); 2k uniform sets are appended while a row
-        has fewer than k free ones (a peaked policy; four times at most). A candidate is taken if any episode
-        of its instance used it before or an earlier candidate of the instance this step equals it; each row
-        gets its first k free candidates (a row short of free ones repeats taken ones, as ``select`` does).
-        """
-        m, k = self.task.sample_size, self.k
-        R, N = logits.shape
-        used = self.used.sort(dim=-1).values
-        if random:
-            cand = uniform_minimal_sets(self.mask, m, 2 * k, self.gen)
-        else:
-            logits = logits.masked_fill(~self.mask, float("-inf"))
-            u = torch.rand((R, 2 * k, N), generator=self.gen, device=logits.device).clamp_(1e-12, 1 - 1e-12)
-            cand = (logits[:, None, :] - torch.log(-torch.log(u))).topk(m, dim=-1).indices
-            if not sample:
-                cand[:, 0] = logits.topk(m, dim=-1).indices
-        taken = self._taken(cand, used)
-        for _ in range(4):  # a row short of free sets (a peaked policy): 2k more uniform sets, a few times at most
-            if not bool(((~taken).sum(-1) < k).any()):
-                break
-            cand = torch.cat([cand, uniform_minimal_sets(self.mask, m, 2 * k, self.gen)], dim=1)
-            taken = self._taken(cand, used)
-        J = cand.shape[1]
-        rank = torch.arange(J, device=cand.device).expand(R, J) + J * taken
-        pick = rank.topk(k, dim=-1, largest=False).indices.sort(dim=-1).values  # the first k free ones
-        return cand.gather(1, pick[..., None].expand(R, k, m))
-
-    def _taken(self, cand: torch.Tensor, used: torch.Tensor) -> torch.Tensor:
-        """cand (R, J, m) candidate sets, used (B, U) sorted keys -> (R, J): used before by the instance, or
-        equal to an earlier candidate of the instance (rows in order, then candidates)."""
-        R, J, _ = cand.shape
-        keys = set_keys(cand, self.N).view(self.B, self.E * J)
-        pos = torch.searchsorted(used, keys).clamp_max_(used.shape[1] - 1)
-        taken = used.gather(1, pos) == keys
-        srt, order = keys.sort(dim=-1, stable=True)  # equal keys keep their order: the first one is free
-        again = torch.cat([torch.zeros_like(srt[:, :1], dtype=torch.bool), srt[:, 1:] == srt[:, :-1]], dim=1)
-        return (taken | torch.zeros_like(again).scatter_(1, order, again)).view(R, J)
 
     def step(self, idx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Apply minimal sets idx (R, m), or (R, k, m) with k = ``sets_per_step``. Returns reward (R,),
@@ -235,88 +111,8 @@ class SampleConsensusEnv:
         self._update_memory(idx[rows, pick], res_a, act)
         self._remember_sets(idx, counted)
         self._update_best(hyps, count, res, counted)
+        self._count_hypotheses(counted)
         done = self._terminate(count_a, act)
         newly = act & done
         self.done = self.done | done
         return reward * act, newly, act
-
-    def _score(self, idx: torch.Tensor):
-        """Hypotheses of the sets idx (R, k, m) -> hyps (R, k, *H), valid (R, k), residuals (R, k, N) (+inf for
-        invalid sets and padding), inlier counts (R, k) (0 for invalid sets); scored per instance."""
-        task, (B, E, N) = self.task, (self.B, self.E, self.N)
-        R, k, m = idx.shape
-        pts = gather_points(self.inst_coords, idx.reshape(B, E * k, m))
-        hyps, valid, res, count = score_sets(task, pts, self.inst_coords, self.inst_mask)  # (B, E k, ...)
-        res = torch.where(valid[..., None] & self.inst_mask[:, None], res, torch.full_like(res, float("inf")))
-        return (hyps.reshape(R, k, *hyps.shape[2:]), valid.reshape(R, k), res.reshape(R, k, N),
-                count.masked_fill(~valid, 0).reshape(R, k))
-
-    def _reward(self, count: torch.Tensor) -> torch.Tensor:
-        """The inlier ratio (paper), or its gain over the episode's best so far (``reward="improvement"``)."""
-        reward = count.float() / self.n_valid
-        if self.conf.reward == "improvement":
-            reward = (reward - self.ep_best.clamp_min(0).float() / self.n_valid).clamp_min(0.0)
-        return reward
-
-    def _update_memory(self, idx: torch.Tensor, res: torch.Tensor, act: torch.Tensor) -> None:
-        """The memory features of the next state; only rows that acted change."""
-        conf = self.conf
-        onehot = torch.zeros_like(self.action, dtype=torch.bool).scatter_(1, idx, True)
-        a = act[:, None]
-        self.action = torch.where(a, onehot.float() * 2 - 1, self.action)
-        r_feat = (res / self.state_threshold).clamp(max=conf.residual_clip) / conf.residual_clip
-        self.residual = torch.where(a, r_feat.masked_fill(~self.mask, 1.0), self.residual)
-        self.history = self.history + (onehot & a).float()
-
-    def _remember_sets(self, idx: torch.Tensor, counted: torch.Tensor) -> None:
-        """The de-duplication memory: this step's set keys idx (R, k, m) of the counted sets, per instance."""
-        k = idx.shape[1]
-        keys = set_keys(idx, self.N).masked_fill(~counted, -1).view(self.B, self.E * k)
-        self.used[:, self.t * self.E * k: (self.t + 1) * self.E * k] = keys
-
-    def _update_best(self, hyps: torch.Tensor, count: torch.Tensor, res: torch.Tensor, counted: torch.Tensor) -> None:
-        """The best hypothesis of each instance over all its episodes (with LO if ``conf.lo``)."""
-        B, n = self.B, count.numel() // self.B
-        c = count.masked_fill(~counted, -1).view(B, n)
-        self.best = update_best(self.task, self.conf.lo, self.inst_coords, self.inst_mask, self.best,
-                                hyps.reshape(B, n, *hyps.shape[2:]), c, res.reshape(B, n, -1), self.gen)
-        self.best_hyp, self.best_count = self.best.hyp, self.best.count
-        spent = counted.view(B, n).sum(-1)
-        self.spent += spent
-        self.hypotheses += int(spent.sum())
-
-    def _terminate(self, count: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
-        """Advance the clock; -> done (R,): psi steps always, kappa / varsigma only while training."""
-        conf = self.conf
-        self.same_count = torch.where(count == self.count, self.same_count + 1, torch.zeros_like(count))
-        improved = count > self.ep_best
-        self.no_better = torch.where(improved, torch.zeros_like(count), self.no_better + 1)
-        self.ep_best = torch.maximum(self.ep_best, count)
-        self.count = torch.where(act, count, self.count)
-        self.t += 1
-        done = torch.full_like(act, self.t >= conf.steps_per_episode)
-        if self.training:
-            done = done | (self.same_count >= conf.kappa) | (self.no_better >= conf.varsigma)
-        elif self.confidence > 0:
-            done = done | self.confident().repeat_interleave(self.E)
-        return done
-
-    def confident(self) -> torch.Tensor:
-        """(B,) instances whose hypotheses so far reach RANSAC's bound log(1 - p) / log(1 - w^m) for
-        confidence p and best inlier ratio w (as OpenCV's and MAGSAC++'s termination)."""
-        w = (self.best_count.clamp_min(0) / self.inst_mask.sum(-1).clamp_min(1)).double()
-        miss = 1.0 - w.pow(self.task.sample_size)  # a minimal set not all inliers
-        need = math.log1p(-self.confidence) / torch.log(miss.clamp(1e-300, 1.0 - 1e-16))
-        return (self.best_count >= self.task.sample_size) & (self.spent >= need)
-
-    # ---------------------------------------------------------------- output
-    def instances(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """coords (B, N, d), mask (B, N) of the instances (rows are instance-major)."""
-        return self.inst_coords, self.inst_mask
-
-    def result(self) -> dict[str, torch.Tensor]:
-        """Best hypothesis per instance over all episodes, refined on its inliers (with LO: rlsac.lo.finish)."""
-        coords, mask = self.instances()
-        if self.conf.lo.enabled:
-            return finish(self.task, self.conf.lo, coords, mask, self.best, self.gen)
-        return finalize(self.task, coords, mask, self.best_hyp, self.best_count >= self.task.sample_size)

@@ -34,11 +34,21 @@ import torch
 
 from rlsac.config import SEED_RANGE, check_value
 from rlsac.data import n_unusable, validity
+from rlsac.devices import device_name as resolve_device  # noqa: F401  (also rlsac.evaluate.resolve_device)
 from rlsac.errors import RlsacError
 from rlsac.io import atomic_path, check_writable, write_json
 from rlsac.methods import METHODS
 from rlsac.progress import tqdm  # no bars unless a person watches (not under CI, not redirected)
-from rlsac.tasks import TASKS, Task, opencv_threshold, prefiltered, task_class, task_for, task_from  # noqa: F401
+from rlsac.tasks import (  # noqa: F401
+    TASKS,
+    Task,
+    opencv_threshold,
+    prefiltered,
+    task_class,
+    task_for,
+    task_from,
+)
+from rlsac.tasks.registry import as_numpy as _np
 from rlsac.tracking import check_store, start_run
 
 # torch CPU threads for the evaluation loop. One thread: per-step tensors are small (one instance, or
@@ -122,13 +132,6 @@ def check_params(params: dict[str, Any]) -> None:
 def sampler_options(section: dict[str, Any]) -> dict[str, Any]:
     """The ``SAMPLER_OPTIONS`` present in a params.yaml evaluate.<task> section."""
     return {k: section[k] for k in SAMPLER_OPTIONS if k in section}
-
-
-def resolve_device(device: str | None) -> str:
-    """"auto" (or None) -> "cuda" if available else "cpu"; "cuda" without a GPU is a user error."""
-    from rlsac.devices import resolve_device as _resolve
-
-    return str(_resolve((device or "auto").lower()))
 
 
 def check_options(options: dict[str, Any], checkpoint_later: bool = False) -> dict[str, Any]:
@@ -442,11 +445,6 @@ def _task_options(task) -> dict[str, Any]:
     import dataclasses
 
     return dataclasses.asdict(task) if dataclasses.is_dataclass(task) else {}
-
-
-def _np(v):
-    """torch tensor (any device) or array -> numpy."""
-    return v.detach().cpu().numpy() if torch.is_tensor(v) else np.asarray(v) if isinstance(v, np.ndarray) else v
 
 
 def _plain(v):

@@ -13,16 +13,14 @@ weights, RANSAC draws its minimal sets from them, and the network learns from th
   task's ground-truth error, clipped at its mAA limit and divided by it). The gradient of the expected loss is the
   paper's, mean_k (l_k - b) grad log p(H_k), log p(H_k) = sum of its sets' log-probabilities, with the baseline
   b = mean_k l_k (the paper's variance reduction). M = 1 (an option, not the paper's) scores each set alone.
-* ``train``: Adam, ``rlsac train --method ngransac``; validation and model selection as RLSAC's (``rlsac.train``:
-  the fold's validation pairs only, the same selection signals); the checkpoint format is ``rlsac.checkpoint``'s
-  with kind "ngransac".
+* Its training (Adam, ``rlsac train --method ngransac``) is the learner rlsac.learners.ngransac: validation and model
+  selection as RLSAC's (the shared harness, rlsac.learners.harness: the fold's validation pairs only, the same
+  selection signals); the checkpoint format is ``rlsac.checkpoint``'s with kind "ngransac" (``payload``).
 """
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -173,98 +171,6 @@ def payload(net, conf: dict, in_channels: int, step: int, val: dict, selection: 
     from rlsac.checkpoint import actor_payload
 
     return {"kind": KIND, **actor_payload(net, conf, in_channels, step, val, selection, history)}
-
-
-def train(conf, track: bool = True) -> dict:
-    """``rlsac train --method ngransac``: ``conf`` a checked ``rlsac.train.TrainConf`` (method "ngransac") ->
-    the summary of ``rlsac.train.train``. The kept network (``conf.out``) is the best validation under
-    ``conf.selection`` (RLSAC's rule and signals), else the last; no training state file (no --resume)."""
-    from rlsac import checkpoint
-    from rlsac.devices import resolve_device
-    from rlsac.sac import seed_everything
-    from rlsac.tracking import start_run
-    from rlsac.train import SELECTION_KEY, load_data, stored_conf, task_experiment, validation_summary
-
-    if conf.resume:
-        raise RlsacError("ngransac training has no --resume (it keeps no training state)")
-    ng = conf.ngransac
-    if conf.threads > 0:
-        torch.set_num_threads(conf.threads)
-    device = resolve_device(conf.device)
-    task, data, val, unusable = load_data(conf, device)
-    data["features_net"] = data.pop("features")
-    if ng.signal == "pose":  # a file without the ground truth the signal reads fails here, not at the first update
-        from rlsac.sampling import uniform_minimal_sets
-
-        first = _rows(data, torch.tensor([0]))
-        try:
-            set_losses(task, first, uniform_minimal_sets(first["mask"], task.sample_size, 1), "pose")
-        except (KeyError, IndexError, ValueError, TypeError) as e:
-            raise RlsacError(f"{conf.data}: no ground truth for the pose signal ({e.__class__.__name__}: {e})"
-                             ) from None
-    gen = seed_everything(conf.seed)
-    if device.type != "cpu":
-        gen = torch.Generator(device=device).manual_seed(conf.seed)
-    net = network(task, conf.policy).to(device)
-    opt = torch.optim.Adam(net.parameters(), lr=ng.lr)
-    conf_dict, out = stored_conf(conf), Path(conf.out)
-    n_pairs = int(data["mask"].shape[0])
-    best, history, kept = {"score": -1.0}, [], None  # as RLSAC's: every selection signal is >= 0
-
-    def validate(step: int) -> dict:
-        res = estimate(task, net, val, conf.val_iterations, torch.Generator(device=device).manual_seed(1234))
-        summ = validation_summary(task, val, res)
-        history.append({"step": step, **summ})
-        return summ
-
-    name = conf.run_name or f"train {conf.task} ngransac {out.stem} ({Path(conf.data).stem})"
-    tags = {"command": "train", "method": KIND, **conf.tags, "out": str(out)}
-    logged = {k: v for k, v in conf_dict.items() if k != "resume"}
-    with start_run(task_experiment(conf.task), name, logged, tags=tags, enabled=track) as run:
-        run.metrics(unusable)
-        t0 = time.time()
-        for step in range(1, ng.steps + 1):
-            rows = torch.randint(0, n_pairs, (min(ng.batch_size, n_pairs),), generator=gen, device=gen.device)
-            objective, mean_loss = loss(task, net, _rows(data, rows.cpu()), ng.samples, ng.signal, gen, ng.hypotheses)
-            opt.zero_grad(set_to_none=True)
-            objective.backward()
-            opt.step()
-            run.metrics({"losses/ngransac_objective": objective.item(), "charts/train_loss": mean_loss.item()},
-                        step=step)
-            if val is not None and (step % conf.val_every == 0 or step == ng.steps):
-                summ = validate(step)
-                run.metrics(summ, step=step)
-                score = summ[SELECTION_KEY.get(conf.selection, "charts/val_mAA")]
-                if conf.selection != "last" and score > best["score"]:
-                    best.update(score=score, step=step, **summ)
-                    kept = payload(net, conf_dict, task.feature_dim, step, summ, conf.selection, history)
-        if kept is None:  # no validation, or selection "last": the final network
-            kept = payload(net, conf_dict, task.feature_dim, ng.steps, history[-1] if history else {},
-                           conf.selection, history)
-        kept["history"] = list(history)
-        checkpoint.write(out, kept)
-        seconds = time.time() - t0
-        run.metrics({"time/train_seconds": seconds})
-        run.artifact(out, "checkpoint")
-    return {"checkpoint": str(out), "method": KIND, "steps": ng.steps, "seconds": round(seconds, 1),
-            "selection": conf.selection, "best_score": best["score"],
-            "best_step": best.get("step"), "final_val": history[-1] if history else {},
-            **{k.replace("/", "_"): v for k, v in unusable.items() if v}}
-
-
-def _rows(batch: dict, rows: torch.Tensor) -> dict:
-    """Rows ``rows`` (1-d long, on the CPU) of a batch: tensors indexed on their device, numpy arrays with numpy."""
-    out = {}
-    for key, v in batch.items():
-        if torch.is_tensor(v):
-            out[key] = v[rows.to(v.device)]
-        elif isinstance(v, np.ndarray) and v.ndim > 0:
-            out[key] = v[rows.numpy()]
-        elif isinstance(v, list):
-            out[key] = [v[i] for i in rows.tolist()]
-        else:
-            out[key] = v
-    return out
 
 
 def load(path, device="cpu"):

@@ -1,10 +1,14 @@
-"""Readers of the result files the reports and checks read back: an evaluation's errors.csv and summary.json, a
-tuning record, an iterations CSV. Each refuses a corrupt file (``RlsacError``: "<file>: <what>", exit 2) and returns
-None for an absent one, so a table shows an absent cell as "–" but never a number made from text, NaN or a truncated
-file (issue #49: coercing bad values to NaN printed a wrong "+0.701" at exit 0).
+"""The results as the reports read them: refusing readers of each result file (an evaluation's errors.csv and
+summary.json, a tuning record, an iterations CSV) and the tidy tables made from reports/eval (Table 1's seed runs,
+the fold benchmark's cells, data records and seed runs).
 
-Low in the import graph on purpose (errors, pandas, json only): the runners (folds, selection, evaluate) and every
-report module read through it, so there is one definition of a valid result file.
+Each reader refuses a corrupt file (``RlsacError``: "<file>: <what>", exit 2) and returns None for an absent one, so a
+table shows an absent cell as "–" but never a number made from text, NaN or a truncated file (issue #49: coercing bad
+values to NaN printed a wrong "+0.701" at exit 0).
+
+Below the runners and the reports (it imports the protocol's names, rlsac.protocol, and the method registry to check
+a cell's configuration): the runners (folds, selection, tune) and every report module read through it, so there is
+one definition of a valid result file, and a report never needs a runner.
 """
 
 from __future__ import annotations
@@ -160,3 +164,188 @@ def read_record(path: str | Path) -> dict[str, Any] | None:
     if not isinstance(val, dict) or any(not _finite_number(v) or not 0 <= v <= 1 for v in val.values()):
         raise _fail(path, f"'val' is {val!r}, not validation mAAs in [0, 1]")
     return rec
+
+
+# ---------------------------------------------------------------------------------------------- Table 1's results
+# reports/eval/lines/<row>/o<rate>/ of every training seed of a learned row, as an array of per-instance errors
+
+# Table 1's learned rows that have training seeds (<row>-s<seed>)
+LINE_SEED_MODELS = ("ours", "ours-0.5", "ngransac")
+
+
+def line_seed_runs(root: Path) -> dict[str, list[str]]:
+    """Table 1's models with results of other training seeds under ``root`` (<eval_root>/lines): {"ours": ["ours",
+    "ours-s1", ...], "ours-0.5": [...]} (the row's own directory is its seed 0; seeds in numeric order)."""
+    from rlsac.protocol import seed_name, split_seed
+
+    out: dict[str, list[str]] = {}
+    for d in LINE_SEED_MODELS:
+        seeds = sorted(s for base, s in (split_seed(p.name) for p in root.glob(f"{d}-s*") if p.is_dir())
+                       if base == d and s is not None)
+        if seeds:
+            out[d] = [d] + [seed_name(d, k) for k in seeds]
+    return out
+
+
+def line_runs_at(root: Path, runs: list[str], rate: float) -> list[str]:
+    """The runs of a model (``line_seed_runs``) with results at ``rate``: its other seeds train only at
+    lines.seed_rates; [] when the model's own (first) run has none there."""
+    have = [d for d in runs if (root / d / f"o{rate:g}" / "errors.csv").is_file()]
+    return have if have and have[0] == runs[0] else []
+
+
+def line_errors(root: Path, runs: list[str], rate: float):
+    """(S, M) errors at ``rate`` of the ``runs`` that have results there (``line_runs_at``), None when there are none
+    or they are not on one test set."""
+    runs = line_runs_at(root, runs, rate)
+    if not runs:
+        return None
+    errs = [read_errors_column(root / d / f"o{rate:g}" / "errors.csv") for d in runs]
+    if len({e.size for e in errs}) != 1:
+        return None
+    return np.stack(errs)
+
+
+# ------------------------------------------------------------------------------------- the fold benchmark's results
+# reports/eval/<sub>/<regime>/<fold>/<row>/i<iterations>/ as one frame per (regime, row, budget), the data stage's
+# records, and the rows of several training seeds aligned on their common pairs
+
+
+def _errors(path: Path) -> pd.DataFrame | None:
+    """A cell's per-pair errors (read_errors: a corrupt or truncated file is an error naming it), None if absent."""
+    return read_errors(path / "errors.csv", ("err_R", "err_t"))
+
+
+def collect(eval_root: str | Path = "reports/eval", sub: str = "folds") -> dict[tuple[str, str, int], pd.DataFrame]:
+    """(regime, method, iterations) -> per-pair errors of every fold found under <eval_root>/<sub>, with a
+    ``fold`` column."""
+    root = Path(eval_root) / sub
+    out: dict[tuple[str, str, int], list[pd.DataFrame]] = {}
+    if not root.is_dir():
+        return {}
+    for regime in sorted(p.name for p in root.iterdir() if p.is_dir()):
+        for fold_dir in sorted(p for p in (root / regime).iterdir() if p.is_dir()):
+            for mdir in sorted(p for p in fold_dir.iterdir() if p.is_dir()):
+                for idir in sorted(p for p in mdir.iterdir() if p.is_dir() and p.name.startswith("i")):
+                    df = _errors(idir)
+                    if df is None:
+                        continue
+                    _check_cell(idir, mdir.name, int(idir.name[1:]))
+                    df = df.assign(fold=fold_dir.name)
+                    out.setdefault((regime, mdir.name, int(idir.name[1:])), []).append(df)
+    return {k: pd.concat(v, ignore_index=True) for k, v in out.items()}
+
+
+def _check_cell(path: Path, name: str, iterations: int) -> None:
+    """The cell's resolved configuration (config.json, written by evaluate) must be what its folder says:
+    the budget, and the method (an RLSAC model: method rlsac / rlsac-lo with the checkpoint of that name)."""
+    from rlsac.methods import METHODS
+
+    f = path / "config.json"
+    if not f.is_file():  # results written before evaluate kept its configuration
+        return
+    try:
+        conf = json.loads(f.read_text())
+    except (OSError, ValueError):
+        raise RlsacError(f"{f}: unreadable") from None
+    from rlsac.protocol import checkpoint_model, seed_name, split_points, split_seed
+
+    base, points = split_points(name)  # Table 3 (c)'s <row>-n<N>: the row of that name on the data with N points
+    if points is not None:
+        if (conf.get("data_attrs") or {}).get("n_points") != points:
+            raise RlsacError(f"{f}: holds a run on {conf.get('data')!r}, not on the data with {points} points its "
+                             f"folder {name!r} names")
+        spec = METHODS.get(conf.get("method"))
+        name = name if spec is not None and spec.checkpoint else base  # a model's checkpoint is named <model>-n<N>
+    method, path = conf.get("method"), conf.get("checkpoint") or ""
+    model = checkpoint_model(path) if path else None
+    ckpt = model or Path(path).stem
+    spec = METHODS.get(method)
+    prob = conf.get("sampling") == "prob"  # Table 3 (b)'s <model>-prob rows: probabilistic test-time sampling
+    variants = ("-prob",) if prob else ("", "-lo", "-fast")
+    names = tuple(f"{ckpt}{v}" for v in variants)
+    base, seed = split_seed(ckpt)
+    if seed is not None:  # issue #27: the variant rows of another training seed are <row>-s<seed>
+        names += tuple(seed_name(f"{base}{v}", seed) for v in variants if v)
+    if spec is not None and spec.checkpoint and model is not None:  # the pipeline's checkpoint names the row
+        ok = name in names
+    else:  # a checkpoint of one's own (any name) can only be told by its method
+        ok = method == name or (spec is not None and spec.checkpoint and name in names)
+    if conf.get("iterations") != iterations or not ok:
+        raise RlsacError(f"{f}: holds method {method!r} ({ckpt or 'no checkpoint'}) at {conf.get('iterations')} "
+                         f"iterations, not the {name!r} at {iterations} its folder names")
+
+
+def check_distinct(res: dict[tuple[str, str, int], pd.DataFrame], sub: str = "folds") -> None:
+    """Two rows whose per-pair errors are identical in every regime and budget are one method shown twice (OpenCV's
+    findEssentialMat ignores USAC_ACCURATE's flag: its rows were USAC's): RlsacError, before anything is written."""
+    methods = sorted({m for _, m, _ in res})
+    for i, a in enumerate(methods):
+        for b in methods[i + 1:]:
+            cells = [(r, it) for r, m, it in res if m == a and (r, b, it) in res]
+            if cells and all(res[(r, a, it)][["err_R", "err_t"]].equals(res[(r, b, it)][["err_R", "err_t"]])
+                             for r, it in cells):
+                raise RlsacError(f"reports/eval/{sub}: methods '{a}' and '{b}' give identical errors on every pair, "
+                                 f"fold and budget: one method shown as two rows (drop one from params.yaml)")
+
+
+def pair_key(df: pd.DataFrame) -> pd.Series:
+    """Each row's pair as <fold>/<scene>/<pair> (the key two rows' errors are aligned by)."""
+    return df["fold"].astype(str) + "/" + df.get("scene", pd.Series([""] * len(df))).astype(str) + "/" + \
+        df.get("pair", df["instance"]).astype(str)
+
+
+def load_records(records: str | Path = "reports/folds/data") -> dict[tuple[str, str], dict]:
+    """The folds' data records (rlsac folds --stage data); a corrupt one is an error naming it (issue #49: it was
+    skipped with a printed line, and its fold left out of the data table at exit 0)."""
+    out = {}
+    root = Path(records)
+    for f in sorted(root.glob("*/*.json")) if root.is_dir() else []:
+        try:
+            rec = json.loads(f.read_text())
+        except (OSError, ValueError) as e:
+            raise RlsacError(f"{f}: not a readable data record ({e.__class__.__name__})") from None
+        if not isinstance(rec, dict) or not isinstance(rec.get("splits"), dict):
+            raise RlsacError(f"{f}: not a data record of rlsac folds --stage data (no 'splits' mapping)")
+        out[(f.parent.name, f.stem)] = rec
+    return out
+
+
+def seed_runs(res: dict[tuple[str, str, int], pd.DataFrame], regime: str) -> dict[str, list[str]]:
+    """Models with rows of other training seeds in ``regime`` -> [the model, <model>-s<seed>, ...] (seed order)."""
+    from rlsac.protocol import split_seed
+
+    found: dict[str, list[tuple[int, str]]] = {}
+    for r, m, _ in res:
+        base, s = split_seed(m)
+        if r == regime and s is not None and any(k[:2] == (regime, base) for k in res):
+            found.setdefault(base, []).append((s, m))
+    return {b: [b] + [m for _, m in sorted(set(v))] for b, v in sorted(found.items())}
+
+
+def _aligned(frames: list[pd.DataFrame], col: str) -> tuple[np.ndarray, np.ndarray] | None:
+    """(S, M) errors of ``frames`` on the pairs all of them have, in one order, and each pair's fold (M,)."""
+    keyed = [df.assign(k=pair_key(df)).set_index("k") for df in frames]
+    common = keyed[0].index
+    for df in keyed[1:]:
+        common = common.intersection(df.index)
+    if common.empty:
+        return None
+    return np.stack([df.loc[common, col].to_numpy(np.float64) for df in keyed]), keyed[0].loc[common, "fold"].to_numpy()
+
+
+def seed_errors(res, seeded: dict[str, list[str]], regime: str, model: str, control: str, it: int, col: str,
+                building: str | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The errors ``seed_comparison`` compares: (S_model, M) and (S_control, M) in column ``col`` on the pairs every
+    run has, and each pair's test building (M,); None when a run or common pairs are missing."""
+    runs, controls = seeded.get(model, [model]), seeded.get(control, [control])
+    frames = [res.get((regime, m, it)) for m in runs + controls]
+    got = None if any(f is None for f in frames) else _aligned(frames, col)
+    if got is None:
+        return None
+    err, fold = got
+    if building is not None:
+        err, fold = err[:, fold == building], fold[fold == building]
+        if not err.shape[1]:
+            return None
+    return err[:len(runs)], err[len(runs):], fold

@@ -95,10 +95,10 @@ def fit_synthetic(s: dict, track: bool = True) -> dict[str, Any]:
     import torch
 
     from rlsac.data import match_statistics as ms
-    from rlsac.data import read_batch
     from rlsac.data.synthetic_pairs import SyntheticPairsConf, generate
     from rlsac.folds import data_dir
     from rlsac.io import atomic_path
+    from rlsac.tasks import read_batch
     from rlsac.tasks.fundamental import FundamentalTask
     from rlsac.tracking import check_store, start_run
 

@@ -36,8 +36,9 @@ def paths(regime: str, fold: str, model: str, root: str | Path = ROOT) -> tuple[
 
 def candidates(history: list[dict[str, Any]], kept_step: int, tie: float, key: str = "charts/val_inlier_ratio"
                ) -> list[int]:
-    """Steps of ``history`` whose validation score ``key`` (the selection rule's, rlsac.train.selection_score) lies
-    within ``tie`` of the kept step's (the kept one included): the actors the selection signal cannot tell apart."""
+    """Steps of ``history`` whose validation score ``key`` (the selection rule's, rlsac.learners.harness's
+    selection_score) lies within ``tie`` of the kept step's (the kept one included): the actors the selection signal
+    cannot tell apart."""
     score = {int(h["step"]): float(h[key]) for h in history}
     if kept_step not in score:
         raise RlsacError(f"kept step {kept_step} is not a validated step {sorted(score)}")
@@ -75,20 +76,12 @@ def select_fold(p: dict, params: dict, regime: str, fold: str, model: str, o: di
     from rlsac import checkpoint
     from rlsac.config import section
     from rlsac.evaluate import check_options, resolve_device, score
-    from rlsac.folds import (
-        data_dir,
-        eval_dir,
-        row_options,
-        rows,
-        scene_list,
-        split_scenes,
-        train_options,
-        tuned_settings,
-    )
+    from rlsac.learners.harness import selection_score
+    from rlsac.protocol import data_dir, eval_dir, row_options, rows, scene_list, split_scenes, train_options
     from rlsac.results import read_errors, read_summary
     from rlsac.tasks import task_class
     from rlsac.tracking import check_store, start_run
-    from rlsac.train import selection_score
+    from rlsac.tune import tuned_settings
 
     row = rows(p, fold, regime)[model]
     iterations = list(p["select_iterations"])
@@ -214,10 +207,10 @@ def select_checkpoint(o: dict[str, Any], params: dict, track: bool = True) -> di
     from rlsac import checkpoint
     from rlsac.config import section
     from rlsac.evaluate import check_options, resolve_device, score
+    from rlsac.learners.harness import SELECTION_KEY, selection_score
     from rlsac.results import read_errors, read_summary
     from rlsac.tasks import task_class
     from rlsac.tracking import check_store, start_run
-    from rlsac.train import SELECTION_KEY, selection_score
 
     o = check_select_options(o, params)
     kept = checkpoint.read(o["checkpoint"])

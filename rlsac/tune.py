@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from rlsac.errors import RlsacError
+from rlsac.protocol import record_path  # noqa: F401  (where a row's record lies; also rlsac.tune.record_path)
 
 DEFAULTS: dict[str, Any] = {
     "iterations": 1000,
@@ -75,10 +76,6 @@ def conf(params: dict[str, Any]) -> dict[str, Any]:
             raise RlsacError(f"tuning.{key} must be a non-empty list, got {c[key]!r}")
         c[key] = [check_value(f"tuning.{key}", v, tp, spec) for v in c[key]]
     return c
-
-
-def record_path(regime: str, fold: str, row: str, task: str = "fundamental") -> Path:
-    return Path("reports") / "tuning" / task / regime / fold / f"{row}.json"
 
 
 def scenes_of(data: dict) -> list[str]:
@@ -210,3 +207,16 @@ def record_options(path: str | Path, task: str, method: str, checkpoint: str | N
     if want and (not checkpoint or Path(checkpoint).resolve() != Path(want).resolve()):
         raise RlsacError(f"--tuning {path}: tuned for checkpoint {want}, not {checkpoint or 'none'} (--checkpoint)")
     return as_options(rec["chosen"], lo)
+
+
+def tuned_settings(ev: dict, regime: str, fold: str, name: str, train_scenes: list[str], test_scenes: list[str],
+                   task: str = "fundamental") -> dict[str, Any]:
+    """Row ``name``'s settings from its tuning record (chosen on the fold's validation pairs only, checked against
+    the test scenes) as evaluate options."""
+    from rlsac.results import read_record
+
+    path = record_path(regime, fold, name, task)
+    rec = read_record(path)  # `[]`, `null`, `chosen: {}`, `val_scenes: []` are refused by name (issue #49)
+    if rec is None:
+        raise RlsacError(f"{path}: no tuning record (run `rlsac folds --stage tune` first)")
+    return as_options(check_record(rec, path, regime, fold, name, train_scenes, test_scenes), ev.get("lo"))

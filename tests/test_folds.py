@@ -15,7 +15,7 @@ import torch
 import yaml
 from click.testing import CliRunner
 
-from rlsac import folds
+from rlsac import folds, results
 from rlsac.cli import cli
 from rlsac.config import load_params
 from rlsac.data import fundamental
@@ -520,10 +520,10 @@ def test_a_models_cell_must_hold_the_checkpoint_its_folder_names(tmp_path, row, 
     assert folds.checkpoint_model(folds.checkpoint("hard", "fountain", "rlsac-nosnn")) == "rlsac-nosnn"
     assert folds.checkpoint_model("scratch/ess.pt") is None
     if ok:
-        fold_table._check_cell(cell, row, 100)
+        results._check_cell(cell, row, 100)
     else:
         with pytest.raises(RlsacError, match="its folder names"):
-            fold_table._check_cell(cell, row, 100)
+            results._check_cell(cell, row, 100)
 
 
 def test_fold_table_without_results_writes_nothing(tmp_path):

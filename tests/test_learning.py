@@ -10,14 +10,15 @@ import pytest
 import torch
 
 from rlsac.checkpoint import env_conf, load_actor
-from rlsac.data import load
 from rlsac.data.lines import LineDataConf, generate, write
 from rlsac.env import EnvConf
+from rlsac.learners.sac import validation_metrics
 from rlsac.policy import PolicyConf
 from rlsac.rollout import rlsac_estimate
 from rlsac.sac import SACAgent, SACConf, train_loop
+from rlsac.tasks import load
 from rlsac.tasks.line import LineTask
-from rlsac.train import train, validation_metrics
+from rlsac.train import train
 
 SEL = {"inlier_ratio": "charts/val_inlier_ratio", "val_mAA": "charts/val_mAA"}
 
@@ -50,7 +51,7 @@ def tiny_options(tmp, sel):
 def test_kept_actor_is_the_best_validated_one(data_files, monkeypatch, sel):
     """Real training, validation scores scripted: the checkpoint holds the weights of the first best
     validation under the selection's key (not the latest, not the other key's best)."""
-    import rlsac.train as train_mod
+    import rlsac.learners.sac as train_mod
 
     real, seen = train_mod.validation_metrics, []
 

@@ -5,9 +5,10 @@ import pandas as pd
 import pytest
 import torch
 
+from rlsac import line_calibration
 from rlsac.baselines import oracle, ransac
 from rlsac.config import build
-from rlsac.data import line_calibration, lines
+from rlsac.data import lines
 from rlsac.data.lines import LineDataConf
 from rlsac.errors import RlsacError
 from rlsac.metrics import line_angle_deg

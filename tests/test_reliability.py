@@ -1006,7 +1006,7 @@ def test_sigterm_saves_state_ends_run_killed_and_resume_is_exact(workdir, resume
     import os
     import signal
 
-    from rlsac import train as train_mod
+    from rlsac.learners import sac as train_mod
 
     real_loop = train_mod.train_loop
     sent = []
@@ -1051,7 +1051,7 @@ def test_second_sigterm_stops_at_once_ends_run_killed_and_leaves_no_temporary_fi
 
     import torch
 
-    from rlsac import train as train_mod
+    from rlsac.learners import sac as train_mod
 
     real_loop, real_save = train_mod.train_loop, torch.save
     before = signal.getsignal(signal.SIGTERM)
@@ -1175,7 +1175,7 @@ def test_stop_on_signal_defers_the_first_signal_and_restores_the_handlers(signam
     import signal
 
     from rlsac.errors import Interrupted
-    from rlsac.train import _StopOnSignal
+    from rlsac.signals import StopOnSignal as _StopOnSignal
 
     sig = getattr(signal, signame)
     before = signal.getsignal(sig)

@@ -1,24 +1,7 @@
-"""Datasets: synthetic lines, the CVPR 2020 tutorial layout, and the offline scene importer."""
+"""Datasets: synthetic lines, the CVPR 2020 tutorial layout, and the offline scene importer (a task reads its files
+into a batch: rlsac.tasks.read_batch)."""
 
 from __future__ import annotations
-
-import torch
-
-
-def load(task: str, path, device: str | torch.device = "cpu", idx=slice(None)) -> dict:
-    """Read a data file of task ``task`` (its registered reader) into the batch dict the task, env and
-    baselines use."""
-    return read_batch(task, path, device, idx)[0]
-
-
-def read_batch(task: str, path, device: str | torch.device = "cpu", idx=slice(None)) -> tuple[dict, dict]:
-    """``load``, with the file's attributes (and the reader's report of the instances it left out as unusable,
-    attrs["unusable"]: rlsac.data.validity) -> (batch, attrs)."""
-    from rlsac.tasks import task_class
-
-    cls = task_class(task)
-    arrays, attrs = cls.read(path)
-    return cls.to_batch(arrays, idx, device), attrs
 
 
 def n_unusable(attrs: dict) -> int:

@@ -150,9 +150,10 @@ def _row(claim: Claim, seeds: int | str, stats: dict[str, dict], pairs: int) -> 
 
 
 def check(claim: Claim, res: dict[tuple[str, str, int], pd.DataFrame]) -> dict[str, Any] | None:
-    """The claim against ``res`` (rlsac.reports.folds.collect of its benchmark) -> a row of claims.md, or None when
+    """The claim against ``res`` (rlsac.results.collect of its benchmark) -> a row of claims.md, or None when
     its rows are missing."""
-    from rlsac.reports.folds import seed_comparison, seed_runs
+    from rlsac.reports.folds import seed_comparison
+    from rlsac.results import seed_runs
 
     seeds = seed_runs(res, claim.regime)
     runs, controls = seeds.get(claim.model, [claim.model]), seeds.get(claim.control, [claim.control])
@@ -169,14 +170,8 @@ def check_lines(claim: Claim, root: Path) -> dict[str, Any] | None:
     """A Table 1 claim against <eval_root>/lines: model and control over their training seeds (either may have
     several) at the claim's rate -> a row of claims.md, or None when a result is missing."""
     from rlsac.metrics import seed_bootstrap_maa
-    from rlsac.reports.tables import (
-        LINE_LIMIT_DEG,
-        PAIRED_BOOT,
-        line_errors,
-        line_runs_at,
-        line_seed_runs,
-        read_summary,
-    )
+    from rlsac.protocol import LINE_LIMIT_DEG, PAIRED_BOOT
+    from rlsac.results import line_errors, line_runs_at, line_seed_runs, read_summary
 
     runs, rate = line_seed_runs(root), float(claim.regime)
     model = line_runs_at(root, runs.get(claim.model, [claim.model]), rate)
@@ -197,8 +192,8 @@ def build(eval_root: str | Path = "reports/eval", out_dir: str | Path = "reports
           claims: tuple[Claim, ...] = CLAIMS) -> dict[str, Any]:
     """Write <out_dir>/claims.{md,csv} from the fold and line results; -> {"files", "missing"} (claims whose rows
     are absent)."""
-    from rlsac.reports.folds import N_BOOT, collect
-    from rlsac.reports.tables import PAIRED_BOOT
+    from rlsac.protocol import N_BOOT, PAIRED_BOOT
+    from rlsac.results import collect
 
     line_root = Path(eval_root) / "lines"
     results = {sub: collect(eval_root, sub) for sub in sorted({c.sub for c in claims} - {"lines"})}

@@ -133,9 +133,9 @@ def _options(options: dict[str, Any]) -> dict[str, Any]:
     for key in ("line_index", "pair"):  # an index, or "auto" (the instance the figure picks)
         if isinstance(o[key], str) and o[key] != "auto":
             raise RlsacError(f"plot.{key} must be an integer or 'auto', got {o[key]!r}")
-    from rlsac.evaluate import resolve_device
+    from rlsac.devices import device_name
 
-    resolve_device(o["device"])  # cuda without a GPU: the device is named, before a checkpoint is read onto it
+    device_name(o["device"])  # cuda without a GPU: the device is named, before a checkpoint is read onto it
     return o
 
 
@@ -147,7 +147,7 @@ def _load_policy(path: str | None, task_name: str, device: str):
     """-> (actor, task, env conf, note), or (None, default task, EnvConf(), why) when no checkpoint is asked for
     (empty option). A checkpoint path that does not exist is an error, never a silent fallback."""
     from rlsac.checkpoint import env_conf, load_actor, task_options
-    from rlsac.evaluate import task_from
+    from rlsac.tasks import task_from
 
     if not path:
         return None, task_from(task_name), env_conf({}), "no checkpoint asked for: uniform random minimal sets"
@@ -416,10 +416,10 @@ def _draw_pair(ax, canvas, tf1, tf2, coords, inliers, minimal, lw_scale: float =
 
 
 def _pose_errors(task, hyp, valid, inliers, batch) -> tuple[float, float]:
-    from rlsac.evaluate import _np
+    from rlsac.tasks import as_numpy
 
-    np_batch = {k: _np(v) for k, v in batch.items()}
-    e = task.errors(_np(hyp), _np(valid), _np(inliers), np_batch)
+    np_batch = {k: as_numpy(v) for k, v in batch.items()}
+    e = task.errors(as_numpy(hyp), as_numpy(valid), as_numpy(inliers), np_batch)
     return float(e["err_R"][0]), float(e["err_t"][0])
 
 

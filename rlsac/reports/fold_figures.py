@@ -170,7 +170,7 @@ def read_checkpoints(ckpt_root: str | Path) -> dict[Path, dict]:
 def seed_curves(read: dict[Path, dict], key: str) -> dict[tuple[str, str], pd.DataFrame]:
     """(model, regime/fold) -> steps x seeds table of ``key`` from the checkpoints' validation histories; the rows
     of a model's other training seeds (<model>-s<seed>) are columns of the model's table (issue #27)."""
-    from rlsac.folds import split_seed
+    from rlsac.protocol import split_seed
 
     out: dict[tuple[str, str], list[pd.Series]] = {}
     def order(p: Path) -> tuple[str, str, int]:  # the model itself (its recipe's seed) first, then by seed
@@ -190,7 +190,7 @@ def plot_learning_curves(ckpt_root: str | Path | dict, out_dir: Path) -> tuple[l
     """The validation curves of every fold checkpoint under ``ckpt_root`` (or of ``read_checkpoints``' dict): one
     column per model, one colour per fold; a model trained with several seeds (<model>-s<seed>, issue #27) is drawn
     as the seed mean with its min-max band, each seed's kept actor circled."""
-    from rlsac.folds import split_seed
+    from rlsac.protocol import split_seed
 
     read = ckpt_root if isinstance(ckpt_root, dict) else read_checkpoints(ckpt_root)
     kept = {p.stem + "@" + f"{p.parent.parent.name}/{p.parent.name}": ck.get("step") for p, ck in read.items()}

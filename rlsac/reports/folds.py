@@ -14,7 +14,6 @@ pairs, paired (the same pairs for both methods), 2000 resamples, seed 0.
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 from typing import Any
@@ -25,9 +24,9 @@ import pandas as pd
 from rlsac.io import atomic_path, write_text
 from rlsac.methods import METHODS
 from rlsac.metrics import mAA, paired_bootstrap_maa
+from rlsac.protocol import LIMIT, N_BOOT  # mAA@10 deg, the bootstrap's draws
+from rlsac.results import check_distinct, collect, load_records, pair_key, seed_errors, seed_runs  # noqa: F401
 
-LIMIT = 10.0  # mAA@10 deg (the tutorial's and Table 2's)
-N_BOOT = 2000
 # row labels: each registered method's (rlsac.methods), the fold models' (RLSAC variants of folds.models) here;
 # rows follow ROW_ORDER, then any other method or model alphabetically
 MODEL_NAMES = {"rlsac": "RLSAC (paper recipe and algorithm)",
@@ -58,96 +57,10 @@ REFERENCE = "rlsac"  # paired differences are taken against the paper-recipe RLS
 CONTROLS = ("uniform", "guided")  # the learned sampler against uniform sets, and against a hand-made SNN-guided one
 
 
-def _errors(path: Path) -> pd.DataFrame | None:
-    """A cell's per-pair errors (rlsac.results: a corrupt or truncated file is an error naming it), None if absent."""
-    from rlsac.results import read_errors
-
-    return read_errors(path / "errors.csv", ("err_R", "err_t"))
-
-
-def collect(eval_root: str | Path = "reports/eval", sub: str = "folds") -> dict[tuple[str, str, int], pd.DataFrame]:
-    """(regime, method, iterations) -> per-pair errors of every fold found under <eval_root>/<sub>, with a
-    ``fold`` column."""
-    root = Path(eval_root) / sub
-    out: dict[tuple[str, str, int], list[pd.DataFrame]] = {}
-    if not root.is_dir():
-        return {}
-    for regime in sorted(p.name for p in root.iterdir() if p.is_dir()):
-        for fold_dir in sorted(p for p in (root / regime).iterdir() if p.is_dir()):
-            for mdir in sorted(p for p in fold_dir.iterdir() if p.is_dir()):
-                for idir in sorted(p for p in mdir.iterdir() if p.is_dir() and p.name.startswith("i")):
-                    df = _errors(idir)
-                    if df is None:
-                        continue
-                    _check_cell(idir, mdir.name, int(idir.name[1:]))
-                    df = df.assign(fold=fold_dir.name)
-                    out.setdefault((regime, mdir.name, int(idir.name[1:])), []).append(df)
-    return {k: pd.concat(v, ignore_index=True) for k, v in out.items()}
-
-
-def _check_cell(path: Path, name: str, iterations: int) -> None:
-    """The cell's resolved configuration (config.json, written by evaluate) must be what its folder says:
-    the budget, and the method (an RLSAC model: method rlsac / rlsac-lo with the checkpoint of that name)."""
-    from rlsac.errors import RlsacError
-
-    f = path / "config.json"
-    if not f.is_file():  # results written before evaluate kept its configuration
-        return
-    try:
-        conf = json.loads(f.read_text())
-    except (OSError, ValueError):
-        raise RlsacError(f"{f}: unreadable") from None
-    from rlsac.folds import checkpoint_model, seed_name, split_points, split_seed
-
-    base, points = split_points(name)  # Table 3 (c)'s <row>-n<N>: the row of that name on the data with N points
-    if points is not None:
-        if (conf.get("data_attrs") or {}).get("n_points") != points:
-            raise RlsacError(f"{f}: holds a run on {conf.get('data')!r}, not on the data with {points} points its "
-                             f"folder {name!r} names")
-        spec = METHODS.get(conf.get("method"))
-        name = name if spec is not None and spec.checkpoint else base  # a model's checkpoint is named <model>-n<N>
-    method, path = conf.get("method"), conf.get("checkpoint") or ""
-    model = checkpoint_model(path) if path else None
-    ckpt = model or Path(path).stem
-    spec = METHODS.get(method)
-    prob = conf.get("sampling") == "prob"  # Table 3 (b)'s <model>-prob rows: probabilistic test-time sampling
-    variants = ("-prob",) if prob else ("", "-lo", "-fast")
-    names = tuple(f"{ckpt}{v}" for v in variants)
-    base, seed = split_seed(ckpt)
-    if seed is not None:  # issue #27: the variant rows of another training seed are <row>-s<seed>
-        names += tuple(seed_name(f"{base}{v}", seed) for v in variants if v)
-    if spec is not None and spec.checkpoint and model is not None:  # the pipeline's checkpoint names the row
-        ok = name in names
-    else:  # a checkpoint of one's own (any name) can only be told by its method
-        ok = method == name or (spec is not None and spec.checkpoint and name in names)
-    if conf.get("iterations") != iterations or not ok:
-        raise RlsacError(f"{f}: holds method {method!r} ({ckpt or 'no checkpoint'}) at {conf.get('iterations')} "
-                         f"iterations, not the {name!r} at {iterations} its folder names")
-
-
-def check_distinct(res: dict[tuple[str, str, int], pd.DataFrame], sub: str = "folds") -> None:
-    """Two rows whose per-pair errors are identical in every regime and budget are one method shown twice (OpenCV's
-    findEssentialMat ignores USAC_ACCURATE's flag: its rows were USAC's): RlsacError, before anything is written."""
-    from rlsac.errors import RlsacError
-
-    methods = sorted({m for _, m, _ in res})
-    for i, a in enumerate(methods):
-        for b in methods[i + 1:]:
-            cells = [(r, it) for r, m, it in res if m == a and (r, b, it) in res]
-            if cells and all(res[(r, a, it)][["err_R", "err_t"]].equals(res[(r, b, it)][["err_R", "err_t"]])
-                             for r, it in cells):
-                raise RlsacError(f"reports/eval/{sub}: methods '{a}' and '{b}' give identical errors on every pair, "
-                                 f"fold and budget: one method shown as two rows (drop one from params.yaml)")
-
-
-def _key(df: pd.DataFrame) -> pd.Series:
-    return df["fold"].astype(str) + "/" + df.get("scene", pd.Series([""] * len(df))).astype(str) + "/" + \
-        df.get("pair", df["instance"]).astype(str)
-
-
 def _paired(a: pd.DataFrame, b: pd.DataFrame, col: str) -> tuple[float, float, float] | None:
     """mAA(a) - mAA(b) on the pairs both have, aligned by (fold, scene, pair)."""
-    m = pd.merge(a.assign(k=_key(a))[["k", col]], b.assign(k=_key(b))[["k", col]], on="k", suffixes=("_a", "_b"))
+    m = pd.merge(a.assign(k=pair_key(a))[["k", col]], b.assign(k=pair_key(b))[["k", col]], on="k",
+                 suffixes=("_a", "_b"))
     if m.empty:
         return None
     return paired_bootstrap_maa(m[f"{col}_a"].to_numpy(), m[f"{col}_b"].to_numpy(), LIMIT, n_boot=N_BOOT, seed=0)
@@ -160,24 +73,6 @@ def _ci(t: tuple[float, float, float] | None) -> str:
 def _order(methods) -> list[str]:
     known = [m for m in ROW_ORDER if m in methods]
     return known + sorted(set(methods) - set(known))
-
-
-def load_records(records: str | Path = "reports/folds/data") -> dict[tuple[str, str], dict]:
-    """The folds' data records (rlsac folds --stage data); a corrupt one is an error naming it (issue #49: it was
-    skipped with a printed line, and its fold left out of the data table at exit 0)."""
-    from rlsac.errors import RlsacError
-
-    out = {}
-    root = Path(records)
-    for f in sorted(root.glob("*/*.json")) if root.is_dir() else []:
-        try:
-            rec = json.loads(f.read_text())
-        except (OSError, ValueError) as e:
-            raise RlsacError(f"{f}: not a readable data record ({e.__class__.__name__})") from None
-        if not isinstance(rec, dict) or not isinstance(rec.get("splits"), dict):
-            raise RlsacError(f"{f}: not a data record of rlsac folds --stage data (no 'splits' mapping)")
-        out[(f.parent.name, f.stem)] = rec
-    return out
 
 
 def data_table(recs: dict[tuple[str, str], dict]) -> pd.DataFrame:
@@ -225,7 +120,7 @@ def build(eval_root: str | Path = "reports/eval", out_dir: str | Path = "reports
           iterations_stem: str | None = "folds_iterations", head: str = TABLE2_HEAD,
           tuning: str | Path | None = None) -> dict[str, Any]:
     """Write <stem>.{md,csv} and <iterations_stem>.csv from <eval_root>/<sub>; -> {"files", "missing"}."""
-    from rlsac.folds import split_points, split_seed
+    from rlsac.protocol import split_points, split_seed
 
     everything = collect(eval_root, sub)
     check_distinct(everything, sub)
@@ -365,29 +260,6 @@ def seed_controls(model: str) -> tuple[str, ...]:
     return SEED_CONTROLS_LO if arm(model) == "same LO" else SEED_CONTROLS
 
 
-def seed_runs(res: dict[tuple[str, str, int], pd.DataFrame], regime: str) -> dict[str, list[str]]:
-    """Models with rows of other training seeds in ``regime`` -> [the model, <model>-s<seed>, ...] (seed order)."""
-    from rlsac.folds import split_seed
-
-    found: dict[str, list[tuple[int, str]]] = {}
-    for r, m, _ in res:
-        base, s = split_seed(m)
-        if r == regime and s is not None and any(k[:2] == (regime, base) for k in res):
-            found.setdefault(base, []).append((s, m))
-    return {b: [b] + [m for _, m in sorted(set(v))] for b, v in sorted(found.items())}
-
-
-def _aligned(frames: list[pd.DataFrame], col: str) -> tuple[np.ndarray, np.ndarray] | None:
-    """(S, M) errors of ``frames`` on the pairs all of them have, in one order, and each pair's fold (M,)."""
-    keyed = [df.assign(k=_key(df)).set_index("k") for df in frames]
-    common = keyed[0].index
-    for df in keyed[1:]:
-        common = common.intersection(df.index)
-    if common.empty:
-        return None
-    return np.stack([df.loc[common, col].to_numpy(np.float64) for df in keyed]), keyed[0].loc[common, "fold"].to_numpy()
-
-
 def seed_comparison(res, seeded: dict[str, list[str]], regime: str, model: str, control: str, it: int, col: str,
                     building: str | None = None) -> tuple[dict[str, float], int] | None:
     """``model`` − ``control`` in column ``col`` at ``it`` iterations, each row over its training seeds (``seeded``:
@@ -401,23 +273,6 @@ def seed_comparison(res, seeded: dict[str, list[str]], regime: str, model: str, 
         return None
     a, b, fold = got
     return seed_bootstrap_maa(a, b, LIMIT, strata=fold, n_boot=N_BOOT, seed=0), a.shape[1]
-
-
-def seed_errors(res, seeded: dict[str, list[str]], regime: str, model: str, control: str, it: int, col: str,
-                building: str | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """The errors ``seed_comparison`` compares: (S_model, M) and (S_control, M) in column ``col`` on the pairs every
-    run has, and each pair's test building (M,); None when a run or common pairs are missing."""
-    runs, controls = seeded.get(model, [model]), seeded.get(control, [control])
-    frames = [res.get((regime, m, it)) for m in runs + controls]
-    got = None if any(f is None for f in frames) else _aligned(frames, col)
-    if got is None:
-        return None
-    err, fold = got
-    if building is not None:
-        err, fold = err[:, fold == building], fold[fold == building]
-        if not err.shape[1]:
-            return None
-    return err[:len(runs)], err[len(runs):], fold
 
 
 def _seed_cells(s: dict) -> tuple[str, str, str]:
@@ -556,7 +411,7 @@ def _n_study(res: dict[tuple[str, str, int], pd.DataFrame], it: int, recs: dict[
     """Table 3 (c) against the uniform control on the same data: for every N, RLSAC trained and tested with N points
     per pair, uniform minimal sets on those points, and their paired difference (the policy's share; the data change
     with N for both)."""
-    from rlsac.folds import points_name, split_points
+    from rlsac.protocol import points_name, split_points
 
     control = CONTROLS[0]
     ns = {n for r, m, i in res if r == TABLE3_REGIME and i == it

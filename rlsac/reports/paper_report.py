@@ -47,7 +47,7 @@ def _stats(a, b, strata, metric: str, limit: float) -> dict[str, float]:
 
 
 def _line_errors(root: Path, claim: PaperClaim, rate: float):
-    from rlsac.reports.tables import line_errors, line_seed_runs, read_summary
+    from rlsac.results import line_errors, line_seed_runs, read_summary
 
     runs = line_seed_runs(root)
     got = []
@@ -63,8 +63,8 @@ def _line_errors(root: Path, claim: PaperClaim, rate: float):
 
 def check(claim: PaperClaim, regime: str, eval_root: Path, res: dict) -> dict[str, Any] | None:
     """One row of paper.csv: the claim in one regime (a line claim: its rate), or None when its rows are missing."""
-    from rlsac.reports.folds import LIMIT, seed_errors, seed_runs
-    from rlsac.reports.tables import LINE_LIMIT_DEG
+    from rlsac.protocol import LIMIT, LINE_LIMIT_DEG
+    from rlsac.results import seed_errors, seed_runs
 
     row = {"key": claim.key, "table": claim.table, "claim": claim.text, "metric": claim.metric, "regime": regime,
            "section": claim.section,
@@ -124,7 +124,7 @@ def _md_table(df: pd.DataFrame, cols: list[str]) -> str:
 def build(eval_root: str | Path = "reports/eval", out_dir: str | Path = "reports",
           claims: tuple[PaperClaim, ...] = CLAIMS, headline=HEADLINE) -> dict[str, Any]:
     """Write <out_dir>/paper.{md,csv}; -> {"files", "missing"} (claim / regime pairs whose rows are absent)."""
-    from rlsac.reports.folds import collect
+    from rlsac.results import collect
 
     eval_root = Path(eval_root)
     res = collect(eval_root, "folds") if any(c.sub == "folds" and not c.untestable for c in claims) else {}

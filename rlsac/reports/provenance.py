@@ -131,7 +131,7 @@ def recorded_lines(path: str | Path, lock: str | Path = LOCK) -> Iterator[Path]:
     if "lines-data" not in str(st.get("cmd", "")) or "--rate" not in o:
         raise RlsacError(f"{path}: missing, and its stage {name} is not `rlsac lines-data`: run `dvc repro {name}`")
     split = path.name.split("_o")[0]
-    from rlsac.commands import lines_protocol_data
+    from rlsac.data.line_files import lines_protocol_data
 
     with tempfile.TemporaryDirectory(prefix="rlsac-lines-") as tmp:
         params = Path(tmp) / "params.yaml"

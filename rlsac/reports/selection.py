@@ -22,8 +22,7 @@ import pandas as pd
 
 from rlsac.errors import RlsacError
 from rlsac.io import atomic_path, write_text
-from rlsac.reports.folds import LIMIT, N_BOOT  # mAA@10 deg and the bootstrap's draws, as Table 2
-from rlsac.reports.tables import LINE_LIMIT_DEG  # Table 1's mAA limit, for the line models' records
+from rlsac.protocol import LIMIT, LINE_LIMIT_DEG, N_BOOT  # mAA@10 deg, Table 1's limit, the bootstrap's draws
 from rlsac.results import read_errors
 
 METRICS = ("R", "t")
@@ -50,7 +49,7 @@ def _record(path: Path, need: set[str], keys: tuple[str, ...], errors: tuple[str
 
 def read_runs(root: str | Path) -> list[dict[str, Any]]:
     """Every run's record with its per-pair errors (``errors``: the CSV as a frame), sorted by regime, fold, run."""
-    from rlsac.folds import split_seed
+    from rlsac.protocol import split_seed
 
     out = []
     for path in sorted(Path(root).glob("*/*/*.json")):

@@ -24,17 +24,23 @@ import pandas as pd
 from rlsac.errors import RlsacError
 from rlsac.io import all_or_nothing, atomic_path, staged, write_json, write_text
 from rlsac.metrics import paired_bootstrap_maa
+from rlsac.protocol import LINE_LIMIT_DEG, PAIRED_BOOT
 from rlsac.reports import paper
-from rlsac.results import read_errors_column, read_record, read_summary
+from rlsac.results import (  # noqa: F401  (LINE_SEED_MODELS, line_runs_at: re-exported, as before issue #48)
+    LINE_SEED_MODELS,
+    line_errors,
+    line_runs_at,
+    line_seed_runs,
+    read_errors_column,
+    read_record,
+    read_summary,
+)
 
 DASH = "–"
-LINE_LIMIT_DEG = 0.5  # Table 1's mAA limit (thresholds 0.05..0.5 deg)
-PAIRED_BOOT = 2000  # bootstrap resamples of the Table 1 paired comparison: interval ends stable to ~0.001
 # directory -> Table 1 row; "oracle" (TLS on the true inliers) is ours only: the reference a sampler aims at
 # ngransac: NG-RANSAC's sampling network (issue #29, not in the paper), the one-shot learned sampler beside RLSAC
 LINE_METHODS = {"ransac": "RANSAC", "ours": "Ours", "ours-0.5": "Ours-0.5", "ngransac": "NG-RANSAC", "oracle": "Oracle"}
-# Table 1's learned rows that have training seeds (<row>-s<seed>), and the comparisons made over them
-LINE_SEED_MODELS = ("ours", "ours-0.5", "ngransac")
+# the comparisons made over Table 1's learned rows that have training seeds (rlsac.results.LINE_SEED_MODELS)
 LINE_SEED_PAIRS = (("ours", "ransac"), ("ours-0.5", "ransac"), ("ours-0.5", "ours"), ("ngransac", "ransac"),
                    ("ours", "ngransac"))
 # the single-seed (shipped model) comparisons of Table 1's paired section: the seed pairs but Ours-0.5 vs Ours, which
@@ -232,39 +238,6 @@ def table1(eval_root: str | Path = "reports/eval", out_dir: str | Path = "report
                                missing)
     _report_missing("table 1", missing)
     return df
-
-
-def line_seed_runs(root: Path) -> dict[str, list[str]]:
-    """Table 1's models with results of other training seeds under ``root`` (<eval_root>/lines): {"ours": ["ours",
-    "ours-s1", ...], "ours-0.5": [...]} (the row's own directory is its seed 0; seeds in numeric order)."""
-    from rlsac.folds import seed_name, split_seed
-
-    out: dict[str, list[str]] = {}
-    for d in LINE_SEED_MODELS:
-        seeds = sorted(s for base, s in (split_seed(p.name) for p in root.glob(f"{d}-s*") if p.is_dir())
-                       if base == d and s is not None)
-        if seeds:
-            out[d] = [d] + [seed_name(d, k) for k in seeds]
-    return out
-
-
-def line_runs_at(root: Path, runs: list[str], rate: float) -> list[str]:
-    """The runs of a model (``line_seed_runs``) with results at ``rate``: its other seeds train only at
-    lines.seed_rates; [] when the model's own (first) run has none there."""
-    have = [d for d in runs if (root / d / f"o{rate:g}" / "errors.csv").is_file()]
-    return have if have and have[0] == runs[0] else []
-
-
-def line_errors(root: Path, runs: list[str], rate: float):
-    """(S, M) errors at ``rate`` of the ``runs`` that have results there (``line_runs_at``), None when there are none
-    or they are not on one test set."""
-    runs = line_runs_at(root, runs, rate)
-    if not runs:
-        return None
-    errs = [read_errors(root / d / f"o{rate:g}" / "errors.csv") for d in runs]
-    if len({e.size for e in errs}) != 1:
-        return None
-    return np.stack(errs)
 
 
 def _line_seed_section(root: Path, rates) -> str:
@@ -515,13 +488,13 @@ def build(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
     for path in sorted(eval_root.glob("lines/*/o*/errors.csv")):
         read_errors(path)
     if which in ("folds", "essential", "all"):  # one method shown as two rows: refused before the MLflow run
-        from rlsac.reports import folds
+        from rlsac.results import check_distinct, collect, load_records
 
         for sub in ("folds", "essential") if which == "all" else (which,):
-            folds.check_distinct(folds.collect(eval_root, sub), sub)  # collect reads every cell's errors.csv
+            check_distinct(collect(eval_root, sub), sub)  # collect reads every cell's errors.csv
         for path in sorted((out_dir / "tuning").glob("**/*.json")):  # the tables' tuning sections read them
             read_record(path)
-        folds.load_records(out_dir / "folds" / "data")
+        load_records(out_dir / "folds" / "data")
     check_writable(out_dir / "metrics.json")
     check_store(track, "reports")
     with start_run("reports", f"table {which}", params={"which": which, "eval_root": str(eval_root),

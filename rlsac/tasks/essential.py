@@ -20,8 +20,8 @@ import torch
 from rlsac import geometry
 from rlsac.data import fundamental as fundamental_data
 from rlsac.errors import RlsacError
-from rlsac.tasks import register_task
 from rlsac.tasks.fundamental import FundamentalTask, opencv_model, poselib_ransac, recover_pose
+from rlsac.tasks.registry import register_task
 
 # Our Strecha copy is imported at 1024 x 683 px with f = 920 px (every pair), so thresholds in normalised
 # units are pixels / 920.

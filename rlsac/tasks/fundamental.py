@@ -19,7 +19,7 @@ import torch
 from rlsac import geometry, metrics
 from rlsac.data import fundamental as fundamental_data
 from rlsac.errors import RlsacError
-from rlsac.tasks import register_task
+from rlsac.tasks.registry import register_task
 
 RESIDUALS = ("sampson", "sampson_sq", "symmetric")
 MAX_ERR_R = 180.0  # a failed estimate counts as the maximal error (tutorial: pi and pi/2 rad)

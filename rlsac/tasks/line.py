@@ -14,7 +14,7 @@ import torch
 
 from rlsac import metrics
 from rlsac.data import lines
-from rlsac.tasks import register_task
+from rlsac.tasks.registry import register_task
 
 EPS = 1e-9
 
