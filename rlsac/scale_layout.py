@@ -58,6 +58,10 @@ def protocol(params: dict[str, Any]) -> dict[str, Any]:
             or any(not isinstance(v, int) or v not in s["steps"] for v in last.values())):
         raise RlsacError(f"scale.arm_steps must map arms of scale.arms to a step of scale.steps {s['steps']} (how far "
                          f"that arm's runs go; an arm left out goes to the largest), got {last!r}")
+    bare = [a for a in s["arms"] if s["final_iterations"] > 0 and not arm_final_steps(s, a)]
+    if bare:  # its evaluate-final stage would write nothing
+        raise RlsacError(f"scale.final_steps {s['final_steps']}: no step of arm {bare[0]!r}'s runs (scale.arm_steps); "
+                         "each arm needs one when final_iterations > 0")
     return s
 
 

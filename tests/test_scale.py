@@ -29,6 +29,8 @@ def test_protocol_checks_every_key():
         protocol({"scale": {k: v for k, v in SCALE.items() if k != "val_every"}})
     with pytest.raises(RlsacError, match="scale.arm_steps"):
         protocol({"scale": {**SCALE, "arm_steps": {"fixed": 20}}})  # not a step of the study
+    with pytest.raises(RlsacError, match="no step of arm 'fixed'"):
+        protocol({"scale": {**SCALE, "arm_steps": {"fixed": 10}}})  # final_steps [30]: nothing for fixed to test
     with pytest.raises(RlsacError, match="scale.seeds must be"):
         protocol({"scale": {**SCALE, "seeds": []}})
 
