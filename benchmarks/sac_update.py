@@ -26,7 +26,7 @@ from pathlib import Path
 
 import torch
 
-from rlsac.policy import PolicyConf
+from rlsac.policy import PolicyConf, knn
 from rlsac.rollout import in_channels
 from rlsac.sac import SACAgent, SACConf
 from rlsac.tasks.fundamental import FundamentalTask
@@ -50,8 +50,7 @@ def batches(path: str, n: int, gen: torch.Generator, channels: int, k: int, size
         inst = torch.randint(feats.shape[0], (size,), generator=gen)
         x, m = feats[inst], mask[inst]
         mem, mem2 = torch.rand(size, x.shape[1], 3, generator=gen), torch.rand(size, x.shape[1], 3, generator=gen)
-        d = torch.cdist(x[..., :4], x[..., :4]).masked_fill(~m[:, None, :], float("inf"))
-        graph = d.topk(k, dim=-1, largest=False).indices
+        graph = knn(x[..., :4], k, m)
         action = torch.multinomial(m.float(), task.sample_size, generator=gen)
         out.append((torch.cat([x, mem], -1), torch.cat([x, mem2], -1), m, graph, action,
                     torch.rand(size, generator=gen), (torch.rand(size, generator=gen) < 0.1).float()))

@@ -91,14 +91,11 @@ def fit_synthetic(s: dict, track: bool = True) -> dict[str, Any]:
     the comparison, in reports/synthetic_fit.json (scale.md shows them)."""
     import json
 
-    import numpy as np
-    import torch
-
     from rlsac.data import match_statistics as ms
     from rlsac.data.synthetic_pairs import SyntheticPairsConf, generate
     from rlsac.folds import data_dir
     from rlsac.io import atomic_path
-    from rlsac.tasks import read_batch
+    from rlsac.tasks import as_numpy, read_batch
     from rlsac.tasks.fundamental import FundamentalTask
     from rlsac.tracking import check_store, start_run
 
@@ -108,16 +105,15 @@ def fit_synthetic(s: dict, track: bool = True) -> dict[str, Any]:
     if not path.is_file():
         raise RlsacError(f"{path}: no training file (run `rlsac folds --stage data` first)")
     real, _ = read_batch("fundamental", str(path), "cpu")
-    real = {k: (v.double() if k == "coords" else v) for k, v in real.items()}
+    real["coords"] = real["coords"].double()  # the inlier test in float64, for real and synthetic pairs alike
     n = int(real["mask"].shape[1])
-    fitted = ms.fit({k: (v.numpy() if torch.is_tensor(v) else v) for k, v in real.items()},
-                    task.true_inliers(real).numpy())
+    fitted = ms.fit({k: as_numpy(v) for k, v in real.items()}, task.true_inliers(real).numpy())
     t0 = time.process_time()
     syn = generate(SyntheticPairsConf(n_pairs=int(s["synthetic_pairs"]), n_points=n, snn="fitted", statistics=fitted,
                                       seed=0))
     per_s = int(s["synthetic_pairs"]) / max(time.process_time() - t0, 1e-9)
-    tb = {k: (torch.as_tensor(v).double() if k == "coords" else torch.as_tensor(v)) for k, v in syn.items()
-          if isinstance(v, np.ndarray) and v.dtype != object}
+    tb = task.to_batch(syn)
+    tb["coords"] = tb["coords"].double()
     mine = ms.fit(syn, task.true_inliers(tb).numpy())
     out = Path("reports") / "synthetic_fit.json"
     comparison = ms.compare(fitted, mine)
@@ -194,8 +190,8 @@ def saved_step(opts: dict) -> int:
     state = Path(opts["out"]).with_suffix(".state.pt")
     if not state.is_file():
         return 0
-    try:
-        st = torch.load(state, map_location="cpu", weights_only=False)
+    try:  # mmap: only the step and the conf are read, not the replay buffer (hundreds of MB at 10k steps)
+        st = torch.load(state, map_location="cpu", weights_only=False, mmap=True)
     except Exception:  # noqa: BLE001 (any unreadable state: start over, as for a missing one)
         return 0
 

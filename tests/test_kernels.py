@@ -9,7 +9,7 @@ import torch.nn.functional as F
 
 from rlsac.errors import RlsacError
 from rlsac.kernels import linear_for, onednn_linear
-from rlsac.policy import PolicyConf
+from rlsac.policy import PolicyConf, knn
 from rlsac.sac import SACAgent, SACConf
 from rlsac.train import TrainConf, check, stored_conf
 
@@ -40,8 +40,7 @@ def _batch(gen, b=6, n=20, c=9, m=8):
     s2[..., -3:] = torch.rand(b, n, 3, generator=gen)
     mask = torch.ones(b, n, dtype=torch.bool)
     mask[0, -3:] = False
-    graph = torch.cdist(s[..., :2], s[..., :2]).masked_fill(~mask[:, None, :], float("inf")).topk(
-        5, dim=-1, largest=False).indices
+    graph = knn(s[..., :2], 5, mask)
     action = torch.multinomial(mask.float(), m, generator=gen)
     return s, s2, mask, graph, action, torch.rand(b, generator=gen), torch.zeros(b)
 

@@ -52,12 +52,9 @@ def fit(batch: dict[str, Any], inliers: np.ndarray) -> dict[str, Any]:
 
 def compare(real: dict[str, Any], synthetic: dict[str, Any]) -> list[dict[str, Any]]:
     """The fitted statistics beside those of the synthetic pairs: one row per statistic (name, real, synthetic)."""
-    rows = []
-    for name in ("inlier_ratio",):
-        for q in (0.25, 0.5, 0.75):
-            rows.append({"statistic": f"inlier ratio per pair, q{int(q * 100)}",
-                         "real": float(np.quantile(real[name], q)),
-                         "synthetic": float(np.quantile(synthetic[name], q))})
+    rows = [{"statistic": f"inlier ratio per pair, q{int(q * 100)}",
+             "real": float(np.quantile(real["inlier_ratio"], q)),
+             "synthetic": float(np.quantile(synthetic["inlier_ratio"], q))} for q in (0.25, 0.5, 0.75)]
     for kind in ("inliers", "outliers"):
         for q in (0.1, 0.5, 0.9):
             i = QUANTILES.index(q)
