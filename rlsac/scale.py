@@ -6,7 +6,10 @@ Stages (params.yaml ``scale``, rlsac.scale_layout):
   train     one run per (arm, seed): the fold recipe (train.fundamental <- folds.train.rlsac) run for the largest of
             ``steps``, its actor kept at every step of ``steps`` (the curve's points) and by the recipe's selection;
             arm ``fixed`` sees the training file's 150 points of a pair in every episode (the record), arm ``redraw``
-            a fresh 150 of the pair's pool per episode with the images swapped at random (rlsac.episodes);
+            a fresh 150 of the pair's pool per episode with the images swapped at random (rlsac.episodes); arm
+            ``pretrain`` first ``pretrain.steps`` steps on the synthetic pairs, then redraw's from those networks;
+  fit       the synthetic generator's statistics fitted to the fold's training pairs, beside its own pairs';
+  synthetic the pretrain arm's synthetic pairs (``pretrain.pairs``, drawn with those statistics);
   control   the learner's positive control on synthetic pairs (rlsac.positive_control, params positive_control);
   evaluate  every kept actor on the fold's test pairs at ``iterations`` (``evaluate-final``: the actors of
             ``final_steps`` at ``final_iterations``), with the inlier threshold and pre-filter tuned on the fold's
@@ -25,7 +28,7 @@ from typing import Any
 from rlsac import scale_layout as lay
 from rlsac.errors import RlsacError
 
-STAGES = ("pool", "train", "evaluate", "evaluate-final", "control", "fit")
+STAGES = ("pool", "train", "evaluate", "evaluate-final", "control", "fit", "synthetic")
 
 
 def scale(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
@@ -47,7 +50,7 @@ def scale(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
     if s["fold"] not in p["test"] or s["regime"] not in p["regimes"]:
         raise RlsacError(f"scale.fold {s['fold']!r} / scale.regime {s['regime']!r}: not a fold / regime of params "
                          "folds")
-    if stage not in ("pool", "fit"):
+    if stage not in ("pool", "fit", "synthetic"):
         arm, seed = options.get("arm"), options.get("seed")
         if arm not in s["arms"] or seed is None or int(seed) not in s["seeds"]:
             raise RlsacError(f"scale --stage {stage} needs --arm (one of {', '.join(s['arms'])}) and --seed (one of "
@@ -61,6 +64,8 @@ def scale(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
         out = make_pool(p, params, s, track)
     elif stage == "fit":
         out = fit_synthetic(s, track)
+    elif stage == "synthetic":
+        out = make_synthetic(s, track)
     elif stage == "train":
         out = train_run(p, params, s, options["arm"], int(options["seed"]), options, track)
     else:
@@ -93,21 +98,13 @@ def fit_synthetic(s: dict, track: bool = True) -> dict[str, Any]:
 
     from rlsac.data import match_statistics as ms
     from rlsac.data.synthetic_pairs import SyntheticPairsConf, generate
-    from rlsac.folds import data_dir
     from rlsac.io import atomic_path
-    from rlsac.tasks import as_numpy, read_batch
     from rlsac.tasks.fundamental import FundamentalTask
     from rlsac.tracking import check_store, start_run
 
     check_store(track, "scale")
     task = FundamentalTask()
-    path = data_dir(s["regime"], s["fold"]) / "train.h5"
-    if not path.is_file():
-        raise RlsacError(f"{path}: no training file (run `rlsac folds --stage data` first)")
-    real, _ = read_batch("fundamental", str(path), "cpu")
-    real["coords"] = real["coords"].double()  # the inlier test in float64, for real and synthetic pairs alike
-    n = int(real["mask"].shape[1])
-    fitted = ms.fit({k: as_numpy(v) for k, v in real.items()}, task.true_inliers(real).numpy())
+    fitted, n = fitted_statistics(s, task)
     t0 = time.process_time()
     syn = generate(SyntheticPairsConf(n_pairs=int(s["synthetic_pairs"]), n_points=n, snn="fitted", statistics=fitted,
                                       seed=0))
@@ -131,6 +128,46 @@ def fit_synthetic(s: dict, track: bool = True) -> dict[str, Any]:
             "pairs_per_cpu_minute": round(60 * per_s)}
 
 
+def fitted_statistics(s: dict, task) -> tuple[dict, int]:
+    """The match statistics of the fold's training pairs (inliers by the training reward's threshold) and their points
+    per pair."""
+    from rlsac.data import match_statistics as ms
+    from rlsac.folds import data_dir
+    from rlsac.tasks import as_numpy, read_batch
+
+    path = data_dir(s["regime"], s["fold"]) / "train.h5"
+    if not path.is_file():
+        raise RlsacError(f"{path}: no training file (run `rlsac folds --stage data` first)")
+    real, _ = read_batch("fundamental", str(path), "cpu")
+    real["coords"] = real["coords"].double()  # the inlier test in float64, for real and synthetic pairs alike
+    fitted = ms.fit({k: as_numpy(v) for k, v in real.items()}, task.true_inliers(real).numpy())
+    return fitted, int(real["mask"].shape[1])
+
+
+def make_synthetic(s: dict, track: bool = True) -> dict[str, Any]:
+    """The pretrain arm's ``pretrain.pairs`` synthetic pairs, drawn with the fold's fitted statistics (seed 0), as a
+    prepared file: the pretraining's episodes (each pair's points, the images swapped at random)."""
+    from rlsac.data.fundamental import KIND
+    from rlsac.data.synthetic_pairs import SyntheticPairsConf, generate
+    from rlsac.data.tutorial import write
+    from rlsac.tasks.fundamental import FundamentalTask
+    from rlsac.tracking import check_store, start_run
+
+    check_store(track, "scale")
+    fitted, n = fitted_statistics(s, FundamentalTask())
+    pairs = int(s["pretrain"]["pairs"])
+    syn = generate(SyntheticPairsConf(n_pairs=pairs, n_points=n, snn="fitted", statistics=fitted, seed=0))
+    syn.pop("inliers")  # a prepared file holds what real pairs have: no labels
+    out = lay.synthetic_file(s["fold"])
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with start_run("scale", f"synthetic pairs {s['fold']}", params={"fold": s["fold"], "regime": s["regime"],
+                                                                    "pairs": pairs, "n_points": n},
+                   enabled=track):
+        write(out, syn, {"kind": KIND, "n_points": n, "split": "synthetic", "scenes": "synthetic",
+                         "source": f"rlsac.data.synthetic_pairs snn=fitted to fold {s['fold']} ({s['regime']})"})
+    return {"file": str(out), "pairs": pairs}
+
+
 def train_options(p: dict, params: dict, s: dict, arm: str, seed: int, o: dict) -> dict[str, Any]:
     """The fold recipe of model rlsac, run to the largest step with its snapshots; the arm's episodes."""
     from rlsac.config import deep_update
@@ -145,10 +182,24 @@ def train_options(p: dict, params: dict, s: dict, arm: str, seed: int, o: dict) 
                              "run_name": f"train scale {s['fold']} {lay.run_name(arm, seed)}",
                              "tags": {"command": "scale", "benchmark": "scale", "fold": s["fold"], "arm": arm,
                                       "seed": str(seed)}}
-    if arm == "redraw":
+    if arm in ("redraw", "pretrain"):
         n = int(params.get("fundamental", {}).get("n_points", 150))
         extra["episodes"] = {"pool": str(lay.pool_file(s["fold"])), "points": n, "swap": True}
+    if arm == "pretrain":  # the real phase starts from the synthetic phase's networks
+        extra["init"] = str(lay.pretrained(s["fold"], seed).with_suffix(".state.pt"))
     return deep_update(base, extra)
+
+
+def pretrain_options(opts: dict, s: dict, seed: int) -> dict[str, Any]:
+    """The pretrain arm's synthetic phase: the real phase's recipe on the synthetic pairs (each episode a pair's
+    points, the images swapped at random) for ``pretrain.steps`` steps, validated on the fold's validation pairs."""
+    from rlsac.config import deep_update
+
+    syn, steps = str(lay.synthetic_file(s["fold"])), int(s["pretrain"]["steps"])
+    base = {k: v for k, v in opts.items() if k not in ("init", "snapshot_steps")}
+    return deep_update(base, {"data": syn, "out": str(lay.pretrained(s["fold"], seed)), "sac": {"total_steps": steps},
+                              "ckpt_every": steps, "episodes": {"pool": syn},
+                              "run_name": f"train scale {s['fold']} {lay.run_name('pretrain', seed)} synthetic"})
 
 
 def train_run(p: dict, params: dict, s: dict, arm: str, seed: int, o: dict, track: bool) -> dict[str, Any]:
@@ -159,9 +210,15 @@ def train_run(p: dict, params: dict, s: dict, arm: str, seed: int, o: dict, trac
     from rlsac.train import train
 
     opts = train_options(p, params, s, arm, seed, o)
-    if arm == "redraw" and not lay.pool_file(s["fold"]).is_file():
+    if arm != "fixed" and not lay.pool_file(s["fold"]).is_file():
         raise RlsacError(f"{lay.pool_file(s['fold'])}: no pool file (run `rlsac scale --stage pool` first)")
+    if arm == "pretrain" and not lay.synthetic_file(s["fold"]).is_file():
+        raise RlsacError(f"{lay.synthetic_file(s['fold'])}: no synthetic pairs (run `rlsac scale --stage synthetic`)")
     lay.run_dir(s["fold"], arm, seed).mkdir(parents=True, exist_ok=True)
+    if arm == "pretrain":
+        pre = pretrain_options(opts, s, seed)
+        if saved_step(pre) < pre["sac"]["total_steps"]:  # one leg: a state of this recipe is complete
+            train(pre, track=track)
     done, summ = saved_step(opts), None
     for end in lay.arm_legs(s, arm):
         if done >= end:
@@ -236,6 +293,8 @@ def format_summary(s: dict[str, Any]) -> str:
                 + f" -> {', '.join(s['files'])}")
     if s["stage"] == "pool":
         return f"scale pool ({s['seconds']} s): {s['pairs']} pairs -> {s['pool']}"
+    if s["stage"] == "synthetic":
+        return f"scale synthetic pairs ({s['seconds']} s): {s['pairs']} pairs -> {s['file']}"
     if s["stage"] == "fit":
         return (f"synthetic fit ({s['seconds']} s): statistics of {s['real_pairs']} training pairs, "
                 f"{s['synthetic_pairs']} synthetic pairs drawn with them ({s['pairs_per_cpu_minute']} per CPU minute) "

@@ -8,7 +8,8 @@ forward stops earlier); the budget every kept actor is tested at (``iterations``
 ``final_steps`` are (``final_iterations``: Table 2's 1000, ten times the CPU time; 0 = none); the legs a run is
 trained in (``legs``: each leg resumes the last one's saved state, so a longer study extends its runs instead of
 re-running them; a resumed leg starts new episodes at its first step, which makes the legs part of the recipe); the
-synthetic pairs drawn with the statistics fitted to the fold (``synthetic_pairs``).
+synthetic pairs drawn with the statistics fitted to the fold (``synthetic_pairs``, for the comparison); the pretrain
+arm's synthetic phase (``pretrain``: its steps, before the real pairs' steps counted by ``steps``, and its pairs).
 """
 
 from __future__ import annotations
@@ -19,14 +20,16 @@ from typing import Any
 from rlsac.config import section
 from rlsac.errors import RlsacError
 
-ARMS = ("fixed", "redraw")  # the record's episodes; a fresh draw of the pool per episode, images swapped at random
+# the record's episodes; a fresh draw of the pool per episode, images swapped at random; ``pretrain.steps`` steps on
+# synthetic pairs drawn with the fold's fitted statistics (``pretrain.pairs`` of them), then redraw's episodes
+ARMS = ("fixed", "redraw", "pretrain")
 
 
 def protocol(params: dict[str, Any]) -> dict[str, Any]:
     """params.yaml ``scale``, checked: fold, regime, pool, arms, seeds, steps, iterations, settings_from."""
     s = dict(section(params, "scale"))
     need = ("fold", "regime", "pool", "arms", "seeds", "steps", "iterations", "final_iterations", "settings_from",
-            "val_every", "legs", "final_steps", "synthetic_pairs", "arm_steps")
+            "val_every", "legs", "final_steps", "synthetic_pairs", "arm_steps", "pretrain")
     missing = [k for k in need if k not in s]
     if missing or set(s) - set(need):
         raise RlsacError(f"params.yaml scale: needs exactly {', '.join(need)} (missing {missing}, "
@@ -49,19 +52,20 @@ def protocol(params: dict[str, Any]) -> dict[str, Any]:
         raise RlsacError(f"scale.legs must be increasing positive integers ending at the largest step "
                          f"{s['steps'][-1]}, got {legs!r}")
     fin = s["final_steps"]
-    if not isinstance(fin, list) or not set(fin) <= set(s["steps"]) or (s["final_iterations"] > 0 and not fin):
-        raise RlsacError(f"scale.final_steps must be a list of steps of scale.steps {s['steps']} (one at least when "
-                         f"final_iterations > 0), got {fin!r}")
+    if not isinstance(fin, list) or not set(fin) <= set(s["steps"]):
+        raise RlsacError(f"scale.final_steps must be a list of steps of scale.steps {s['steps']} (each arm's last step "
+                         f"is tested at final_iterations too), got {fin!r}")
     s["final_steps"] = sorted(set(fin))
     last = s["arm_steps"]
     if (not isinstance(last, dict) or set(last) - set(s["arms"])
             or any(not isinstance(v, int) or v not in s["steps"] for v in last.values())):
         raise RlsacError(f"scale.arm_steps must map arms of scale.arms to a step of scale.steps {s['steps']} (how far "
                          f"that arm's runs go; an arm left out goes to the largest), got {last!r}")
-    bare = [a for a in s["arms"] if s["final_iterations"] > 0 and not arm_final_steps(s, a)]
-    if bare:  # its evaluate-final stage would write nothing
-        raise RlsacError(f"scale.final_steps {s['final_steps']}: no step of arm {bare[0]!r}'s runs (scale.arm_steps); "
-                         "each arm needs one when final_iterations > 0")
+    pre = s["pretrain"]
+    if (not isinstance(pre, dict) or set(pre) != {"steps", "pairs"}
+            or not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in pre.values())):
+        raise RlsacError(f"scale.pretrain must be {{steps: <int > 0>, pairs: <int > 0>}} (the pretrain arm's synthetic "
+                         f"steps and pairs), got {pre!r}")
     return s
 
 
@@ -78,11 +82,24 @@ def arm_legs(s: dict[str, Any], arm: str) -> list[int]:
 
 
 def arm_final_steps(s: dict[str, Any], arm: str) -> list[int]:
-    return [k for k in s["final_steps"] if k in arm_steps(s, arm)]
+    """The steps of an arm tested at final_iterations: those of final_steps it reaches, and its last (its last leg's
+    end), so every arm has one."""
+    mine = arm_steps(s, arm)
+    return sorted({k for k in s["final_steps"] if k in mine} | {mine[-1]})
 
 
 def pool_file(fold: str) -> Path:
     return Path("data") / "scale" / fold / "pool.h5"
+
+
+def synthetic_file(fold: str) -> Path:
+    """The pretrain arm's synthetic pairs (stage scale_synthetic)."""
+    return Path("data") / "scale" / fold / "synthetic.h5"
+
+
+def pretrained(fold: str, seed: int) -> Path:
+    """A pretrain run's synthetic phase (its actor; the state beside it starts the real phase: train ``init``)."""
+    return run_dir(fold, "pretrain", seed) / "synthetic.pt"
 
 
 def run_name(arm: str, seed: int) -> str:

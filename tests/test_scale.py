@@ -12,25 +12,27 @@ from click.testing import CliRunner
 from rlsac.cli import cli
 from rlsac.errors import RlsacError
 from rlsac.reports import scale as report
-from rlsac.scale_layout import protocol
+from rlsac.scale_layout import arm_final_steps, protocol
 
 SCALE = {"fold": "castle", "regime": "hard", "pool": 1000, "arms": ["fixed", "redraw"], "seeds": [0, 1],
          "steps": [30, 10], "iterations": 100, "final_iterations": 1000, "settings_from": "uniform",
          "val_every": 10, "legs": [10, 30], "final_steps": [30], "synthetic_pairs": 20,
-         "arm_steps": {}}
+         "arm_steps": {}, "pretrain": {"steps": 10, "pairs": 20}}
 
 
 def test_protocol_checks_every_key():
     s = protocol({"scale": SCALE})
     assert s["steps"] == [10, 30]  # sorted: the largest is the run's length
-    with pytest.raises(RlsacError, match="each one of fixed, redraw"):
+    with pytest.raises(RlsacError, match="each one of fixed, redraw, pretrain"):
         protocol({"scale": {**SCALE, "arms": ["pretrained"]}})
     with pytest.raises(RlsacError, match="missing \\['val_every'\\]"):
         protocol({"scale": {k: v for k, v in SCALE.items() if k != "val_every"}})
     with pytest.raises(RlsacError, match="scale.arm_steps"):
         protocol({"scale": {**SCALE, "arm_steps": {"fixed": 20}}})  # not a step of the study
-    with pytest.raises(RlsacError, match="no step of arm 'fixed'"):
-        protocol({"scale": {**SCALE, "arm_steps": {"fixed": 10}}})  # final_steps [30]: nothing for fixed to test
+    short = protocol({"scale": {**SCALE, "arms": ["fixed", "redraw", "pretrain"], "arm_steps": {"pretrain": 10}}})
+    assert arm_final_steps(short, "pretrain") == [10] and arm_final_steps(short, "fixed") == [30]  # each arm's last
+    with pytest.raises(RlsacError, match="scale.pretrain must be"):
+        protocol({"scale": {**SCALE, "pretrain": {"steps": 0, "pairs": 20}}})
     with pytest.raises(RlsacError, match="scale.seeds must be"):
         protocol({"scale": {**SCALE, "seeds": []}})
 
@@ -71,6 +73,8 @@ def test_the_report_pairs_seeds_and_pairs_on_known_values(workdir):
     red = df[(df.arm == "redraw") & (df.step == 30)].iloc[0]
     assert red["vs_guided_t"] == pytest.approx(0.5) and red["vs_guided_t_lo"] < 0.5 < red["vs_guided_t_hi"]
     assert red["sd_R"] == 0.0 and not got["missing"]
+    assert red["vs_base_R"] == pytest.approx(-0.5) and red["vs_base_R_hi"] < 0  # redraw - fixed: half the pairs lost
+    assert pd.isna(fixed.get("vs_base_R"))  # the fixed arm adds to nothing
     text = (workdir / "reports" / "scale.md").read_text()
     assert "+1.000 [+1.000, +1.000]" in text and (workdir / "reports/scale_curve.png").is_file()
 

@@ -64,3 +64,35 @@ def test_bad_training_data_is_one_line_error(tmp_path, monkeypatch):
     res = CliRunner().invoke(cli, ["train", "--task", "line", "--data", "bad.h5", "--out", "x.pt", "--no-tracking"])
     assert res.exit_code == 2
     assert "Traceback" not in res.output and not (tmp_path / "x.pt").exists()
+
+
+def test_init_starts_from_another_runs_networks_and_nothing_else(tmp_path, monkeypatch):
+    """Issue #46's pretraining: ``init`` loads a state's networks; with no update before the end (learning_starts
+    past the run's transitions) the kept actor is that state's actor exactly, whatever the seed; the optimisers,
+    buffer and step are this run's own (step 0: it trains its full length)."""
+    tr = tiny_lines(tmp_path / "tr.h5", 1, 32)
+    train({**TINY, "data": tr, "out": str(tmp_path / "pre.pt"), "device": "cpu", "seed": 7}, track=False)
+    pre = torch.load(tmp_path / "pre.state.pt", weights_only=False)
+    want = {k[len("actor."):]: v for k, v in pre["agent"].items() if k.startswith("actor.")}
+    frozen = {**TINY, "selection": "last", "sac": {**TINY["sac"], "total_steps": 2, "learning_starts": 10_000}}
+    for name, init in (("a", str(tmp_path / "pre.state.pt")), ("b", "")):
+        train({**frozen, "data": tr, "out": str(tmp_path / f"{name}.pt"), "device": "cpu", "seed": 3, "init": init},
+              track=False)
+    a, b = (torch.load(tmp_path / f"{n}.pt", weights_only=False) for n in ("a", "b"))
+    assert a["step"] == 2 and a["conf"]["init"] == str(tmp_path / "pre.state.pt") and "init" not in b["conf"]
+    assert all(torch.equal(a["actor"][k], want[k]) for k in want) and set(a["actor"]) == set(want)
+    assert not all(torch.equal(b["actor"][k], want[k]) for k in want)  # random initialisation otherwise
+
+    monkeypatch.chdir(tmp_path)
+    res = CliRunner().invoke(cli, ["train", "--task", "line", "--data", tr, "--out", "c.pt", "--no-tracking",
+                                   "--params", "", "--set", "init=missing.state.pt"])
+    assert res.exit_code == 2 and "missing.state.pt: no such training state" in res.output
+    assert not (tmp_path / "c.pt").exists()
+
+
+def test_init_is_refused_where_it_would_do_nothing(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    tr = tiny_lines(tmp_path / "tr.h5", 1, 8)
+    res = CliRunner().invoke(cli, ["train", "--task", "line", "--method", "ngransac", "--data", tr, "--out", "n.pt",
+                                   "--no-tracking", "--params", "", "--set", "init=x.state.pt"])
+    assert res.exit_code == 2 and "does not read it" in res.output and not (tmp_path / "n.pt").exists()

@@ -86,6 +86,10 @@ class TrainConf:
     # the SAC update's dense products (rlsac.kernels): "aten", the record's; "onednn", the same function about 1.5x
     # faster on CPU under the portable pins, other last bits (not in the paper: an implementation choice)
     kernels: str = "aten"
+    # not in the paper (issue #46, the pretraining arm): a training state (<out>.state.pt of another run) whose networks
+    # (actor, critics, targets, temperature) start this run; its optimisers, replay buffer and step are not carried
+    # (they belong to the other run's data): step 0, an empty buffer, fresh Adam moments. "" = random initialisation
+    init: str = ""
 
     # checked by rlsac.config.build for every source (params.yaml, --set); nested sections have their own
     ranges = {"task": TASKS, "method": LEARNERS, "device": ("auto", "cpu", "cuda"), "seed": "[0, 4294967295]",
@@ -96,7 +100,7 @@ class TrainConf:
 
 # options added after the record, left out of a stored configuration while at their default: the record's
 # checkpoints (and so their bytes) are what they were (rlsac verify --include-train)
-LATER_DEFAULTS = {"episodes": to_dict(EpisodeConf()), "snapshot_steps": [], "kernels": "aten"}
+LATER_DEFAULTS = {"episodes": to_dict(EpisodeConf()), "snapshot_steps": [], "kernels": "aten", "init": ""}
 
 
 def stored_conf(conf: TrainConf) -> dict:
@@ -123,6 +127,10 @@ def check(options: dict, track: bool = True) -> TrainConf:
     if not conf.data:
         raise RlsacError("train needs --data")
     _task(conf)
+    if conf.init and conf.method != "rlsac":
+        raise RlsacError(f"init: the {conf.method} learner does not read it (RLSAC's pretraining only)")
+    if conf.init and not conf.resume and not Path(conf.init).is_file():
+        raise RlsacError(f"{conf.init}: no such training state to start from (train --set init=...)")
     out = check_writable(conf.out, "checkpoint")
     check_writable(out.with_suffix(".state.pt"), "training state")
     check_store(track, task_experiment(conf.task))

@@ -68,6 +68,8 @@ def train(conf: TrainConf, track: bool = True, snapshots: list | None = None) ->
     run.snapshots = snapshots
     if conf.resume:
         run.resume(data)
+    elif conf.init:
+        run.start_from(conf.init)
 
     stop = run.stop = _StopOnSignal()
     with start_run(task_experiment(conf.task), run.name(), run.logged_conf(), tags=run.tags(), enabled=track,
@@ -162,6 +164,15 @@ class _TrainingRun:
                 on_disk = {}
             if on_disk.get("step") != self.kept.get("step"):
                 checkpoint.write(self.out, self.kept)
+
+    def start_from(self, path: str) -> None:
+        """The networks of another run's training state (``init``: pretraining), nothing else of it."""
+        st = load_torch(path, self.device, "training state")
+        try:
+            self.agent.load_state_dict(st["agent"])
+        except (KeyError, RuntimeError, TypeError) as e:
+            raise RlsacError(f"{path}: its networks do not fit this configuration "
+                             f"({e.__class__.__name__}: {' '.join(str(e).split())[:100]})") from None
 
     # ------------------------------------------------------------ callbacks of the training loop
     def validate(self, step: int) -> dict:
