@@ -339,19 +339,20 @@ def folds(tracking: bool, **options) -> None:
 
 
 @cli.command()
-@click.option("--stage", type=click.Choice(["pool", "train", "evaluate", "evaluate-final", "control", "fit",
-                                           "synthetic"]),
+@click.option("--stage", type=click.Choice(["pool", "train", "evaluate", "evaluate-final", "validate", "control",
+                                           "fit", "synthetic"]),
               required=True,
               help="pool: the fold's training pairs with the pool's points each (data/scale/<fold>/pool.h5); train: "
                    "one run of an arm and seed with its step snapshots; evaluate: every snapshot on the fold's test "
                    "pairs at scale.iterations (evaluate-final: those of scale.final_steps at "
-                   "scale.final_iterations); control: the learner's positive control on synthetic pairs; fit: the "
+                   "scale.final_iterations; validate: every snapshot on the fold's validation pairs, what chooses "
+                   "the recipe); control: the learner's positive control on synthetic pairs; fit: the "
                    "synthetic generator's statistics fitted to the fold's training pairs, beside its own "
                    "(reports/synthetic_fit.json); synthetic: the pretrain arm's synthetic pairs "
                    "(data/scale/<fold>/synthetic.h5).")
 @click.option("--arm", help="With train / evaluate: fixed (the training file's points), redraw (a fresh draw of the "
-                            "pool per episode, images swapped at random) or pretrain (synthetic pairs first, then "
-                            "redraw's episodes).")
+                            "pool per episode, images swapped at random), pretrain (synthetic pairs first, then "
+                            "redraw's episodes) or prefilter (redraw's episodes pre-filtered as at test).")
 @click.option("--seed", type=int, help="With train / evaluate: a training seed of params.yaml scale.seeds.")
 @click.option("--params", "params", default="params.yaml", show_default=True,
               help="params.yaml: its scale, folds, fundamental and train.fundamental sections.")
@@ -359,7 +360,7 @@ def folds(tracking: bool, **options) -> None:
 @device_option
 @tracking_option
 def scale(tracking: bool, **options) -> None:
-    """The training-scale study (issue #46): one fold trained at growing scale, three data arms (rlsac.scale)."""
+    """The training-scale study (issue #46): one fold trained at growing scale, four data arms (rlsac.scale)."""
     from rlsac.scale import format_summary
     from rlsac.scale import scale as run
 

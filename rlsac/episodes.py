@@ -14,7 +14,7 @@ point indices and the swap flag (``ReplayBuffer(extra=...)``).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 
@@ -27,7 +27,10 @@ class EpisodeConf:
     pool: str = ""
     points: int = 150  # N drawn per episode from the pool (the paper's N); used with a pool only
     swap: bool = False  # exchange the two images with probability 1/2 per episode
-    ranges = {"points": "[8, inf)"}
+    # SNN pre-filters, one drawn per episode (1.0 = none), masking what the evaluation's tuned pre-filter masks: the
+    # policy sees pre-filtered pairs in training as at test (issue #46, item 1); [] = none. With a pool only
+    prefilter: list[float] = field(default_factory=list)
+    ranges = {"points": "[8, inf)", "prefilter": "(0, 1]"}
 
 
 class FixedPairs:
@@ -52,13 +55,15 @@ class FixedPairs:
 class RedrawnPairs:
     """N points drawn per episode from each pair's pool, the images swapped with probability 1/2 (``swap``)."""
 
-    def __init__(self, task, pool: dict, actor, points: int, swap: bool) -> None:
+    def __init__(self, task, pool: dict, actor, points: int, swap: bool, prefilter=()) -> None:
         self.task, self.pool, self.actor, self.swap = task, pool, actor, bool(swap)
         self.n_instances, pool_n = pool["mask"].shape
         self.n_points = int(points)
         if self.n_points > pool_n:
             raise RlsacError(f"episodes.points {points} is more than the pool's {pool_n} points per pair")
-        self.extra_width = self.n_points + 1  # the drawn indices, then the swap flag
+        self.prefilter = torch.tensor([float(r) for r in prefilter], dtype=torch.float64)
+        # the drawn indices, the swap flag, and with pre-filters the index of the episode's pre-filter
+        self.extra_width = self.n_points + 1 + (1 if len(self.prefilter) else 0)
 
     def draw(self, inst: torch.Tensor, generator: torch.Generator):
         """A fresh draw for every episode -> batch, features, graph, and the (E, N + 1) record of the draw."""
@@ -68,6 +73,10 @@ class RedrawnPairs:
         flip = torch.rand(inst.shape[0], generator=generator, device=generator.device).to(mask.device) < 0.5
         flip = flip & self.swap
         extra = torch.cat([idx, flip[:, None].long()], dim=-1)
+        if len(self.prefilter):  # drawn only with pre-filters: without, the stream is the redraw arm's
+            which = torch.randint(len(self.prefilter), (inst.shape[0],), generator=generator,
+                                  device=generator.device).to(mask.device)
+            extra = torch.cat([extra, which[:, None]], dim=-1)
         batch, feats, graph = self._build(inst, extra)
         return batch, feats, graph, extra
 
@@ -76,7 +85,8 @@ class RedrawnPairs:
         return feats, batch["mask"], graph
 
     def _build(self, inst: torch.Tensor, extra: torch.Tensor):
-        idx, flip = extra[:, :-1], extra[:, -1].bool()
+        n = self.n_points
+        idx, flip = extra[:, :n], extra[:, n].bool()
         take = lambda k: self.pool[k][inst].gather(  # noqa: E731
             1, idx[..., None].expand(-1, -1, self.pool[k].shape[-1]))
         coords, raw = take("coords"), take("features")
@@ -89,6 +99,11 @@ class RedrawnPairs:
             s = flip[:, None]
             size1, size2 = torch.where(s, size2, size1), torch.where(s, size1, size2)
         batch = {"coords": coords, "mask": mask, "features": raw, "size1": size1, "size2": size2}
+        if len(self.prefilter):  # the evaluation's pre-filter (rlsac.tasks.prefiltered), unless it leaves < m points
+            r = self.prefilter.to(coords.device)[extra[:, n + 1]]
+            kept = mask & (self.task.match_quality(batch) <= r[:, None].to(coords.dtype))
+            enough = kept.sum(-1, keepdim=True) >= self.task.sample_size
+            batch["mask"] = mask = torch.where(enough, kept, mask)
         feats = self.task.features(batch)
         return {"coords": coords, "mask": mask}, feats, self.actor.graph(feats, mask)
 

@@ -11,6 +11,8 @@ Stages (params.yaml ``scale``, rlsac.scale_layout):
   fit       the synthetic generator's statistics fitted to the fold's training pairs, beside its own pairs';
   synthetic the pretrain arm's synthetic pairs (``pretrain.pairs``, drawn with those statistics);
   control   the learner's positive control on synthetic pairs (rlsac.positive_control, params positive_control);
+  validate  every kept actor on the fold's validation pairs at ``iterations``, with the settings below: what
+            chooses the recipe to carry forward (the pre-filter arm sees the pre-filter it would be tested with);
   evaluate  every kept actor on the fold's test pairs at ``iterations`` (``evaluate-final``: the actors of
             ``final_steps`` at ``final_iterations``), with the inlier threshold and pre-filter tuned on the fold's
             validation pairs for ``settings_from`` (the uniform control): the policy's state no longer depends on
@@ -28,7 +30,7 @@ from typing import Any
 from rlsac import scale_layout as lay
 from rlsac.errors import RlsacError
 
-STAGES = ("pool", "train", "evaluate", "evaluate-final", "control", "fit", "synthetic")
+STAGES = ("pool", "train", "evaluate", "evaluate-final", "validate", "control", "fit", "synthetic")
 
 
 def scale(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
@@ -70,7 +72,7 @@ def scale(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
         out = train_run(p, params, s, options["arm"], int(options["seed"]), options, track)
     else:
         out = evaluate_run(p, params, s, options["arm"], int(options["seed"]), options, track,
-                           final=stage == "evaluate-final")
+                           which={"evaluate": "test", "evaluate-final": "final", "validate": "val"}[stage])
     return {"stage": stage, **out, "seconds": round(time.time() - t0, 1)}
 
 
@@ -182,9 +184,11 @@ def train_options(p: dict, params: dict, s: dict, arm: str, seed: int, o: dict) 
                              "run_name": f"train scale {s['fold']} {lay.run_name(arm, seed)}",
                              "tags": {"command": "scale", "benchmark": "scale", "fold": s["fold"], "arm": arm,
                                       "seed": str(seed)}}
-    if arm in ("redraw", "pretrain"):
+    if arm != "fixed":
         n = int(params.get("fundamental", {}).get("n_points", 150))
         extra["episodes"] = {"pool": str(lay.pool_file(s["fold"])), "points": n, "swap": True}
+    if arm == "prefilter":  # the pre-filters the tuning chooses from (params tuning.prefilter), one per episode
+        extra["episodes"]["prefilter"] = [float(r) for r in (params.get("tuning") or {}).get("prefilter", [])]
     if arm == "pretrain":  # the real phase starts from the synthetic phase's networks
         extra["init"] = str(lay.pretrained(s["fold"], seed).with_suffix(".state.pt"))
     return deep_update(base, extra)
@@ -261,7 +265,10 @@ def saved_step(opts: dict) -> int:
 
 
 def evaluate_run(p: dict, params: dict, s: dict, arm: str, seed: int, o: dict, track: bool,
-                 final: bool = False) -> dict[str, Any]:
+                 which: str = "test") -> dict[str, Any]:
+    """A run's actors with the control's tuned settings: ``test`` every kept step on the test pairs at
+    ``iterations``; ``final`` those of its final steps at ``final_iterations``; ``val`` every kept step on the fold's
+    validation pairs at ``iterations`` (what chooses the recipe: the test's settings, the validation pairs)."""
     from rlsac.config import section
     from rlsac.evaluate import check_all, evaluate
     from rlsac.folds import data_dir, scene_list, split_scenes, tuned_settings
@@ -269,12 +276,15 @@ def evaluate_run(p: dict, params: dict, s: dict, arm: str, seed: int, o: dict, t
     ev = section(params, "evaluate", "fundamental")
     train_scenes, test_scenes = (scene_list(x) for x in split_scenes(p, s["fold"]))
     settings = tuned_settings(ev, s["regime"], s["fold"], s["settings_from"], train_scenes, test_scenes)
-    test = data_dir(s["regime"], s["fold"]) / "test.h5"
+    final = which == "final"
+    data = data_dir(s["regime"], s["fold"]) / ("val.h5" if which == "val" else "test.h5")
+    where = lay.val_dir if which == "val" else lay.eval_dir
     jobs = [{"task": "fundamental", "method": "rlsac", "sampling": "max", "seed": int(p["seed"]),
              "checkpoint": str(lay.snapshot(s["fold"], arm, seed, k)), "device": o.get("device") or "cpu",
-             "sets_per_step": 1, "confidence": 0.0, **settings, "data": str(test), "iterations": int(it),
-             "out_dir": str(lay.eval_dir(s["fold"], it, arm, seed, k)),
-             "tags": {"benchmark": "scale", "fold": s["fold"], "arm": arm, "seed": str(seed), "step": str(k)}}
+             "sets_per_step": 1, "confidence": 0.0, **settings, "data": str(data), "iterations": int(it),
+             "out_dir": str(where(s["fold"], it, arm, seed, k)),
+             "tags": {"benchmark": "scale", "fold": s["fold"], "arm": arm, "seed": str(seed), "step": str(k),
+                      "split": "val" if which == "val" else "test"}}
             for it in ([s["final_iterations"]] if final else [s["iterations"]]) if it > 0
             for k in (lay.arm_final_steps(s, arm) if final else lay.arm_steps(s, arm))]
     check_all(jobs, track)  # every checkpoint and the test file read before the first evaluation writes

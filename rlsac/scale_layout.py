@@ -21,8 +21,9 @@ from rlsac.config import section
 from rlsac.errors import RlsacError
 
 # the record's episodes; a fresh draw of the pool per episode, images swapped at random; ``pretrain.steps`` steps on
-# synthetic pairs drawn with the fold's fitted statistics (``pretrain.pairs`` of them), then redraw's episodes
-ARMS = ("fixed", "redraw", "pretrain")
+# synthetic pairs drawn with the fold's fitted statistics (``pretrain.pairs`` of them), then redraw's episodes; redraw's
+# episodes pre-filtered at a ratio drawn per episode from the tuning grid's (``tuning.prefilter``), as at test
+ARMS = ("fixed", "redraw", "pretrain", "prefilter")
 
 
 def protocol(params: dict[str, Any]) -> dict[str, Any]:
@@ -90,6 +91,12 @@ def arm_final_steps(s: dict[str, Any], arm: str) -> list[int]:
 
 def pool_file(fold: str) -> Path:
     return Path("data") / "scale" / fold / "pool.h5"
+
+
+def val_dir(fold: str, iterations: int, arm: str, seed: int, step: int | None = None) -> Path:
+    """A run's actors on the fold's validation pairs at the test's settings (what chooses the recipe)."""
+    d = Path("reports") / "eval" / "scale" / fold / f"val-i{int(iterations)}" / run_name(arm, seed)
+    return d if step is None else d / f"step{int(step)}"
 
 
 def synthetic_file(fold: str) -> Path:

@@ -92,3 +92,35 @@ def test_the_records_checkpoints_keep_their_configuration():
     assert not set(LATER_DEFAULTS) & set(conf)
     conf = stored_conf(TrainConf(task="fundamental", snapshot_steps=[5], episodes={"pool": "p.h5"}))
     assert conf["snapshot_steps"] == [5] and conf["episodes"]["pool"] == "p.h5"
+    assert "prefilter" not in conf["episodes"]  # a section key added later: out at its default (states resume)
+    conf = stored_conf(TrainConf(task="fundamental", episodes={"pool": "p.h5", "prefilter": [0.8, 1.0]}))
+    assert conf["episodes"]["prefilter"] == [0.8, 1.0]
+
+
+def test_a_pre_filtered_episode_masks_what_the_evaluation_masks_and_the_buffer_rebuilds_it():
+    """episodes.prefilter: each episode's points masked where the SNN ratio is above the episode's drawn ratio (as
+    rlsac.tasks.prefiltered), unless fewer than the minimal sample would remain; 1.0 masks nothing."""
+    from rlsac.tasks import prefiltered
+
+    task, pool, actor = _pool()
+    pool["features"][..., 4] = torch.linspace(0.0, 1.0, 40).expand(3, 40)  # SNN ratios 0 .. 1 along the points
+    pool["features"][2, :, 4] = 0.99  # instance 2: every point above 0.8 -> the filter would leave nothing
+    src = RedrawnPairs(task, pool, actor, points=20, swap=False, prefilter=[0.5, 1.0])
+    assert src.extra_width == 22
+    inst = torch.tensor([0, 1, 2, 0, 1, 2, 0, 1])
+    batch, feats, graph, extra = src.draw(inst, torch.Generator().manual_seed(3))
+    ratio = torch.tensor([0.5, 1.0])[extra[:, -1]]
+    assert ratio[[2, 5]].tolist() == [0.5, 1.0]  # instance 2 once filtered (nothing would be left), once not
+    idx = extra[:, :20]
+    raw = {"features": pool["features"][inst].gather(1, idx[..., None].expand(-1, -1, 261)),
+           "coords": pool["coords"][inst].gather(1, idx[..., None].expand(-1, -1, 4)),
+           "mask": torch.ones(8, 20, dtype=torch.bool)}
+    for e in range(8):
+        want = prefiltered(task, {k: v[e:e + 1] for k, v in raw.items()}, float(ratio[e]))["mask"][0]
+        if int(inst[e]) == 2 and float(ratio[e]) < 1.0:
+            want = torch.ones(20, dtype=torch.bool)  # nothing left: the episode keeps its points
+        assert torch.equal(batch["mask"][e], want), e
+    r_feats, r_mask, r_graph = src.lookup(inst, extra)
+    assert torch.equal(r_mask, batch["mask"]) and torch.equal(r_feats, feats) and torch.equal(r_graph, graph)
+    plain = RedrawnPairs(task, pool, actor, points=20, swap=False).draw(inst, torch.Generator().manual_seed(3))[3]
+    assert torch.equal(plain, extra[:, :21])  # the pre-filter's draw comes after the redraw's: same points

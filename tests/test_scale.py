@@ -65,6 +65,9 @@ def test_the_report_pairs_seeds_and_pairs_on_known_values(workdir):
                 _write(ev / f"scale/castle/i{it}/fixed-s{seed}/step{step}", [0.0] * m, [0.0] * m, scenes)
                 half = [0.0, 180.0] * (m // 2) if seed == 0 else [180.0, 0.0] * (m // 2)
                 _write(ev / f"scale/castle/i{it}/redraw-s{seed}/step{step}", half, half, scenes)
+    for seed in (0, 1):  # validation at the test's settings: fixed exact at step 30 only, redraw never
+        for arm, step, err in (("fixed", 10, 180.0), ("fixed", 30, 0.0), ("redraw", 10, 180.0), ("redraw", 30, 180.0)):
+            _write(ev / f"scale/castle/val-i100/{arm}-s{seed}/step{step}", [err] * 4, [0.0] * 4, ["castle-P19"] * 4)
     got = report.build({"scale": SCALE}, ev, workdir / "reports", workdir)
     df = pd.read_csv(workdir / "reports" / "scale.csv")
     assert len(df) == 2 * 2 + 2  # two steps at 100 hypotheses, the last one at 1000, per arm
@@ -77,6 +80,8 @@ def test_the_report_pairs_seeds_and_pairs_on_known_values(workdir):
     assert pd.isna(fixed.get("vs_base_R"))  # the fixed arm adds to nothing
     text = (workdir / "reports" / "scale.md").read_text()
     assert "+1.000 [+1.000, +1.000]" in text and (workdir / "reports/scale_curve.png").is_file()
+    assert "| fixed | 30 | – | – | 1.000 |" in text and "| redraw | 10 | – | – | 0.000 |" in text
+    assert "(best seed-mean validation mAA, test settings): arm `fixed` at 30 steps (val mAA 1.000)" in text
 
 
 def test_a_corrupt_result_is_refused_not_read_as_missing(workdir):

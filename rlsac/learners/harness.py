@@ -101,14 +101,21 @@ class TrainConf:
 # options added after the record, left out of a stored configuration while at their default: the record's
 # checkpoints (and so their bytes) are what they were (rlsac verify --include-train)
 LATER_DEFAULTS = {"episodes": to_dict(EpisodeConf()), "snapshot_steps": [], "kernels": "aten", "init": ""}
+# keys added to a section after runs that stored it, left out while at their default (the scale study's states resume
+# only a state whose stored configuration is their own: rlsac.scale.saved_step)
+LATER_SECTION_DEFAULTS = {"episodes": {"prefilter": []}}
 
 
 def stored_conf(conf: TrainConf) -> dict:
     """The configuration a checkpoint and its MLflow run keep: every field but the other methods' sections (and, for
     RLSAC, the ``method`` key: its default; ``LATER_DEFAULTS`` at their defaults)."""
     other = {s for m, secs in OWN_SECTIONS.items() if m != conf.method for s in secs}
-    return {k: v for k, v in to_dict(conf).items() if k not in other and not (k == "method" and conf.method == "rlsac")
-            and not (k in LATER_DEFAULTS and v == LATER_DEFAULTS[k])}
+    out = {k: v for k, v in to_dict(conf).items() if k not in other and not (k == "method" and conf.method == "rlsac")
+           and not (k in LATER_DEFAULTS and v == LATER_DEFAULTS[k])}
+    for sec, later in LATER_SECTION_DEFAULTS.items():
+        if sec in out:
+            out[sec] = {k: v for k, v in out[sec].items() if not (k in later and v == later[k])}
+    return out
 
 
 def check_params(params: dict) -> None:
@@ -127,6 +134,8 @@ def check(options: dict, track: bool = True) -> TrainConf:
     if not conf.data:
         raise RlsacError("train needs --data")
     _task(conf)
+    if conf.episodes.prefilter and not conf.episodes.pool:
+        raise RlsacError("episodes.prefilter needs episodes.pool (pre-filters are drawn with redrawn episodes)")
     if conf.init and conf.method != "rlsac":
         raise RlsacError(f"init: the {conf.method} learner does not read it (RLSAC's pretraining only)")
     if conf.init and not conf.resume and not Path(conf.init).is_file():

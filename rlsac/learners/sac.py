@@ -61,13 +61,14 @@ def train(conf: TrainConf, track: bool = True, snapshots: list | None = None) ->
     episodes = None
     if conf.episodes.pool:  # issue #46: a fresh draw of each pair's pool per episode
         pool, _ = read_batch(conf.task, conf.episodes.pool, device)
-        episodes = RedrawnPairs(task, pool_tensors(pool, device), agent.actor, conf.episodes.points, conf.episodes.swap)
+        episodes = RedrawnPairs(task, pool_tensors(pool, device), agent.actor, conf.episodes.points, conf.episodes.swap,
+                                conf.episodes.prefilter)
     for p in (out, state_path):  # left by a process killed while saving
         clean_stale_temps(p)
     run = _TrainingRun(conf, task, agent, gen, val, out, state_path, device)
     run.snapshots = snapshots
     if conf.resume:
-        run.resume(data)
+        run.resume(data, episodes)
     elif conf.init:
         run.start_from(conf.init)
 
@@ -129,7 +130,7 @@ class _TrainingRun:
         return tags
 
     # ------------------------------------------------------------ resume
-    def resume(self, data: dict) -> None:
+    def resume(self, data: dict, episodes: RedrawnPairs | None = None) -> None:
         """Restore agent, optimisers, RNG, buffer, history and kept actor from the state file; rewrite
         ``out`` from it when a kill between the two writes left another step there."""
         agent = self.agent
@@ -146,11 +147,10 @@ class _TrainingRun:
             self.start, self.best, self.history = st["step"], {"score": -1.0, **st["best"]}, st.get("history", [])
             self.gen.set_state(st["generator"].cpu())  # a generator's state is a CPU byte tensor on every device
             if st.get("buffer") is not None:
-                pool = bool(self.conf.episodes.pool)
                 self.buffer = ReplayBuffer(self.conf.sac.buffer_size,
-                                           self.conf.episodes.points if pool else data["mask"].shape[1],
+                                           episodes.n_points if episodes else data["mask"].shape[1],
                                            self.task.sample_size, self.device,
-                                           extra=self.conf.episodes.points + 1 if pool else 0)
+                                           extra=episodes.extra_width if episodes else 0)
                 self.buffer.load_state_dict(st["buffer"])
         except (KeyError, RuntimeError, ValueError, TypeError) as e:
             raise RlsacError(f"{self.state_path}: does not fit this configuration and data "

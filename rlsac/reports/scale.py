@@ -136,15 +136,38 @@ def comparisons(s: dict[str, Any], got: dict[str, Any]) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def choose(s: dict[str, Any], curves: pd.DataFrame) -> dict[str, Any] | None:
-    """The recipe to carry forward, on validation only: the (arm, step) of the best seed-mean validation mAA."""
-    if curves.empty:
+def deployed_validation(s: dict[str, Any], eval_root: Path = Path("reports/eval")) -> pd.DataFrame:
+    """Every kept actor on the fold's validation pairs with the test's settings (stage scale_validate): one row per
+    (arm, seed, step) with its mAA (the tuning's criterion: mAA@10 deg of max(err_R, err_t)); ``attrs["missing"]``
+    the folders not there yet."""
+    rows, keys, missing = [], None, []
+    for arm in s["arms"]:
+        for seed in s["seeds"]:
+            for k in lay.arm_steps(s, arm):
+                d = Path(eval_root) / lay.val_dir(s["fold"], s["iterations"], arm, seed, k).relative_to("reports/eval")
+                if not (d / "errors.csv").is_file():
+                    missing.append(str(d))
+                    continue
+                r, t, keys = _errors(d, keys)  # the same validation pairs for every actor
+                rows.append({"arm": arm, "seed": seed, "step": k, "val_mAA": mAA(np.fmax(r, t), LIMIT)})
+    out = pd.DataFrame(rows, columns=["arm", "seed", "step", "val_mAA"])
+    out.attrs["missing"] = missing
+    return out
+
+
+def choose(s: dict[str, Any], curves: pd.DataFrame, deployed: pd.DataFrame | None = None) -> dict[str, Any] | None:
+    """The recipe to carry forward, on validation only: the (arm, step) of the best seed-mean validation mAA, at the
+    test's settings (``deployed``) where every kept actor has been validated so, else the training's own validation
+    (its reward threshold, no pre-filter)."""
+    full = deployed is not None and not deployed.empty and not deployed.attrs.get("missing")
+    src, basis = (deployed, "test settings") if full else (curves, "training validation")
+    if src.empty:
         return None
-    at = curves[curves["step"].isin(s["steps"])].groupby(["arm", "step"])["val_mAA"].mean()
+    at = src[src["step"].isin(s["steps"])].groupby(["arm", "step"])["val_mAA"].mean()
     if at.empty:
         return None
     (arm, step), best = at.idxmax(), float(at.max())
-    return {"arm": arm, "step": int(step), "val_mAA": best, "table": at.reset_index()}
+    return {"arm": arm, "step": int(step), "val_mAA": best, "table": at.reset_index(), "basis": basis}
 
 
 def _pairs_line(s: dict, out_dir: Path, min_matches: int | None = None) -> str:
@@ -171,19 +194,22 @@ def build(params: dict[str, Any], eval_root: str | Path = "reports/eval", out_di
     got = collect(s, Path(eval_root))
     comp = comparisons(s, got)
     curves = validation_curves(s, Path(root))
-    chosen = choose(s, curves)
+    deployed = deployed_validation(s, Path(eval_root))
+    got["missing"] += deployed.attrs.get("missing", [])
+    chosen = choose(s, curves, deployed)
     files = [str(out_dir / "scale.md"), str(out_dir / "scale.csv")]
     with atomic_path(files[1]) as tmp:
         comp.round(6).to_csv(tmp, index=False)
     with atomic_path(files[0]) as tmp:
         tmp.write_text(markdown(s, comp, curves, chosen, got["missing"], Path(out_dir), same_as_record(s, Path(root)),
-                                (params.get("fundamental") or {}).get("min_matches")))
+                                (params.get("fundamental") or {}).get("min_matches"), deployed))
     files += figure(s, comp, out_dir)  # beside scale.md: reports/figures/ is the figures stage's own output
     return {"files": files, "missing": got["missing"]}
 
 
 def markdown(s: dict, comp: pd.DataFrame, curves: pd.DataFrame, chosen: dict | None, missing: list[str],
-             out_dir: Path, record_line: str = "", min_matches: int | None = None) -> str:
+             out_dir: Path, record_line: str = "", min_matches: int | None = None,
+             deployed: pd.DataFrame | None = None) -> str:
     arms = ", ".join(f"`{a}` = {ARM_LABEL[a]}" for a in s["arms"])
     lines = [
         "# Is RLSAC starved? The training-scale study (issue #46)", "",
@@ -228,15 +254,29 @@ def markdown(s: dict, comp: pd.DataFrame, curves: pd.DataFrame, chosen: dict | N
                          f"{_cell(r, 'vs_base_R')} | {_cell(r, 'vs_base_t')} |")
         lines += ["", "Same test pairs; the two arms' runs are different runs, so seeds are resampled independently.",
                   ""]
-    if not curves.empty:
+    dep = deployed if deployed is not None else pd.DataFrame(columns=["arm", "seed", "step", "val_mAA"])
+    if not curves.empty or not dep.empty:
         lines += ["## Validation (the fold's validation pairs; what chooses the recipe)", "",
-                  "| arm | step | val mAA (seed mean) | val inlier ratio (seed mean) |", "| --- | --- | --- | --- |"]
-        g = curves.groupby(["arm", "step"])[["val_mAA", "val_inlier_ratio"]].mean().reset_index()
-        for _, r in g[g["step"].isin(s["steps"])].iterrows():
-            lines.append(f"| {r['arm']} | {int(r['step'])} | {r['val_mAA']:.3f} | {r['val_inlier_ratio']:.3f} |")
+                  "The training's own validation (its reward threshold, no pre-filter), and every kept actor again at "
+                  f"the test's settings (the `{s['settings_from']}` control's tuned threshold and pre-filter, "
+                  f"{s['iterations']} hypotheses, mAA of max(err_R, err_t) as the tuning scores; stage "
+                  "`scale_validate`): the second chooses where it is complete.", "",
+                  "| arm | step | val mAA, training (seed mean) | val inlier ratio (seed mean) | "
+                  "val mAA, test settings (seed mean) |", "| --- | --- | --- | --- | --- |"]
+        cols = ["arm", "step", "val_mAA", "val_inlier_ratio"]
+        g = (curves.groupby(["arm", "step"])[cols[2:]].mean().reset_index() if not curves.empty
+             else pd.DataFrame(columns=cols))
+        d = dep.groupby(["arm", "step"])["val_mAA"].mean().rename("deployed").reset_index()
+        g = g.merge(d, on=["arm", "step"], how="outer") if not d.empty else g.assign(deployed=math.nan)
+        g = g[g["step"].isin(s["steps"])].sort_values(["arm", "step"], key=lambda c: c.map(
+            {a: i for i, a in enumerate(s["arms"])}) if c.name == "arm" else c)
+        num = lambda v: "–" if pd.isna(v) else f"{v:.3f}"  # noqa: E731
+        for _, r in g.iterrows():
+            lines.append(f"| {r['arm']} | {int(r['step'])} | {num(r['val_mAA'])} | {num(r['val_inlier_ratio'])} | "
+                         f"{num(r['deployed'])} |")
         if chosen is not None:
-            lines += ["", f"Chosen on validation (best seed-mean validation mAA): arm `{chosen['arm']}` at "
-                          f"{chosen['step']} steps (val mAA {chosen['val_mAA']:.3f}).", ""]
+            lines += ["", f"Chosen on validation (best seed-mean validation mAA, {chosen['basis']}): arm "
+                          f"`{chosen['arm']}` at {chosen['step']} steps (val mAA {chosen['val_mAA']:.3f}).", ""]
     if not comp.empty:
         lines += _verdict(comp)
     pc = out_dir / "positive_control.json"
