@@ -21,6 +21,9 @@ SCALE = {"fold": "castle", "regime": "hard", "pool": 1000, "arms": ["fixed", "re
 
 
 def test_protocol_checks_every_key():
+    from rlsac.scale_layout import ARMS
+
+    assert set(report.ARM_LABEL) == set(ARMS) and set(report.BASE_ARM) < set(ARMS)  # the report names every arm
     s = protocol({"scale": SCALE})
     assert s["steps"] == [10, 30]  # sorted: the largest is the run's length
     with pytest.raises(RlsacError, match="each one of fixed, redraw, pretrain"):

@@ -25,8 +25,9 @@ from rlsac.results import read_errors
 
 CONTROLS = ("uniform", "guided")  # the sampler-free control and the hand-made SNN sampler (the tables' rows)
 ARM_LABEL = {"fixed": "today's pairs (the record's episodes)", "redraw": "+ redraw from the pool and swap",
-             "pretrain": "+ synthetic pretraining, then redraw's episodes"}
-BASE_ARM = {"redraw": "fixed", "pretrain": "redraw"}  # what each arm adds to: the arm-against-arm table
+             "pretrain": "+ synthetic pretraining, then redraw's episodes",
+             "prefilter": "redraw's episodes pre-filtered as at test (a ratio of the tuning grid per episode)"}
+BASE_ARM = {"redraw": "fixed", "pretrain": "redraw", "prefilter": "redraw"}  # what each arm adds to: the arm-against-arm table
 LIMIT = 10.0  # mAA@10 deg, Table 2's
 
 
@@ -413,7 +414,7 @@ def figure(s: dict, comp: pd.DataFrame, out_dir: Path) -> list[str]:
 
     its = _budgets(s)
     fig, axes = plt.subplots(len(its), 2, figsize=(10, 3.6 * len(its)), squeeze=False)
-    colours = {"fixed": "tab:blue", "redraw": "tab:orange", "pretrain": "tab:green"}
+    colours = {"fixed": "tab:blue", "redraw": "tab:orange", "pretrain": "tab:green", "prefilter": "tab:purple"}
     for i, it in enumerate(its):
         for j, m in enumerate(("R", "t")):
             ax = axes[i][j]
