@@ -2,10 +2,10 @@
 
 Makes a fresh sqlite store with two real `rlsac evaluate` runs (uniform and RANSAC on a small line file), starts
 `mlflow server` on 127.0.0.1, and has headless Chromium (Debian's `chromium`; `apt-get install chromium`) take a
-screenshot of the experiment's page; prints the PNG's path and whether the page shows the runs table, sorted by
-mAA, rather than MLflow 3's GenAI overview. Metric columns are one click away ("Columns" -> the metrics): MLflow
-3.17 shows none by default and takes no URL parameter for them. Everything stays on this machine (loopback only)
-and the server is stopped at the end.
+screenshot of the experiment's page through the link docs/tracking.md gives (the model-training workflow and the
+experiment's shared view `rlsac`, which rlsac.tracking writes: the main metrics as columns, sorted by mAA); prints
+the PNG's path and whether the page shows the runs table with the mAA column, sorted by mAA, rather than MLflow 3's
+GenAI overview. Everything stays on this machine (loopback only) and the server is stopped at the end.
 
     python benchmarks/mlflow_screenshot.py --out /tmp/mlflow_runs.png
 """
@@ -64,8 +64,7 @@ def main() -> int:
         exp = mlflow.get_experiment_by_name("lines")
         # MLflow 3 opens on its GenAI pages unless asked for the model-training workflow (a URL parameter, then
         # remembered by the browser): the link the docs give
-        url = (f"{base}/#/experiments/{exp.experiment_id}/runs?workflowType=machine_learning"
-               "&orderByKey=metrics.%60mAA%60&orderByAsc=false")
+        url = f"{base}/#/experiments/{exp.experiment_id}/runs?workflowType=machine_learning&viewStateShareKey=rlsac"
         subprocess.run([browser, "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars",
                         "--window-size=2800,900", "--virtual-time-budget=15000", f"--screenshot={a.out}", url],
                        check=True, capture_output=True, timeout=120)
@@ -77,7 +76,7 @@ def main() -> int:
         shutil.rmtree(work, ignore_errors=True)
     print(f"screenshot: {a.out} ({url})")
     print(f"runs table shown: {'Run Name' in dom or 'Run name' in dom}; GenAI overview: {'Token Usage' in dom}; "
-          f"sorted by mAA: {'Sort: mAA' in dom}")
+          f"sorted by mAA: {'Sort: mAA' in dom}; metric columns: {'>Metrics<' in dom and '>mAA<' in dom}")
     return 0
 
 

@@ -7,6 +7,7 @@ overrides it.
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import os
 import warnings
@@ -208,6 +209,13 @@ def close_dead_runs(client=None) -> list[str]:
 # MLflow 3's UI opens an experiment on its GenAI overview ("Traces: 0") unless the experiment says it is model
 # training: with this tag it opens on the runs table (issue #47). The kind is the UI's, not a documented constant
 EXPERIMENT_KIND = ("mlflow.experimentKind", "custom_model_development")
+# The runs table's columns: MLflow 3.17 shows no metric column until one is picked, and takes none from the URL; a
+# shared view state (an experiment tag the UI reads for `?viewStateShareKey=rlsac`) brings the main metrics and the
+# sort by mAA (metrics an experiment does not log are not shown). The key format is the UI's, not a documented API
+VIEW_KEY = "rlsac"
+VIEW_STATE = ("mlflow.sharedViewState." + VIEW_KEY, json.dumps({
+    "selectedColumns": [f"metrics.`{m}`" for m in ("mAA", "mAA_R", "mAA_t", "median_R", "median_t")],
+    "orderByKey": "metrics.`mAA`", "orderByAsc": False}))
 
 
 @contextlib.contextmanager
@@ -239,8 +247,9 @@ def start_run(experiment: str, run_name: str, params: dict[str, Any] | None = No
         mlflow.set_tracking_uri(uri)
         with _store_lock(uri):
             exp = mlflow.set_experiment(experiment)
-            if EXPERIMENT_KIND[0] not in (exp.tags or {}):  # an experiment of ours, new or from before the tag
-                mlflow.MlflowClient().set_experiment_tag(exp.experiment_id, *EXPERIMENT_KIND)
+            for tag in (EXPERIMENT_KIND, VIEW_STATE):  # an experiment of ours, new or from before the tag
+                if (exp.tags or {}).get(tag[0]) != tag[1]:
+                    mlflow.MlflowClient().set_experiment_tag(exp.experiment_id, *tag)
         with contextlib.suppress(Exception):  # a store that cannot be searched still records this run
             close_dead_runs()
         old = None

@@ -1,5 +1,6 @@
 """The MLflow helper: run status, and several processes opening one fresh sqlite store at once."""
 
+import json
 import multiprocessing as mp
 
 import pytest
@@ -72,5 +73,10 @@ def test_experiments_open_on_the_runs_table(tmp_path, monkeypatch):
     with start_run("fundamental", "r2"):
         pass
     for name in ("lines", "fundamental"):
-        assert client.get_experiment_by_name(name).tags.get(EXPERIMENT_KIND[0]) == "custom_model_development"
+        tags = client.get_experiment_by_name(name).tags
+        assert tags.get(EXPERIMENT_KIND[0]) == "custom_model_development"
+        # the runs table's shared view (?viewStateShareKey=rlsac): the main metrics as columns, sorted by mAA
+        view = json.loads(tags["mlflow.sharedViewState.rlsac"])
+        assert view["selectedColumns"][:3] == ["metrics.`mAA`", "metrics.`mAA_R`", "metrics.`mAA_t`"]
+        assert view["orderByKey"] == "metrics.`mAA`" and view["orderByAsc"] is False
     assert client.get_experiment_by_name("lines").experiment_id == old
