@@ -84,7 +84,8 @@ def test_the_report_pairs_seeds_and_pairs_on_known_values(workdir):
     text = (workdir / "reports" / "scale.md").read_text()
     assert "+1.000 [+1.000, +1.000]" in text and (workdir / "reports/scale_curve.png").is_file()
     assert "| fixed | 30 | – | – | 1.000 |" in text and "| redraw | 10 | – | – | 0.000 |" in text
-    assert "(best seed-mean validation mAA, test settings): arm `fixed` at 30 steps (val mAA 1.000)" in text
+    assert ("(best seed-mean validation mAA, test settings): arm `fixed` at 30 steps (val mAA 1.000; the next best, "
+            "arm `fixed` at 10 steps, 0.000; every cell lies within 0.000-1.000)") in text
 
 
 def test_a_corrupt_result_is_refused_not_read_as_missing(workdir):
