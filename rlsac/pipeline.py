@@ -229,10 +229,22 @@ def first_error_line(text: str) -> str:
 
 def start_guarded(argv: list[str], **kwargs) -> subprocess.Popen:
     """``subprocess.Popen(argv, **kwargs)`` in a process group of its own, watched by the guard: it ends the group
-    if this worker dies, and itself once the group is gone."""
-    proc = subprocess.Popen(argv, start_new_session=True, **kwargs)
-    subprocess.run([sys.executable, "-c", _GUARD, str(proc.pid), str(os.getpid()), str(KILL_GRACE_S)],
-                   stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    if this worker dies, and itself once the group is gone. The command starts once the guard watches (a shell
+    waits on a pipe, then execs it): a stage that ended its worker at once outlived it otherwise; if this worker
+    dies first, the pipe closes and the command never starts."""
+    ready, go = os.pipe()
+    try:
+        proc = subprocess.Popen(["/bin/sh", "-c", f'read _ <&{ready} || exit 111; exec {ready}<&-; exec "$@"', "sh",
+                                 *argv], start_new_session=True, pass_fds=(ready,), **kwargs)
+        os.close(ready)
+        ready = -1
+        subprocess.run([sys.executable, "-c", _GUARD, str(proc.pid), str(os.getpid()), str(KILL_GRACE_S)],
+                       stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        os.write(go, b"\n")
+    finally:
+        for fd in (ready, go):
+            if fd >= 0:
+                os.close(fd)
     return proc
 
 
@@ -287,10 +299,26 @@ def _check_options(o: dict) -> None:
     if o["workers"] is not None and o["workers"] > cpus:  # ray.init hung on --workers 1000000000
         raise RlsacError(f"--workers {o['workers']}: this machine has {cpus} CPUs (a local Ray cluster has at most "
                          "as many)")
+    if o["address"]:
+        _check_tracking_server()
     if o["runner"] not in RUNNERS:
         raise RlsacError(f"--runner {o['runner']}: one of {', '.join(RUNNERS)}")
     if o["address"] and o["address"] != "auto":
         _check_address(o["address"])
+
+
+def _check_tracking_server() -> None:
+    """Stages on other machines log where MLFLOW_TRACKING_URI points: a sqlite file (the default) would be one store
+    per node and the driver's a third, with no warning (issue #50, item 3), so a cluster needs an http(s) server."""
+    from urllib.parse import urlsplit
+
+    from rlsac.tracking import DEFAULT_URI
+
+    uri = os.environ.get("MLFLOW_TRACKING_URI") or DEFAULT_URI
+    if urlsplit(uri).scheme.lower() not in ("http", "https"):
+        raise RlsacError(f"--address runs stages on other machines: MLFLOW_TRACKING_URI must be an http(s) MLflow "
+                         f"server every node reaches, not {uri} (one store per node; docs/reproducing.md shows the "
+                         "server command)")
 
 
 def _check_address(address: str) -> None:
