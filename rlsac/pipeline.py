@@ -1,12 +1,16 @@
 """``rlsac pipeline``: the DVC pipeline's out-of-date stages as Ray tasks, in dependency order (issue #30).
 
-The plan comes from DVC itself (``Repo.index.graph``, ``Stage.changed``): a stage runs when it changed or when a
-stage it depends on runs; frozen stages and stages without a command never run. Each stage is one Ray task
-(``num_cpus=1``; ``num_gpus`` for the stages matching ``gpu_stages`` when ``gpus_per_train`` > 0) that runs
-``dvc --wait-for-lock repro -s <stage>`` in the repository, so ``dvc.lock`` stays the record: DVC releases its
-repository lock while a stage's command runs and ``--wait-for-lock`` queues the short lock-file updates. A stage
-DVC finds up to date is reported skipped. A failed stage (or a lost worker) stops its dependents; every other
-stage still runs; running the command again resumes (what finished is up to date).
+The plan comes from DVC itself (``Repo.index.graph``, ``Stage.changed``), once: a stage runs when it changed or when
+a stage it depends on runs; frozen stages and stages without a command never run. Each stage is one Ray task
+(``num_cpus=1``; ``num_gpus`` for the stages matching ``gpu_stages`` when ``gpus_per_train`` > 0). With the direct
+runner (the default, issue #50) the task runs the stage's own command as DVC would and computes its lock entry with
+DVC's code, and this process, the one writer, merges the entries into ``dvc.lock`` by an atomic rename
+(rlsac.dvc_stage): no DVC repository lock is held while stages run, and the lock is byte for byte a serial
+``dvc repro``'s. With ``runner="dvc"`` the task runs ``dvc --wait-for-lock repro -s <stage>`` (DVC parses and
+rewrites the whole lock under its repository lock for each stage). A stage found up to date when its turn comes (its
+inputs came back the same) is reported skipped. A failed stage (or a lost worker) stops its dependents; every other
+stage still runs; running the command again resumes (what finished is up to date). On a cluster (``address``) every
+stage logs to MLFLOW_TRACKING_URI, which must then be an http(s) server.
 
 A task's process group is watched by a small guard process: if the Ray worker dies (killed, node lost, driver
 interrupted), the guard sends the stage SIGTERM (an ``rlsac`` command ends its MLflow run KILLED) and, 10 s later,
@@ -228,23 +232,21 @@ def first_error_line(text: str) -> str:
 
 
 def start_guarded(argv: list[str], **kwargs) -> subprocess.Popen:
-    """``subprocess.Popen(argv, **kwargs)`` in a process group of its own, watched by the guard: it ends the group
-    if this worker dies, and itself once the group is gone. The command starts once the guard watches (a shell
-    waits on a pipe, then execs it): a stage that ended its worker at once outlived it otherwise; if this worker
-    dies first, the pipe closes and the command never starts."""
+    """``subprocess.Popen(argv, **kwargs)`` in a process group of its own, stdin /dev/null, watched by the guard: it
+    ends the group if this worker dies, and itself once the group is gone. The command starts once the guard
+    watches (a shell reads a line from a pipe on its stdin, then execs it): a stage that ended its worker at once
+    outlived it otherwise; if this worker dies first, the pipe closes and the command never starts."""
+    kwargs.pop("stdin", None)
     ready, go = os.pipe()
     try:
-        proc = subprocess.Popen(["/bin/sh", "-c", f'read _ <&{ready} || exit 111; exec {ready}<&-; exec "$@"', "sh",
-                                 *argv], start_new_session=True, pass_fds=(ready,), **kwargs)
-        os.close(ready)
-        ready = -1
+        proc = subprocess.Popen(["/bin/sh", "-c", 'read _ || exit 111; exec "$@" </dev/null', "sh", *argv],
+                                stdin=ready, start_new_session=True, **kwargs)
         subprocess.run([sys.executable, "-c", _GUARD, str(proc.pid), str(os.getpid()), str(KILL_GRACE_S)],
                        stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         os.write(go, b"\n")
     finally:
-        for fd in (ready, go):
-            if fd >= 0:
-                os.close(fd)
+        os.close(ready)
+        os.close(go)
     return proc
 
 

@@ -289,6 +289,8 @@ def test_joins_a_ray_cluster_by_address(tmp_path):
     ray_exe = str(Path(sys.executable).parent / "ray")
     # as in a fresh shell: the module's ray.init set RAY_AUTH_MODE=token in this process's environment
     env = {k: v for k, v in _env().items() if k != "RAY_AUTH_MODE"}
+    # a cluster needs a tracking server every node reaches (the stages here log nothing: none needs to answer)
+    env["MLFLOW_TRACKING_URI"] = "http://127.0.0.1:9"
     log = open(tmp_path / "head.log", "w")
     head = subprocess.Popen([ray_exe, "start", "--head", "--port", str(port), "--num-cpus", "1",
                              "--include-dashboard", "false", "--block"], stdout=log, stderr=subprocess.STDOUT,
