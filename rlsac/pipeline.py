@@ -141,6 +141,9 @@ def _direct(repo, root: Path, stages: list) -> tuple[dict, Any]:
     """The direct runner's part of the plan: each stage's spec and the lock files' writer."""
     from rlsac.dvc_stage import LockWriter, stage_spec
 
+    files: dict = {}
+    for s in stages:  # one dvc.yaml object per file: each stage's own would parse its lock file again (3 s each)
+        s.dvcfile = files.setdefault(s.path, s.dvcfile)
     specs = {_address(s, root): stage_spec(s, root) for s in stages}
     return {a: sp for a, sp in specs.items() if sp is not None}, LockWriter(repo, stages)
 
