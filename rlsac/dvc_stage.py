@@ -144,27 +144,46 @@ def write_atomic(path: Path, text: str) -> None:
         raise
 
 
+def _stat(path: Path) -> tuple | None:
+    try:
+        st = path.stat()
+    except FileNotFoundError:
+        return None
+    return st.st_ino, st.st_size, st.st_mtime_ns
+
+
 class LockFile:
     """One dvc.lock as text, one piece per stage entry; ``update`` merges finished stages' entries and writes it.
 
     ``order``: stage name -> rank in ``serial_order``. Entries the file had stay where they are (DVC updates them in
-    place); entries new to it follow, by rank, as a serial ``dvc repro`` appends them one by one."""
+    place); entries new to it follow, by rank, as a serial ``dvc repro`` appends them one by one. ``text`` is the
+    file as it was when ``names`` were read from it; a file changed since (another dvc command wrote it) is read again
+    before a write, so the write keeps that change."""
 
     def __init__(self, path: Path, text: str, names: list[str], order: dict[str, int]):
-        self.path = Path(path)
+        self.path, self.order = Path(path), order
+        self.stat = _stat(self.path)
+        self._load(text, names)
+
+    def _load(self, text: str, names: list[str]) -> None:
         self.head, self.entries, self.tail = split_lock(text, names)
         self.old = list(self.entries)
-        self.order = order
 
     def text(self) -> str:
         old = set(self.old)
         new = sorted((n for n in self.entries if n not in old), key=lambda n: (self.order.get(n, len(self.order)), n))
         return self.head + "".join(self.entries[n] for n in self.old + new) + self.tail
 
-    def update(self, entries: dict[str, dict], write: Callable[[Path, str], None] = write_atomic) -> None:
+    def update(self, entries: dict[str, dict]) -> None:
+        if _stat(self.path) != self.stat:
+            from dvc.utils.serialize import parse_yaml
+
+            text = self.path.read_text(encoding="utf-8") if self.path.exists() else ""
+            self._load(text, list((parse_yaml(text, str(self.path)) or {}).get("stages", {}) or {}))
         for name, entry in entries.items():
             self.entries[name] = render_entry(name, entry)
-        write(self.path, self.text())
+        write_atomic(self.path, self.text())
+        self.stat = _stat(self.path)
 
 
 class LockWriter:

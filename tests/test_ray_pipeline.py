@@ -509,6 +509,13 @@ def test_the_lock_writer_keeps_old_entries_in_place_and_adds_new_ones_in_dvc_ord
     assert list(yaml.safe_load(path.read_text())["stages"].items()) == [
         ("b", {"cmd": "b"}), ("a", {"cmd": "A"}), ("c", {"cmd": "c"}), ("d", {"cmd": "d"})]
 
+    # another dvc command wrote the file meanwhile (`dvc commit` of a stage): the next write keeps its change
+    time.sleep(0.01)
+    path.write_text(path.read_text() + render_entry("x", {"cmd": "x"}))
+    lock.update({"b": {"cmd": "B"}})
+    assert list(yaml.safe_load(path.read_text())["stages"].items()) == [
+        ("b", {"cmd": "B"}), ("a", {"cmd": "A"}), ("c", {"cmd": "c"}), ("d", {"cmd": "d"}), ("x", {"cmd": "x"})]
+
 
 # ------------------------------------------------------------------ one tracking server or a refusal (issue #50)
 
