@@ -214,6 +214,20 @@ def test_bad_input_is_one_error_line_before_any_work(tmp_path):
 # ------------------------------------------------------------------------------------- one MLflow server
 
 
+def _host_status(base: str, host: str) -> int:
+    """The HTTP status of an experiments search sent to ``base`` as if to ``host`` (its Host header)."""
+    import urllib.error
+    import urllib.request
+
+    req = urllib.request.Request(base + "/api/2.0/mlflow/experiments/search", data=b'{"max_results": 1}',
+                                 method="POST", headers={"Content-Type": "application/json", "Host": host})
+    try:
+        with urllib.request.urlopen(req, timeout=10) as r:
+            return r.status
+    except urllib.error.HTTPError as e:
+        return e.code
+
+
 def test_stages_log_to_one_mlflow_server(tmp_path, monkeypatch):
     from test_mlflow_server import _free_port, _mlflow_exe, _post, _stop, _wait_up
 
@@ -226,9 +240,12 @@ def test_stages_log_to_one_mlflow_server(tmp_path, monkeypatch):
         proc = subprocess.Popen(
             [exe, "server", "--backend-store-uri", f"sqlite:///{tmp_path / 'server.db'}",
              "--artifacts-destination", str(tmp_path / "art"), "--host", "127.0.0.1", "--port", str(port),
-             "--workers", "1"], stdout=out, stderr=subprocess.STDOUT, cwd=tmp_path, start_new_session=True)
+             "--workers", "1", "--allowed-hosts", f"head-node:{port},127.0.0.1:*"],  # docs/reproducing.md's
+            stdout=out, stderr=subprocess.STDOUT, cwd=tmp_path, start_new_session=True)
     try:
         _wait_up(base, proc, log)
+        # MLflow 3 answers only the Host headers it allows: the cluster's name for the server, not another one
+        assert [_host_status(base, f"{name}:{port}") for name in ("head-node", "other-node")] == [200, 403]
         seeds = range(4)
         stages = {f"s{i}": {"cmd": f"rlsac synth-lines --n-instances 8 --seed {i} --out s{i}.h5",
                             "outs": [f"s{i}.h5"]} for i in seeds}
