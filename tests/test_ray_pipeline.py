@@ -558,3 +558,10 @@ def test_a_cluster_needs_an_http_tracking_server(tmp_path, monkeypatch):
             assert len(r.output.splitlines()) == 1, r.output
     assert not (tmp_path / "mlflow.db").exists() and not (tmp_path / "mlruns").exists()
     assert not (repo / "a.txt").exists()
+
+    # with a server set, an address nothing answers at is the next error, within seconds (issue #49)
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", "http://127.0.0.1:9")
+    t0 = time.monotonic()
+    r = CliRunner().invoke(cli, ["pipeline", "--repo", str(repo), "--address", "127.0.0.1:1"])
+    assert r.exit_code == 2 and "no Ray cluster answers there" in r.output and len(r.output.splitlines()) == 1, r.output
+    assert time.monotonic() - t0 < 20
