@@ -15,7 +15,9 @@
   rendered by DVC's YAML dumper and spliced into the file's text in the place DVC puts it (an existing entry where
   it was, a new one at the end in ``dvc repro``'s order), and the file is written to a temporary file beside it
   and renamed over it, so a kill leaves the old or the new lock, never a part of one. The bytes are those a serial
-  ``dvc repro`` writes (tests/test_ray_pipeline.py compares them), at milliseconds a write instead of seconds.
+  ``dvc repro`` of the pipeline writes (tests/test_ray_pipeline.py compares them), at milliseconds a write instead
+  of seconds. (For named stages, ``dvc repro <stages>`` orders new entries by a Python set's iteration, which varies
+  between runs: there the entries are the same, their order may not be.)
 
 What ``dvc repro`` does that this does not: restore a stage's outputs from the run cache instead of running it
 (a stage here always runs its command), and stages of ``.dvc`` files (they keep ``dvc repro -s``).
