@@ -505,11 +505,14 @@ def verify(tracking: bool, platform_only: bool, **options) -> None:
 @click.option("--gpu-stages", default="*train*", show_default=True,
               help="Comma-separated fnmatch patterns of the stages --gpus-per-train applies to.")
 @click.option("--dry-run", is_flag=True, help="Print which stages would run; run nothing.")
+@click.option("--runner", type=click.Choice(["direct", "dvc"]), default="direct", show_default=True,
+              help="direct: a task runs the stage's command and this command writes dvc.lock (one writer, atomic); "
+                   "dvc: a task runs `dvc repro -s <stage>`.")
 @tracking_option
 def pipeline(tracking: bool, stages: tuple[str, ...], **options) -> None:
     """Run the DVC pipeline's out-of-date stages (or STAGES: names, foreach groups or patterns, with what they
-    need) as Ray tasks in dependency order, each through `dvc repro -s` (rlsac.pipeline); exit 1 when one
-    fails."""
+    need) as Ray tasks in dependency order, each its own command, recorded in dvc.lock as `dvc repro` records it
+    (rlsac.pipeline, rlsac.dvc_stage); exit 1 when one fails."""
     from rlsac.errors import Interrupted
     from rlsac.pipeline import format_summary
     from rlsac.pipeline import pipeline as run

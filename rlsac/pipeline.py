@@ -1,12 +1,16 @@
 """``rlsac pipeline``: the DVC pipeline's out-of-date stages as Ray tasks, in dependency order (issue #30).
 
-The plan comes from DVC itself (``Repo.index.graph``, ``Stage.changed``): a stage runs when it changed or when a
-stage it depends on runs; frozen stages and stages without a command never run. Each stage is one Ray task
-(``num_cpus=1``; ``num_gpus`` for the stages matching ``gpu_stages`` when ``gpus_per_train`` > 0) that runs
-``dvc --wait-for-lock repro -s <stage>`` in the repository, so ``dvc.lock`` stays the record: DVC releases its
-repository lock while a stage's command runs and ``--wait-for-lock`` queues the short lock-file updates. A stage
-DVC finds up to date is reported skipped. A failed stage (or a lost worker) stops its dependents; every other
-stage still runs; running the command again resumes (what finished is up to date).
+The plan comes from DVC itself (``Repo.index.graph``, ``Stage.changed``), once: a stage runs when it changed or when
+a stage it depends on runs; frozen stages and stages without a command never run. Each stage is one Ray task
+(``num_cpus=1``; ``num_gpus`` for the stages matching ``gpu_stages`` when ``gpus_per_train`` > 0). With the direct
+runner (the default, issue #50) the task runs the stage's own command as DVC would and computes its lock entry with
+DVC's code, and this process, the one writer, merges the entries into ``dvc.lock`` by an atomic rename
+(rlsac.dvc_stage): no DVC repository lock is held while stages run, and the lock is byte for byte a serial
+``dvc repro``'s. With ``runner="dvc"`` the task runs ``dvc --wait-for-lock repro -s <stage>`` (DVC parses and
+rewrites the whole lock under its repository lock for each stage). A stage found up to date when its turn comes (its
+inputs came back the same) is reported skipped. A failed stage (or a lost worker) stops its dependents; every other
+stage still runs; running the command again resumes (what finished is up to date). On a cluster (``address``) every
+stage logs to MLFLOW_TRACKING_URI, which must then be an http(s) server.
 
 A task's process group is watched by a small guard process: if the Ray worker dies (killed, node lost, driver
 interrupted), the guard sends the stage SIGTERM (an ``rlsac`` command ends its MLflow run KILLED) and, 10 s later,
@@ -41,7 +45,9 @@ DEFAULTS: dict[str, Any] = {
     "gpus_per_train": 0.0,  # num_gpus of a stage matching gpu_stages
     "gpu_stages": "*train*",  # fnmatch pattern(s), comma-separated, on the stage address
     "dry_run": False,  # print the plan, run nothing
+    "runner": "direct",  # direct: the stage's command, its lock entry by the driver (rlsac.dvc_stage); dvc: repro -s
 }
+RUNNERS = ("direct", "dvc")
 LOG_DIR = Path("logs") / "pipeline"
 # environment the driver passes to every stage (a worker on another node has its own environment otherwise)
 FORWARD_ENV = ("MLFLOW_TRACKING_URI", "OMP_NUM_THREADS", "MLFLOW_LOGGING_LEVEL")
@@ -63,10 +69,13 @@ def _address(stage, root: Path) -> str:
     return dvcfile if name is None else name if dvcfile == "dvc.yaml" else f"{dvcfile}:{name}"
 
 
-def load_plan(repo_dir: str | os.PathLike, names: str | None = None) -> dict:
+def load_plan(repo_dir: str | os.PathLike, names: str | None = None, runner: str | None = None) -> dict:
     """-> {"root", "order" (every runnable stage, dependencies first), "deps" {address: [addresses it needs]},
-    "todo" (addresses to run, in order), "selected" (addresses considered)}. Raises RlsacError on a path that
-    is not a DVC repository, an unreadable pipeline or a name that matches no stage."""
+    "todo" (addresses to run, in order), "selected" (addresses considered), "specs" and "writer"}. With ``runner``
+    "direct", "specs" {address: what a task needs to run it, rlsac.dvc_stage.stage_spec} (a ``.dvc`` file's stage
+    has none: it keeps ``dvc repro -s``) and "writer" (the lock files' one writer, rlsac.dvc_stage.LockWriter), made
+    while the repository lock is held; else {} and None. Raises RlsacError on a path that is not a DVC repository,
+    an unreadable pipeline, a lock file not laid out as DVC writes it, or a name that matches no stage."""
     import networkx as nx
 
     from rlsac.verify import open_repo, pipeline_error
@@ -104,6 +113,7 @@ def load_plan(repo_dir: str | os.PathLike, names: str | None = None) -> dict:
         deps = {addr[s]: sorted(addr[d] for d in graph.successors(s) if d in run_set) for s in runnable}
         todo: list[str] = []
         why: dict[str, str] = {}
+        specs, writer = {}, None
         from dvc.lock import LockError
 
         for attempt in range(LOCK_TRIES):
@@ -113,6 +123,8 @@ def load_plan(repo_dir: str | os.PathLike, names: str | None = None) -> dict:
                     for s in runnable:  # an upstream stage that runs makes everything downstream of it run
                         if any(d in todo for d in deps[addr[s]]) or why[addr[s]] != UP_TO_DATE:
                             todo.append(addr[s])
+                    if runner == "direct" and todo:
+                        specs, writer = _direct(repo, root, [by_addr[a] for a in todo])
                 break
             except LockError as e:  # another dvc process holds the repository or a stage's outputs (or has
                 # just been killed and is not yet reaped: DVC drops its entries once the process is gone)
@@ -122,7 +134,18 @@ def load_plan(repo_dir: str | os.PathLike, names: str | None = None) -> dict:
     finally:
         repo.close()
     return {"root": root, "order": [addr[s] for s in runnable], "deps": deps, "todo": todo, "why": why,
-            "selected": sorted(addr[s] for s in ordered)}
+            "selected": sorted(addr[s] for s in ordered), "specs": specs, "writer": writer}
+
+
+def _direct(repo, root: Path, stages: list) -> tuple[dict, Any]:
+    """The direct runner's part of the plan: each stage's spec and the lock files' writer."""
+    from rlsac.dvc_stage import LockWriter, stage_spec
+
+    files: dict = {}
+    for s in stages:  # one dvc.yaml object per file: each stage's own would parse its lock file again (3 s each)
+        s.dvcfile = files.setdefault(s.path, s.dvcfile)
+    specs = {_address(s, root): stage_spec(s, root) for s in stages}
+    return {a: sp for a, sp in specs.items() if sp is not None}, LockWriter(repo, stages)
 
 
 # Why a stage is out of date (the dry run's plan): its own change; an upstream stage's change; only its outputs are
@@ -211,32 +234,60 @@ def first_error_line(text: str) -> str:
     return lines[-1].strip() if lines else "(no output)"
 
 
+def start_guarded(argv: list[str], **kwargs) -> subprocess.Popen:
+    """``subprocess.Popen(argv, **kwargs)`` in a process group of its own, stdin /dev/null, watched by the guard: it
+    ends the group if this worker dies, and itself once the group is gone. The command starts once the guard
+    watches (a shell reads a line from a pipe on its stdin, then execs it): a stage that ended its worker at once
+    outlived it otherwise; if this worker dies first, the pipe closes and the command never starts."""
+    kwargs.pop("stdin", None)
+    ready, go = os.pipe()
+    try:
+        proc = subprocess.Popen(["/bin/sh", "-c", 'read _ || exit 111; exec "$@" </dev/null', "sh", *argv],
+                                stdin=ready, start_new_session=True, **kwargs)
+        subprocess.run([sys.executable, "-c", _GUARD, str(proc.pid), str(os.getpid()), str(KILL_GRACE_S)],
+                       stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        os.write(go, b"\n")
+    finally:
+        os.close(ready)
+        os.close(go)
+    return proc
+
+
+def _error(rc: int | None, log: str) -> str:
+    line = first_error_line(Path(log).read_text(errors="replace"))
+    return f"killed by {signal.Signals(-rc).name}: {line}" if rc and rc < 0 else line
+
+
 def run_stage(root: str, address: str, env: dict[str, str], log: str) -> dict:
-    """Run ``dvc --wait-for-lock repro -s <address>`` in ``root`` (a Ray task's body; plain Python too).
-    -> {stage, status (done / skipped / failed), seconds, rc, error, log, node}."""
+    """Run ``dvc --wait-for-lock repro -s <address>`` in ``root`` (the dvc runner: a Ray task's body; plain Python
+    too). -> {stage, status (done / skipped / failed), seconds, rc, error, log, node}."""
     import socket
 
-    full_env = {**os.environ, **env}
-    bindir = str(Path(sys.executable).parent)  # the stage's `rlsac` / `dvc`: this interpreter's
-    full_env["PATH"] = bindir + os.pathsep + full_env.get("PATH", "")
+    from rlsac.dvc_stage import python_bin_env
+
     Path(log).parent.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
     with open(log, "wb") as f:
-        proc = subprocess.Popen([sys.executable, "-m", "dvc", "--wait-for-lock", "repro", "-s", address],
-                                cwd=root, env=full_env, stdout=f, stderr=subprocess.STDOUT,
-                                stdin=subprocess.DEVNULL, start_new_session=True)
-        # the guard ends the stage's process group if this worker dies, and itself once the group is gone
-        subprocess.run([sys.executable, "-c", _GUARD, str(proc.pid), str(os.getpid()), str(KILL_GRACE_S)],
-                       stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        proc = start_guarded([sys.executable, "-m", "dvc", "--wait-for-lock", "repro", "-s", address], cwd=root,
+                             env=python_bin_env(env), stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
         rc = proc.wait()
     seconds = time.time() - t0
-    text = Path(log).read_text(errors="replace")
-    status = "failed" if rc else "skipped" if _SKIPPED.search(text) else "done"
-    error = None
-    if rc:
-        error = first_error_line(text) if rc > 0 else f"killed by {signal.Signals(-rc).name}: {first_error_line(text)}"
-    return {"stage": address, "status": status, "seconds": seconds, "rc": rc, "error": error, "log": log,
-            "node": socket.gethostname()}
+    status = "failed" if rc else "skipped" if _SKIPPED.search(Path(log).read_text(errors="replace")) else "done"
+    return {"stage": address, "status": status, "seconds": seconds, "rc": rc, "error": _error(rc, log) if rc else None,
+            "log": log, "node": socket.gethostname()}
+
+
+def run_direct(root: str, address: str, spec: dict, env: dict[str, str], log: str) -> dict:
+    """Run the stage's own command in ``root`` and compute its lock entry (the direct runner, rlsac.dvc_stage.run: a
+    Ray task's body; plain Python too). -> run_stage's result with "entry" and "ignore" for the driver's writer."""
+    from rlsac.dvc_stage import python_bin_env
+    from rlsac.dvc_stage import run as run_direct_stage
+
+    r = run_direct_stage(root, spec, python_bin_env(env), log, start=start_guarded)
+    r["stage"] = address
+    if r["status"] == "failed":
+        r["error"] = _error(r["rc"], log)
+    return r
 
 
 # ------------------------------------------------------------------------------------------------- scheduling
@@ -253,8 +304,26 @@ def _check_options(o: dict) -> None:
     if o["workers"] is not None and o["workers"] > cpus:  # ray.init hung on --workers 1000000000
         raise RlsacError(f"--workers {o['workers']}: this machine has {cpus} CPUs (a local Ray cluster has at most "
                          "as many)")
+    if o["address"]:
+        _check_tracking_server()
+    if o["runner"] not in RUNNERS:
+        raise RlsacError(f"--runner {o['runner']}: one of {', '.join(RUNNERS)}")
     if o["address"] and o["address"] != "auto":
         _check_address(o["address"])
+
+
+def _check_tracking_server() -> None:
+    """Stages on other machines log where MLFLOW_TRACKING_URI points: a sqlite file (the default) would be one store
+    per node and the driver's a third, with no warning (issue #50, item 3), so a cluster needs an http(s) server."""
+    from urllib.parse import urlsplit
+
+    from rlsac.tracking import DEFAULT_URI
+
+    uri = os.environ.get("MLFLOW_TRACKING_URI") or DEFAULT_URI
+    if urlsplit(uri).scheme.lower() not in ("http", "https"):
+        raise RlsacError(f"--address runs stages on other machines: MLFLOW_TRACKING_URI must be an http(s) MLflow "
+                         f"server every node reaches, not {uri} (one store per node; docs/reproducing.md shows the "
+                         "server command)")
 
 
 def _check_address(address: str) -> None:
@@ -338,6 +407,19 @@ def _descendants(address: str, dependents: dict[str, list[str]]) -> set[str]:
     return out
 
 
+def _record(plan: dict, address: str, r: dict) -> None:
+    """A direct-run stage that finished: its lock entry into dvc.lock (a stage whose entry cannot be written failed:
+    the next run re-runs it); the entry leaves the result."""
+    entry, ignore = r.pop("entry", None), r.pop("ignore", None)
+    if r["status"] != "done" or entry is None:
+        return
+    try:
+        plan["writer"].record(plan["specs"][address], {"entry": entry, "ignore": ignore or []})
+    except Exception as e:
+        why = " ".join(str(e).split())[:300]
+        r.update(status="failed", error=f"dvc.lock not updated: {e.__class__.__name__}: {why}")
+
+
 def schedule(plan: dict, o: dict, ray, progress: Callable[[dict], None] | None = None,
              results: dict[str, dict] | None = None, running: dict | None = None,
              stop: Callable[[], int] | None = None) -> dict[str, dict]:
@@ -349,7 +431,7 @@ def schedule(plan: dict, o: dict, ray, progress: Callable[[dict], None] | None =
     root = str(plan["root"])
     env = {k: os.environ[k] for k in FORWARD_ENV if k in os.environ}
     env.setdefault("OMP_NUM_THREADS", "1")
-    task = ray.remote(run_stage)
+    task, direct = ray.remote(run_stage), ray.remote(run_direct)
     waiting = {a: {d for d in plan["deps"][a] if d in todo} for a in todo}
     dependents: dict[str, list[str]] = {a: [] for a in todo}
     for a, ds in waiting.items():
@@ -364,7 +446,10 @@ def schedule(plan: dict, o: dict, ray, progress: Callable[[dict], None] | None =
             if o["gpus_per_train"] > 0 and _is_gpu_stage(a, o["gpu_stages"]):
                 opts["num_gpus"] = o["gpus_per_train"]
             log = str(plan["root"] / LOG_DIR / (re.sub(r"[^\w.@-]", "_", a) + ".log"))
-            running[task.options(**opts).remote(root, a, env, log)] = a
+            if a in plan.get("specs", {}):
+                running[direct.options(**opts).remote(root, a, plan["specs"][a], env, log)] = a
+            else:
+                running[task.options(**opts).remote(root, a, env, log)] = a
         if not running:  # nothing runnable is left: the rest waits on a failed stage (already marked)
             break
         ready, _ = ray.wait(list(running), num_returns=1, timeout=None if stop is None else 0.5)
@@ -377,6 +462,7 @@ def schedule(plan: dict, o: dict, ray, progress: Callable[[dict], None] | None =
             except Exception as e:  # the worker died (killed, out of memory, node lost): the stage failed
                 r = {"stage": a, "status": "failed", "seconds": None, "rc": None, "log": None, "node": None,
                      "error": f"{e.__class__.__name__}: {first_error_line(str(e))}"}
+            _record(plan, a, r)
             results[a] = r
             if r["status"] == "failed":
                 for d in _descendants(a, dependents):
@@ -401,14 +487,14 @@ def pipeline(options: dict[str, Any], track: bool = True) -> dict:
 
     o = {**DEFAULTS, **{k: v for k, v in options.items() if v is not None}}
     _check_options(o)
-    plan = load_plan(o["repo"], o["stages"])
+    plan = load_plan(o["repo"], o["stages"], None if o["dry_run"] else o["runner"])
     skipped = [a for a in plan["order"] if a not in plan["todo"]]
     base = {"root": str(plan["root"]), "n_selected": len(plan["order"]), "todo": plan["todo"], "run_id": None}
     if o["dry_run"]:
         return {**base, "dry_run": True, "results": {a: {"stage": a, "status": "skipped"} for a in skipped},
                 "counts": {"skipped": len(skipped)}, "wall_s": 0.0, "workers": None, "why": plan["why"]}
     check_store(track, "pipeline")
-    params = {k: o[k] for k in ("stages", "workers", "address", "gpus_per_train", "gpu_stages")}
+    params = {k: o[k] for k in ("stages", "workers", "address", "gpus_per_train", "gpu_stages", "runner")}
     params.update(repo=str(plan["root"]), n_todo=len(plan["todo"]))
     t0 = time.time()
     if not o["address"] and plan["todo"]:  # a local cluster has this machine's GPUs: known before Ray starts
@@ -461,6 +547,8 @@ def _run(plan: dict, o: dict, ray, run, results: dict, running: dict, stop: Call
             schedule(plan, o, ray, progress, results, running, stop)
     finally:
         bar.close()
+        if plan.get("writer") is not None:
+            plan["writer"].close()
 
 
 def _summary(plan: dict, base: dict, skipped: list[str], results: dict, wall: float, workers: int, run,

@@ -43,11 +43,13 @@ def _env() -> dict:
     return {**os.environ, "PATH": bindir + os.pathsep + os.environ.get("PATH", ""), "OMP_NUM_THREADS": "1"}
 
 
-def make_repo(path: Path, stages: dict) -> Path:
+def make_repo(path: Path, stages: dict, files: dict[str, str] | None = None) -> Path:
     path.mkdir(parents=True)
     subprocess.run(["git", "init", "-q"], cwd=path, check=True)
     subprocess.run([sys.executable, "-m", "dvc", "init", "-q"], cwd=path, check=True, env=_env())
     (path / "dvc.yaml").write_text(yaml.safe_dump({"stages": stages}, sort_keys=False))
+    for name, text in (files or {}).items():
+        (path / name).write_text(text)
     return path
 
 
@@ -181,7 +183,7 @@ def test_killed_worker_is_reported_and_a_second_run_completes(tmp_path):
     assert failed and "worker" in failed[0].lower(), r.output
     # the orphaned stage and its dvc process do not outlive their worker (the guard ends them)
     pids = [int(p) for p in pidfile.read_text().split()]
-    assert len(pids) >= 2  # the stage's command and dvc at least
+    assert pids  # the stage's command (and the shell, where it does not exec a lone command; dvc with --runner dvc)
     deadline = time.monotonic() + 60
     while any(map(_exists, pids)) and time.monotonic() < deadline:
         time.sleep(0.2)
@@ -212,6 +214,20 @@ def test_bad_input_is_one_error_line_before_any_work(tmp_path):
 # ------------------------------------------------------------------------------------- one MLflow server
 
 
+def _host_status(base: str, host: str) -> int:
+    """The HTTP status of an experiments search sent to ``base`` as if to ``host`` (its Host header)."""
+    import urllib.error
+    import urllib.request
+
+    req = urllib.request.Request(base + "/api/2.0/mlflow/experiments/search", data=b'{"max_results": 1}',
+                                 method="POST", headers={"Content-Type": "application/json", "Host": host})
+    try:
+        with urllib.request.urlopen(req, timeout=10) as r:
+            return r.status
+    except urllib.error.HTTPError as e:
+        return e.code
+
+
 def test_stages_log_to_one_mlflow_server(tmp_path, monkeypatch):
     from test_mlflow_server import _free_port, _mlflow_exe, _post, _stop, _wait_up
 
@@ -224,9 +240,12 @@ def test_stages_log_to_one_mlflow_server(tmp_path, monkeypatch):
         proc = subprocess.Popen(
             [exe, "server", "--backend-store-uri", f"sqlite:///{tmp_path / 'server.db'}",
              "--artifacts-destination", str(tmp_path / "art"), "--host", "127.0.0.1", "--port", str(port),
-             "--workers", "1"], stdout=out, stderr=subprocess.STDOUT, cwd=tmp_path, start_new_session=True)
+             "--workers", "1", "--allowed-hosts", f"head-node:{port},127.0.0.1:*"],  # docs/reproducing.md's
+            stdout=out, stderr=subprocess.STDOUT, cwd=tmp_path, start_new_session=True)
     try:
         _wait_up(base, proc, log)
+        # MLflow 3 answers only the Host headers it allows: the cluster's name for the server, not another one
+        assert [_host_status(base, f"{name}:{port}") for name in ("head-node", "other-node")] == [200, 403]
         seeds = range(4)
         stages = {f"s{i}": {"cmd": f"rlsac synth-lines --n-instances 8 --seed {i} --out s{i}.h5",
                             "outs": [f"s{i}.h5"]} for i in seeds}
@@ -287,6 +306,8 @@ def test_joins_a_ray_cluster_by_address(tmp_path):
     ray_exe = str(Path(sys.executable).parent / "ray")
     # as in a fresh shell: the module's ray.init set RAY_AUTH_MODE=token in this process's environment
     env = {k: v for k, v in _env().items() if k != "RAY_AUTH_MODE"}
+    # a cluster needs a tracking server every node reaches (the stages here log nothing: none needs to answer)
+    env["MLFLOW_TRACKING_URI"] = "http://127.0.0.1:9"
     log = open(tmp_path / "head.log", "w")
     head = subprocess.Popen([ray_exe, "start", "--head", "--port", str(port), "--num-cpus", "1",
                              "--include-dashboard", "false", "--block"], stdout=log, stderr=subprocess.STDOUT,
@@ -340,3 +361,207 @@ def test_an_interrupted_run_keeps_the_times_of_the_stages_it_finished(tmp_path, 
         [mlflow.MlflowClient(uri).get_experiment_by_name("pipeline").experiment_id])
     assert len(runs) == 1 and runs[0].data.metrics.get("stage_s/a") == 1.5, runs[0].data.metrics
     assert runs[0].info.status == "KILLED" and runs[0].data.tags["error"] == "interrupted by SIGTERM"
+
+
+# ------------------------------------------------------------------- the direct runner and its lock (issue #50)
+
+
+TOOL = """
+import json, os, sys
+kind, args = sys.argv[1], sys.argv[2:]
+if kind == "gen":  # seed n out
+    seed, n, out = int(args[0]), int(args[1]), args[2]
+    os.makedirs(os.path.dirname(out), exist_ok=True)
+    open(out, "w").write("".join(f"{seed * i}\\n" for i in range(n)))
+elif kind == "table":  # a directory out from the inputs
+    os.makedirs("out/parts", exist_ok=True)
+    for p in args:
+        open(os.path.join("out/parts", os.path.basename(p)), "w").write(open(p).read()[::-1])
+    open("out/index.txt", "w").write("\\n".join(sorted(args)) + "\\n")
+elif kind == "grid":  # a b scale
+    a, b, scale = args
+    os.makedirs("reports", exist_ok=True)
+    n = len(os.listdir("out/parts"))
+    open(f"reports/grid_{a}-{b}.txt", "w").write(f"{a}{int(b) * int(scale) * n}\\n")
+elif kind == "summary":
+    os.makedirs("reports/summary", exist_ok=True)
+    rows = sorted(p for p in os.listdir("reports") if p.startswith("grid_"))
+    for r in rows:
+        open(f"reports/summary/{r}", "w").write(open(f"reports/{r}").read())
+    json.dump({"n": len(rows)}, open("reports/metrics.json", "w"))
+    if not os.path.exists("model.bin"):  # a persistent output: made once, kept by every re-run
+        open("model.bin", "w").write("m")
+"""
+GRID = ["reports/grid_x-1.txt", "reports/grid_x-2.txt", "reports/grid_y-1.txt", "reports/grid_y-2.txt"]
+PIPE = {  # a foreach and a matrix group, params deps, cached file and directory outs, cache: false file, directory,
+    # metric and persistent outs, in four levels
+    "gen": {"foreach": "${gen.seeds}",
+            "do": {"cmd": f"{PY} tool.py gen ${{item}} ${{gen.n}} data/gen_${{item}}.txt", "deps": ["tool.py"],
+                   "params": ["gen.n"], "outs": ["data/gen_${item}.txt"]}},
+    "table": {"cmd": f"{PY} tool.py table data/gen_1.txt data/gen_2.txt", "deps": ["data/gen_1.txt", "data/gen_2.txt"],
+              "outs": ["out"]},
+    "grid": {"matrix": {"a": ["x", "y"], "b": [1, 2]}, "cmd": f"{PY} tool.py grid ${{item.a}} ${{item.b}} ${{scale}}",
+             "deps": ["out"], "params": ["scale"],
+             "outs": [{"reports/grid_${item.a}-${item.b}.txt": {"cache": False}}]},
+    "summary": {"cmd": f"{PY} tool.py summary", "deps": GRID,
+                "outs": [{"reports/summary": {"cache": False}}, {"model.bin": {"cache": False, "persist": True}}],
+                "metrics": [{"reports/metrics.json": {"cache": False}}]},
+}
+PARAMS = "gen:\n  n: 3\n  seeds: [1, 2]\nscale: 2\n"
+
+
+def _tree(root: Path) -> dict[str, bytes]:
+    """Every file of a repository but git's and DVC's own state and the pipeline's logs; .gitignore files as their
+    sorted lines (the pipeline adds a stage's entries as it finishes, `dvc repro` in its order)."""
+    out = {}
+    for p in sorted(root.rglob("*")):
+        rel = p.relative_to(root).as_posix()
+        if p.is_file() and not rel.startswith((".git/", ".dvc/tmp/", "logs/")):
+            data = p.read_bytes()
+            out[rel] = b"".join(sorted(data.splitlines(keepends=True))) if p.name == ".gitignore" else data
+    return out
+
+
+def test_the_direct_runner_writes_the_lock_a_serial_dvc_repro_writes(tmp_path):
+    files = {"tool.py": TOOL, "params.yaml": PARAMS}
+    seq, par = make_repo(tmp_path / "seq", PIPE, files), make_repo(tmp_path / "par", PIPE, files)
+    assert dvc(seq, "repro").returncode == 0
+
+    r = run_pipeline("--repo", str(par), "--workers", "2", "--no-tracking")
+    assert r.exit_code == 0, r.output
+    assert summary(r.output)[0].startswith("pipeline: 8 done, 0 skipped, 0 failed, 0 not run of 8 stages"), r.output
+    assert (par / "dvc.lock").read_bytes() == (seq / "dvc.lock").read_bytes()
+    assert json.loads(dvc(par, "status", "--json").stdout) == {}
+    # the same outputs, .gitignore entries, DVC cache objects and run cache entries
+    assert _tree(par) == _tree(seq)
+
+    # a changed parameter: its stages and what follows re-run, the entries change in place
+    for repo in (seq, par):
+        (repo / "params.yaml").write_text(PARAMS.replace("scale: 2", "scale: 3"))
+    assert dvc(seq, "repro").returncode == 0
+    r = run_pipeline("--repo", str(par), "--workers", "2", "--no-tracking")
+    assert r.exit_code == 0, r.output
+    assert summary(r.output)[0].startswith("pipeline: 5 done, 3 skipped, 0 failed, 0 not run of 8 stages"), r.output
+    assert (par / "dvc.lock").read_bytes() == (seq / "dvc.lock").read_bytes()
+    assert json.loads(dvc(par, "status", "--json").stdout) == {}
+    assert _tree(par) == _tree(seq)
+
+
+def test_a_stage_whose_inputs_came_back_the_same_is_skipped_as_dvc_skips_it(tmp_path):
+    """The plan says b runs (a runs first); a re-makes the same a.txt, so b is found unchanged when its turn
+    comes, and is not run (its log says so), as `dvc repro` does."""
+    repo = make_repo(tmp_path / "repo", {"a": TOY["a"], "b": TOY["b"]})
+    assert run_pipeline("--repo", str(repo), "--no-tracking").exit_code == 0
+    (repo / "a.txt").unlink()
+    r = run_pipeline("--repo", str(repo), "--no-tracking")
+    assert r.exit_code == 0, r.output
+    lines = summary(r.output)
+    assert lines[0].startswith("pipeline: 1 done, 1 skipped, 0 failed, 0 not run of 2 stages"), r.output
+    assert lines[1:3] == ["done     a", "skipped  b"], r.output
+    assert "didn't change, skipping" in (repo / "logs" / "pipeline" / "b.log").read_text()
+    assert json.loads(dvc(repo, "status", "--json").stdout) == {}
+
+
+def test_both_runners_record_the_same_entries(tmp_path):
+    """`--runner dvc` (`dvc repro -s` a stage) records the same entries; it appends each as its stage ends, so only
+    the direct runner has them in a serial `dvc repro`'s order."""
+    files = {"tool.py": TOOL, "params.yaml": PARAMS}
+    locks = []
+    for runner in ("dvc", "direct"):
+        repo = make_repo(tmp_path / runner, PIPE, files)
+        r = run_pipeline("--repo", str(repo), "--workers", "1", "--runner", runner, "--no-tracking")
+        assert r.exit_code == 0, r.output
+        assert json.loads(dvc(repo, "status", "--json").stdout) == {}
+        locks.append(yaml.safe_load((repo / "dvc.lock").read_text()))
+    assert locks[0] == locks[1]
+
+
+KILLED_WRITER = """
+import sys
+from rlsac.dvc_stage import write_atomic
+texts = [open(sys.argv[2]).read(), open(sys.argv[3]).read()]
+i = 0
+while True:  # the SIGKILL lands somewhere in here
+    write_atomic(sys.argv[1], texts[i % 2])
+    i += 1
+    if i == 2:
+        print("writing", flush=True)
+"""
+
+
+def _big_lock(k: int) -> str:
+    return "schema: '2.0'\nstages:\n" + "".join(f"  s{i}:\n    cmd: run {k}\n" for i in range(40000))
+
+
+def test_a_sigkill_of_the_writer_leaves_a_whole_lock(tmp_path):
+    """The lock file is written to a temporary file and renamed over it: a SIGKILL at any instant leaves it whole
+    (DVC's own write truncates it first: a kill there left it empty, issue #50)."""
+    lock = tmp_path / "dvc.lock"
+    texts = [_big_lock(0), _big_lock(1)]
+    lock.write_text(texts[1])
+    script = tmp_path / "writer.py"
+    script.write_text(KILLED_WRITER)
+    for k, text in enumerate(texts):
+        (tmp_path / f"text{k}").write_text(text)
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    for attempt in range(8):
+        proc = subprocess.Popen([sys.executable, str(script), str(lock), str(tmp_path / "text0"),
+                                 str(tmp_path / "text1")], stdout=subprocess.PIPE, text=True, env=env)
+        assert proc.stdout.readline().strip() == "writing"
+        time.sleep(0.013 * attempt)
+        proc.kill()
+        proc.wait()
+        assert lock.read_text() in texts, (attempt, len(lock.read_text()))
+
+
+def test_the_lock_writer_keeps_old_entries_in_place_and_adds_new_ones_in_dvc_order(tmp_path):
+    from rlsac.dvc_stage import LockFile, render_entry
+
+    old = "schema: '2.0'\nstages:\n" + render_entry("b", {"cmd": "b"}) + render_entry("a", {"cmd": "a"})
+    path = tmp_path / "dvc.lock"
+    path.write_text(old)
+    lock = LockFile(path, old, ["b", "a"], {"a": 0, "b": 1, "c": 2, "d": 3})
+    lock.update({"d": {"cmd": "d"}})
+    lock.update({"c": {"cmd": "c"}, "a": {"cmd": "A"}})  # c finished after d, goes before it as a serial run has it
+    assert list(yaml.safe_load(path.read_text())["stages"].items()) == [
+        ("b", {"cmd": "b"}), ("a", {"cmd": "A"}), ("c", {"cmd": "c"}), ("d", {"cmd": "d"})]
+
+    # another dvc command wrote the file meanwhile (`dvc commit` of a stage): the next write keeps its change
+    time.sleep(0.01)
+    path.write_text(path.read_text() + render_entry("x", {"cmd": "x"}))
+    lock.update({"b": {"cmd": "B"}})
+    assert list(yaml.safe_load(path.read_text())["stages"].items()) == [
+        ("b", {"cmd": "B"}), ("a", {"cmd": "A"}), ("c", {"cmd": "c"}), ("d", {"cmd": "d"}), ("x", {"cmd": "x"})]
+
+
+# ------------------------------------------------------------------ one tracking server or a refusal (issue #50)
+
+
+def test_a_cluster_needs_an_http_tracking_server(tmp_path, monkeypatch):
+    """--address without an http(s) MLFLOW_TRACKING_URI: every node would log into its own sqlite file. One error
+    line, exit 2, before Ray or MLflow is touched."""
+    from rlsac import pipeline as pipeline_module
+
+    repo = make_repo(tmp_path / "repo", TOY)
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(pipeline_module, "_start_ray", lambda o: pytest.fail("Ray started"))
+    for uri in (None, "sqlite:///mlflow.db", "file:///tmp/mlruns"):
+        if uri is None:
+            monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+        else:
+            monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
+        for track in ([], ["--no-tracking"]):  # the stages' own rlsac commands log, whatever the driver does
+            r = CliRunner().invoke(cli, ["pipeline", "--repo", str(repo), "--address", "127.0.0.1:9", *track])
+            assert r.exit_code == 2, r.output
+            assert r.output.startswith("error: --address runs stages on other machines: MLFLOW_TRACKING_URI must "
+                                       "be an http(s) MLflow server"), r.output
+            assert len(r.output.splitlines()) == 1, r.output
+    assert not (tmp_path / "mlflow.db").exists() and not (tmp_path / "mlruns").exists()
+    assert not (repo / "a.txt").exists()
+
+    # with a server set, an address nothing answers at is the next error, within seconds (issue #49)
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", "http://127.0.0.1:9")
+    t0 = time.monotonic()
+    r = CliRunner().invoke(cli, ["pipeline", "--repo", str(repo), "--address", "127.0.0.1:1"])
+    assert r.exit_code == 2 and "no Ray cluster answers there" in r.output and len(r.output.splitlines()) == 1, r.output
+    assert time.monotonic() - t0 < 20
