@@ -228,7 +228,7 @@ def train_models(p: dict, params: dict, regime: str, fold: str, models: list[str
     """Train ``models`` of the fold one after the other; every model's configuration, outputs and the fold's two
     data files are checked before the first one starts (issue #28, item 2). -> {model: train summary}"""
     from rlsac.data.fundamental import read
-    from rlsac.learners.harness import check
+    from rlsac.learners.harness import check, saved_step
     from rlsac.train import train
 
     for model in models:
@@ -239,7 +239,11 @@ def train_models(p: dict, params: dict, regime: str, fold: str, models: list[str
             read(d / f"{split}.h5")
     options = {m: train_options(p, params, regime, fold, m, o) for m in models}
     for opts in options.values():
-        check(opts, track)
+        # a run of this very recipe stopped part-way (SIGTERM at a session's end saves its state): resume it, which
+        # gives the uninterrupted run's bytes; a finished state or another recipe's trains from the start as before
+        done = saved_step(opts)
+        if 0 < done < check(opts, track).sac.total_steps:
+            opts["resume"] = True
     return {m: train(opts, track=track) for m, opts in options.items()}
 
 

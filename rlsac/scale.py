@@ -211,6 +211,7 @@ def train_run(p: dict, params: dict, s: dict, arm: str, seed: int, o: dict, trac
     resumes from that state. Each leg stores the conf it was run with (total_steps = its end, its snapshots), so a
     run re-made from nothing writes the same files as one extended leg by leg across sessions."""
     from rlsac.config import deep_update
+    from rlsac.learners.harness import saved_step
     from rlsac.train import train
 
     opts = train_options(p, params, s, arm, seed, o)
@@ -238,30 +239,6 @@ def train_run(p: dict, params: dict, s: dict, arm: str, seed: int, o: dict, trac
         summ = {"checkpoint": opts["out"], "steps": done, "best_step": kept.get("step"), "seconds": 0.0}
     return {"run": lay.run_name(arm, seed), "checkpoint": summ["checkpoint"], "steps": summ["steps"],
             "best_step": summ["best_step"], "train_seconds": summ["seconds"]}
-
-
-def saved_step(opts: dict) -> int:
-    """The step of the training state beside ``opts["out"]`` when this run's own configuration wrote it (its legs'
-    ends and snapshots aside), else 0: a state of another recipe is never resumed, the run starts over."""
-    import torch
-
-    from rlsac.config import build
-    from rlsac.train import TrainConf, stored_conf
-
-    state = Path(opts["out"]).with_suffix(".state.pt")
-    if not state.is_file():
-        return 0
-    try:  # mmap: only the step and the conf are read, not the replay buffer (hundreds of MB at 10k steps)
-        st = torch.load(state, map_location="cpu", weights_only=False, mmap=True)
-    except Exception:  # noqa: BLE001 (any unreadable state: start over, as for a missing one)
-        return 0
-
-    def key(conf: dict) -> dict:
-        conf = {k: v for k, v in conf.items() if k not in ("snapshot_steps", "ckpt_every", "resume")}
-        return {**conf, "sac": {k: v for k, v in conf.get("sac", {}).items() if k != "total_steps"}}
-
-    here = stored_conf(build(TrainConf, opts, "train"))
-    return int(st.get("step", 0)) if key(st.get("conf", {})) == key(here) else 0
 
 
 def evaluate_run(p: dict, params: dict, s: dict, arm: str, seed: int, o: dict, track: bool,

@@ -699,3 +699,31 @@ def test_folds_command_end_to_end(imported, tmp_path, monkeypatch):
     assert conf["task"] == "essential" and conf["refit_output"] == rec["chosen"]["refit_output"]
     usac_err = pd.read_csv(tmp_path / "reports/eval/essential/hard/fountain/usac/i15/errors.csv")
     assert (usac_err["n_hypotheses"] <= 15).all()  # OpenCV: its stopping rule's bound, capped at the budget
+
+
+def test_a_fold_model_stopped_part_way_resumes_its_own_state(tmp_path, monkeypatch):
+    """rlsac folds --stage train: a state of this recipe short of its steps (a SIGTERM at a session's end) is resumed;
+    a finished state, another recipe's or none trains from the start (issue #46: the 10k-step fold models)."""
+    import torch
+
+    import rlsac.data.fundamental as fundamental
+    import rlsac.folds as folds
+    import rlsac.train as train_mod
+    from rlsac.config import build
+
+    for split in ("train", "val"):
+        (tmp_path / f"{split}.h5").write_text("")
+    opts = {"task": "line", "data": "x.h5", "out": str(tmp_path / "m.pt"), "seed": 0, "sac": {"total_steps": 30}}
+    monkeypatch.setattr(folds, "data_dir", lambda *a: tmp_path)
+    monkeypatch.setattr(fundamental, "read", lambda path: None)
+    monkeypatch.setattr(folds, "train_options", lambda *a: dict(opts))
+    calls = []
+    monkeypatch.setattr(train_mod, "train", lambda o, track=True: calls.append(bool(o.get("resume"))) or {})
+    conf = train_mod.stored_conf(build(train_mod.TrainConf, opts, "train"))
+    p = {"models": ["m"]}
+    for step, state_conf, want in ((None, None, False), (10, conf, True), (30, conf, False),
+                                   (10, {**conf, "seed": 1}, False)):
+        if step is not None:
+            torch.save({"step": step, "conf": state_conf}, tmp_path / "m.state.pt")
+        folds.train_models(p, {}, "hard", "castle", ["m"], {}, track=False)
+        assert calls.pop() is want, (step, want)

@@ -209,3 +209,23 @@ def task_experiment(task: str) -> str:
 
 def to_numpy(batch: dict) -> dict:
     return {k: (v.cpu().numpy() if torch.is_tensor(v) else v) for k, v in batch.items()}
+
+
+def saved_step(opts: dict) -> int:
+    """The step of the training state beside ``opts["out"]`` when this run's own configuration wrote it (its legs'
+    ends and snapshots aside), else 0: a state of another recipe is never resumed, the run starts over. What lets a
+    long training (the scale study's legs, a fold model killed at a session's end) resume instead of re-running."""
+    state = Path(opts["out"]).with_suffix(".state.pt")
+    if not state.is_file():
+        return 0
+    try:  # mmap: only the step and the conf are read, not the replay buffer (hundreds of MB at 10k steps)
+        st = torch.load(state, map_location="cpu", weights_only=False, mmap=True)
+    except Exception:  # noqa: BLE001 (any unreadable state: start over, as for a missing one)
+        return 0
+
+    def key(conf: dict) -> dict:
+        conf = {k: v for k, v in conf.items() if k not in ("snapshot_steps", "ckpt_every", "resume")}
+        return {**conf, "sac": {k: v for k, v in conf.get("sac", {}).items() if k != "total_steps"}}
+
+    here = stored_conf(build(TrainConf, opts, "train"))
+    return int(st.get("step", 0)) if key(st.get("conf", {})) == key(here) else 0
