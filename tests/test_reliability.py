@@ -1296,6 +1296,41 @@ def _kind_mismatch_setup(root: Path, f: dict) -> None:
     torch.save(ckpt, path)
 
 
+def _network_as_actor(path: Path, task_name: str = "fundamental") -> Path:
+    """An NG-RANSAC network (it reads the task's data features only) saved without its 'kind': it loads as an RLSAC
+    actor, whose sampler feeds it the environment's memory channels too."""
+    import torch
+
+    from rlsac.policy import Actor, PolicyConf
+    from rlsac.tasks import get_task
+
+    _tiny_checkpoint(path, task_name)
+    ckpt = torch.load(path, weights_only=False)
+    features = get_task(task_name).feature_dim
+    ckpt["actor"] = Actor(features, config.build(PolicyConf, ckpt["conf"]["policy"])).state_dict()
+    ckpt["in_channels"] = features
+    torch.save(ckpt, path)
+    return path
+
+
+def _folds_tune_kind_setup(root: Path, f: dict) -> None:
+    """--only ransac,rlsac, the second row's checkpoint an NG-RANSAC network without its kind: ransac's record stays
+    (the validation file's scene s1 is made a training building, so the tuning itself would run)."""
+    import shutil
+
+    (root / "data/folds/hard/castle").mkdir(parents=True)
+    shutil.copy(f["fund"], root / "data/folds/hard/castle/val.h5")
+    _network_as_actor(root / "checkpoints/folds/hard/castle/rlsac.pt")
+    _committed(root / "reports/tuning/fundamental/hard/castle/ransac.json")
+    (root / "params.yaml").write_text(
+        FOLDS_EVAL_PARAMS.replace("model_regime: hard", "model_regime: hard, scenes: {castle: c1, other: s1}, "
+                                  "test: [castle]") + "tuning: {threshold_px: [1.0], prefilter: [1.0], iterations: 5}\n")
+
+
+def _plot_kind_setup(root: Path, f: dict) -> None:
+    _network_as_actor(root / "ck.pt", "line")
+
+
 def _select_setup(summary: str, data: str = ""):
     def setup(root: Path, f: dict) -> None:
         import torch
@@ -1333,6 +1368,12 @@ ISSUE49_TRACKED = [
     ("evaluate-kind-not-the-weights", _kind_mismatch_setup,
      ["evaluate", "--task", "line", "--method", "ngransac", "--checkpoint", "ck.pt", "--data", "{lines}",
       "--out-dir", "ev", "--params", "", "--iterations", "5"], "ck.pt: its network reads 5 input channels, not the 2"),
+    ("folds-tune-second-row-kind-not-the-weights", _folds_tune_kind_setup,
+     ["folds", "--stage", "tune", "--regime", "hard", "--fold", "castle", "--only", "ransac,rlsac"],
+     "rlsac.pt: its network reads 261 input channels, not the 264"),
+    ("plot-kind-not-the-weights", _plot_kind_setup,
+     _plot("which=line", "line_checkpoint=ck.pt", "line_data={lines}", "out_dir=figs"),
+     "ck.pt: its network reads 2 input channels, not the 5 a rlsac sampler"),
     ("select-kept-eval-list", _select_setup("[]"), _select(), "not a valid summary.json (holds a list"),
     ("select-kept-eval-corrupt", _select_setup("{not json"), _select(), "not a valid summary.json (JSONDecodeError)"),
     ("select-training-file-absent", _select_setup(json.dumps({"mAA": 0.5}), data="gone/train.h5"), _select(),
