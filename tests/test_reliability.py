@@ -1322,9 +1322,9 @@ def _folds_tune_kind_setup(root: Path, f: dict) -> None:
     shutil.copy(f["fund"], root / "data/folds/hard/castle/val.h5")
     _network_as_actor(root / "checkpoints/folds/hard/castle/rlsac.pt")
     _committed(root / "reports/tuning/fundamental/hard/castle/ransac.json")
-    (root / "params.yaml").write_text(
-        FOLDS_EVAL_PARAMS.replace("model_regime: hard", "model_regime: hard, scenes: {castle: c1, other: s1}, "
-                                  "test: [castle]") + "tuning: {threshold_px: [1.0], prefilter: [1.0], iterations: 5}\n")
+    scenes = "model_regime: hard, scenes: {castle: c1, other: s1}, test: [castle]"
+    (root / "params.yaml").write_text(FOLDS_EVAL_PARAMS.replace("model_regime: hard", scenes)
+                                      + "tuning: {threshold_px: [1.0], prefilter: [1.0], iterations: 5}\n")
 
 
 def _plot_kind_setup(root: Path, f: dict) -> None:
@@ -1425,6 +1425,12 @@ def _errors_edit(kind):
     return edit
 
 
+def _truncated_without_summary(d: Path) -> None:
+    """errors.csv cut short and no summary.json beside it: its config.json still counts the instances."""
+    _errors_edit("truncated")(d)
+    (d / "summary.json").unlink()
+
+
 def _summary_edit(value):
     def edit(d: Path) -> None:
         f = d / "summary.json"
@@ -1441,6 +1447,8 @@ CORRUPT = {
     "errors-nan": (_errors_edit("nan"), "errors.csv: 'err_deg' is nan in row 1"),
     "errors-text": (_errors_edit("text"), "errors.csv: 'err_deg' holds 'oops', not a number"),
     "errors-truncated": (_errors_edit("truncated"), "errors.csv: 974 rows, not the 1000 instances"),
+    "errors-truncated-no-summary": (_truncated_without_summary,
+                                    "errors.csv: 974 rows, not the 1000 instances its config.json counts"),
     "errors-negative": (_errors_edit("negative"), "'err_deg' is -1 in row 1, not a finite number >= 0"),
     "summary-maa-text": (_summary_edit("high"), "summary.json: 'mAA' is 'high', not a finite number"),
     "summary-maa-nan": (_summary_edit(float("nan")), "summary.json: 'mAA' is nan, not a finite number"),
@@ -1464,6 +1472,43 @@ def test_corrupt_result_is_an_error_not_a_table(workdir, name):
     err = r.stderr.strip()
     assert err.startswith("error: ") and "\n" not in err and fragment in err, err
     assert "o0.7" in err and not (workdir / "out").exists()
+
+
+FOLD_CELL = Path(__file__).resolve().parents[1] / "reports/eval/folds/hard/castle"
+
+
+def _fold_cell_text(d: Path) -> None:
+    f = d / "errors.csv"
+    df = pd.read_csv(f, dtype={"pair": str})
+    df["err_R"] = df["err_R"].astype(object)
+    df.loc[5, "err_R"] = "oops"
+    df.to_csv(f, index=False)
+
+
+def _fold_cell_truncated(d: Path) -> None:
+    f = d / "errors.csv"
+    pd.read_csv(f, dtype={"pair": str}).iloc[:-25].to_csv(f, index=False)
+    (d / "summary.json").unlink()
+
+
+@pytest.mark.parametrize("which", ["claims", "paper"])
+@pytest.mark.parametrize("edit, fragment", [(_fold_cell_text, "errors.csv: 'err_R' holds 'oops', not a number"),
+                                            (_fold_cell_truncated, "300 rows, not the 325 instances its config.json")],
+                         ids=["text", "truncated-no-summary"])
+def test_claims_check_the_fold_cells_before_their_run(workdir, which, edit, fragment):
+    """`rlsac table --which claims` (and paper) read the fold cells too: a corrupt one is refused before the MLflow
+    run, nothing written (issue #49: it failed inside its run, which ended FAILED; a truncated cell without its
+    summary was pooled, the claim's pairs silently fewer)."""
+    import shutil
+
+    for row in ("rlsac", "uniform"):
+        shutil.copytree(FOLD_CELL / row / "i1000", workdir / "eval/folds/hard/castle" / row / "i1000")
+    edit(workdir / "eval/folds/hard/castle/uniform/i1000")
+    r = CliRunner().invoke(cli, ["table", "--which", which, "--eval-root", "eval", "--out-dir", "out"])
+    assert r.exit_code == 2, r.output
+    err = r.stderr.strip()
+    assert err.startswith("error: ") and "\n" not in err and fragment in err, err
+    assert not (workdir / "out").exists() and _all_runs() == []
 
 
 def test_absent_result_is_a_dash_and_counted(workdir):
