@@ -1629,6 +1629,10 @@ def test_pipeline_refuses_empty_stage_names_and_gpus_it_lacks(workdir):
     subprocess.run([sys.executable, "-m", "dvc", "init", "-q"], cwd=repo, check=True)
     (repo / "dvc.yaml").write_text(yaml.safe_dump({"stages": {"train_a": {"cmd": "echo a > a", "outs": ["a"]}}}))
     for argv, fragment in ((["pipeline", "--repo", "repo", ","], "stages ',': names no stage"),
+                           # '' named every stage: the whole pipeline ran (issue #49)
+                           (["pipeline", "--repo", "repo", ""], "stages '': names no stage"),
+                           (["verify", "--repo", "repo", "--stages", ""], "--stages '': names no stage"),
+                           (["verify", "--repo", "repo", "--stages", ","], "--stages ',': names no stage"),
                            (["pipeline", "--repo", "repo", "--gpus-per-train", "1"], "--gpus-per-train 1")):
         r = CliRunner().invoke(cli, argv)
         assert r.exit_code == 2 and fragment in r.stderr and "\n" not in r.stderr.strip(), r.output
