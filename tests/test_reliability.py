@@ -1404,6 +1404,43 @@ def test_issue49_bad_input_is_one_line_error(workdir, inputs, argv, fragment):
     assert time.monotonic() - t0 < 20  # within seconds: Ray's own connection retried for over 400 s
 
 
+@pytest.mark.parametrize("method", ["ngransac", "ngransac-lo"])
+def test_config_records_only_the_options_the_method_reads(workdir, inputs, method):
+    """NG-RANSAC draws its sets from its network: its config.json and MLflow params hold no sets_per_step /
+    policy_every (issue #49: recorded though ignored); RLSAC, which reads them, still records them."""
+    import torch
+
+    from rlsac.evaluate import NOT_RECORDED
+
+    net = _network_as_actor(workdir / "ng.pt", "line")
+    ckpt = torch.load(net, weights_only=False)
+    torch.save({**ckpt, "kind": "ngransac"}, net)
+    for m, ck, out in ((method, net, "ng"), ("rlsac", _tiny_checkpoint(workdir / "rl.pt", "line"), "rl")):
+        r = CliRunner().invoke(cli, ["evaluate", "--task", "line", "--method", m, "--checkpoint", str(ck), "--data",
+                                     str(inputs["lines"]), "--iterations", "5", "--out-dir", out, "--params", ""])
+        assert r.exit_code == 0, r.output
+    unread = set(NOT_RECORDED["ngransac"])
+    assert unread == {"sets_per_step", "policy_every"}
+    assert not unread & set(json.loads((workdir / "ng/config.json").read_text()))
+    assert unread <= set(json.loads((workdir / "rl/config.json").read_text()))
+    ng, rl = sorted(_all_runs(), key=lambda run: run.data.params["method"] != method)
+    assert not unread & set(ng.data.params) and unread <= set(rl.data.params)
+
+
+def test_committed_configs_record_only_the_options_their_method_reads():
+    """The committed NG-RANSAC results were rewritten once (issue #49) as evaluate now writes them."""
+    from rlsac.evaluate import NOT_RECORDED
+
+    root = Path(__file__).resolve().parents[1] / "reports/eval"
+    seen = 0
+    for f in root.glob("**/config.json"):
+        conf = json.loads(f.read_text())
+        unread = set(NOT_RECORDED.get(str(conf.get("method", "")).removesuffix("-lo"), ()))
+        seen += bool(unread)
+        assert not unread & set(conf), f
+    assert seen  # the NG-RANSAC rows are there
+
+
 # readers: each corrupt result file an error naming it (issue #49: coerced to NaN, a table lied at exit 0)
 LINE_RATE_DIR = Path(__file__).resolve().parents[1] / "reports/eval/lines"
 
