@@ -1674,3 +1674,78 @@ def test_pipeline_refuses_empty_stage_names_and_gpus_it_lacks(workdir):
         r = CliRunner().invoke(cli, argv)
         assert r.exit_code == 2 and fragment in r.stderr and "\n" not in r.stderr.strip(), r.output
     assert not (repo / "a").exists() and _all_runs() == []
+
+
+STAGE_WITH_A_RUN = """
+import pathlib, sys, time
+from rlsac.signals import interrupt_on_signals
+from rlsac.tracking import start_run
+with interrupt_on_signals(), start_run("stage", "in flight"):  # as every rlsac command holds its run
+    pathlib.Path(sys.argv[1]).write_text("started")
+    time.sleep(300)
+"""
+
+
+def test_pipeline_killed_ends_its_run_and_its_stages_runs_killed(workdir):
+    """`rlsac pipeline` SIGKILLed mid-stage (issue #49: its run and the in-flight stage's run stayed RUNNING for
+    good): the dead worker's guard SIGTERMs the stage, whose command ends its run KILLED, and the next command on the
+    host ends the pipeline's own run KILLED (tags host and pid)."""
+    import contextlib
+    import subprocess
+    import sys
+
+    import yaml
+
+    repo = workdir / "repo"
+    repo.mkdir()
+    subprocess.run(["git", "init", "-q"], cwd=repo, check=True)
+    subprocess.run([sys.executable, "-m", "dvc", "init", "-q"], cwd=repo, check=True)
+    (repo / "stage.py").write_text(STAGE_WITH_A_RUN)
+    started = workdir / "started"
+    (repo / "dvc.yaml").write_text(yaml.safe_dump({"stages": {"s": {
+        "cmd": f"{sys.executable} stage.py {started} && echo done > out", "outs": ["out"]}}}))
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    driver = subprocess.Popen([sys.executable, "-m", "rlsac.cli", "pipeline", "--repo", str(repo), "--workers", "1"],
+                              cwd=workdir, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        _check_killed_pipeline(driver, started, repo)
+    finally:  # what a SIGKILLed driver leaves: Ray's agents (orphaned, they outlive their raylet), a stage on failure
+        import psutil
+
+        for proc in psutil.process_iter():
+            with contextlib.suppress(psutil.Error):
+                if proc.pid != os.getpid() and Path(proc.cwd()).is_relative_to(workdir):
+                    proc.kill()
+
+
+def _check_killed_pipeline(driver, started: Path, repo: Path) -> None:
+    import signal
+    import time
+
+    import mlflow
+
+    from rlsac.tracking import start_run
+
+    deadline = time.monotonic() + 600  # Ray's start and the stage's: about a minute, many on a loaded machine
+    while not started.exists() and driver.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.5)
+    assert started.exists(), driver.poll()
+    driver.send_signal(signal.SIGKILL)
+    driver.wait()
+    client = mlflow.MlflowClient(os.environ["MLFLOW_TRACKING_URI"])
+
+    def run_of(experiment: str):
+        (run,) = client.search_runs([client.get_experiment_by_name(experiment).experiment_id])
+        return run
+
+    deadline = time.monotonic() + 120  # the guard sees its worker gone within a second, then SIGTERMs the stage
+    while run_of("stage").info.status == "RUNNING" and time.monotonic() < deadline:
+        time.sleep(0.5)
+    stage = run_of("stage")
+    assert stage.info.status == "KILLED" and stage.data.tags["error"] == "interrupted by SIGTERM", stage.data.tags
+    assert run_of("pipeline").info.status == "RUNNING"  # its process is gone: the next command closes it
+    with start_run("lines", "next"):
+        pass
+    pipeline = run_of("pipeline")
+    assert pipeline.info.status == "KILLED" and "ended while the run was RUNNING" in pipeline.data.tags["error"]
+    assert not (repo / "out").exists()
