@@ -43,6 +43,18 @@ def _load_json(path: Path, what: str) -> Any:
         raise _fail(path, f"not a valid {what} ({e.__class__.__name__})") from None
 
 
+def read_mapping(path: str | Path, what: str) -> dict[str, Any] | None:
+    """A JSON file that holds a mapping (a record a report reads) -> dict, None when absent; not JSON or not a
+    mapping is an error naming the file."""
+    path = Path(path)
+    if not path.is_file():
+        return None
+    d = _load_json(path, what)
+    if not isinstance(d, dict):
+        raise _fail(path, f"not a valid {what} (holds a {type(d).__name__}, not a mapping)")
+    return d
+
+
 def read_summary(path: str | Path, required: tuple[str, ...] = SUMMARY_REQUIRED) -> dict[str, Any] | None:
     """summary.json -> dict, None when absent. Refused: not JSON, not a mapping, a ``required`` field missing, a
     metric (mAA*, median*, the counts) that is not a finite number, a count that is not a whole number >= 0."""

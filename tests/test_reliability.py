@@ -1548,6 +1548,29 @@ def test_claims_check_the_fold_cells_before_their_run(workdir, which, edit, frag
     assert not (workdir / "out").exists() and _all_runs() == []
 
 
+@pytest.mark.parametrize("name, text, fragment", [
+    ("synthetic_fit.json", "{bad", "synthetic_fit.json: not a valid synthetic fit record (JSONDecodeError)"),
+    ("synthetic_fit.json", '{"real": {"pairs": 3}}', "not a synthetic fit record (KeyError: 'fold')"),
+    ("positive_control.json", "[1]", "positive_control.json: not a valid positive control record (holds a list"),
+    ("folds/data/hard/castle.json", '{"splits": {}}', "castle.json: not a data record (KeyError: 'train')"),
+])
+def test_scale_report_refuses_a_corrupt_record_before_its_run(workdir, name, text, fragment):
+    """`rlsac table --which scale` reads the fold's data record, the positive control and the synthetic fit: a corrupt
+    one is an error naming it, before the MLflow run (issue #49's class: it was a JSONDecodeError / KeyError
+    traceback inside the run)."""
+    import shutil
+
+    shutil.copy(Path(__file__).resolve().parents[1] / "params.yaml", workdir / "params.yaml")
+    (workdir / "eval").mkdir()
+    _committed(workdir / "reports" / name, text)
+    before = _tree(workdir, skip=("mlflow.db", "mlflow.db.lock"))
+    r = CliRunner().invoke(cli, ["table", "--which", "scale", "--eval-root", "eval", "--out-dir", "reports"])
+    assert r.exit_code == 2, r.output
+    err = r.stderr.strip()
+    assert err.startswith("error: ") and "\n" not in err and fragment in err, err
+    assert _tree(workdir, skip=("mlflow.db", "mlflow.db.lock")) == before and _all_runs() == []
+
+
 def test_absent_result_is_a_dash_and_counted(workdir):
     import shutil
 

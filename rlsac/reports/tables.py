@@ -502,6 +502,11 @@ def build(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
         for path in sorted((out_dir / "tuning").glob("**/*.json")):  # the tables' tuning sections read them
             read_record(path)
         load_records(out_dir / "folds" / "data")
+    if which == "scale":  # its records (data, positive control, synthetic fit) before the run, as the results
+        from rlsac.config import read_params
+        from rlsac.reports import scale
+
+        scale.check_inputs(read_params(options.get("params") or "params.yaml"), out_dir)
     check_writable(out_dir / "metrics.json")
     check_store(track, "reports")
     with start_run("reports", f"table {which}", params={"which": which, "eval_root": str(eval_root),
