@@ -518,7 +518,8 @@ def pipeline(tracking: bool, stages: tuple[str, ...], **options) -> None:
     from rlsac.pipeline import pipeline as run
 
     try:
-        s = run({**options, "stages": ",".join(stages) or None}, track=tracking)
+        # an empty STAGES argument ('') names no stage: it is not "every stage" (issue #49)
+        s = run({**options, "stages": ",".join(stages) if stages else None}, track=tracking)
     except Interrupted as e:  # what ran before the signal, then the one error line
         if getattr(e, "summary", None):
             click.echo(format_summary(e.summary))

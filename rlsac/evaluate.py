@@ -98,6 +98,10 @@ SAMPLER_OPTIONS = ("sets_per_step", "confidence")
 # the RLSAC environment's options and the methods that read them: another method given a value other than the default
 # is refused (issue #49: NG-RANSAC's config.json recorded a --sets-per-step it ignored); the default stays recorded
 READ_BY = {"policy_every": ("rlsac",), "sets_per_step": ("rlsac", "uniform", "guided")}
+# ... and those of them not recorded at all for a method (config.json and the MLflow run hold only the options the
+# method used; issue #49): NG-RANSAC draws its sets from its own network, never in the RLSAC environment. The other
+# methods outside READ_BY (our RANSAC, OpenCV's, the peers) still record the defaults their committed results hold
+NOT_RECORDED = {"ngransac": ("sets_per_step", "policy_every")}
 # what evaluate measures of time: written to TIMING_FILE beside summary.json (git- and dvc-ignored) and to MLflow
 TIMING_FILE = "timing.json"
 TIMING_KEYS = ("seconds", "seconds_per_instance", "lo_seconds_per_instance", "lo_time_fraction")
@@ -385,8 +389,8 @@ def run(p: Prepared, track: bool = True) -> dict[str, Any]:
     n = p.n
     out_dir = Path(o["out_dir"])
     name = run_name(o)
-    params = {**{k: v for k, v in o.items() if k != "tags"}, "device": device, "n_instances": n, **extra,
-              "task_options": _task_options(task), "data_attrs": {k: _plain(v) for k, v in p.attrs.items()}}
+    params = {**recorded_options(o), "device": device, "n_instances": n, **extra, "task_options": _task_options(task),
+              "data_attrs": {k: _plain(v) for k, v in p.attrs.items()}}
     tags = {"command": "evaluate", "method": o["method"], **{k: str(v) for k, v in (o["tags"] or {}).items()}}
     with start_run(task_cls.experiment, f"evaluate {name}", params=params, tags=tags, enabled=track) as mlrun:
         torch_threads = torch.get_num_threads()
@@ -427,6 +431,13 @@ def run(p: Prepared, track: bool = True) -> dict[str, Any]:
         mlrun.artifact(json_path)
         summary["run_id"] = mlrun.run_id
     return summary
+
+
+def recorded_options(o: dict[str, Any]) -> dict[str, Any]:
+    """The checked options ``o`` as an evaluation records them (config.json, MLflow params): all but its run tags and
+    the options its method does not read (``NOT_RECORDED``)."""
+    skip = {"tags", *NOT_RECORDED.get(o["method"].removesuffix("-lo"), ())}
+    return {k: v for k, v in o.items() if k not in skip}
 
 
 def format_summary(summary: dict[str, Any]) -> str:

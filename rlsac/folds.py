@@ -273,7 +273,7 @@ def tune_fold(p: dict, params: dict, regime: str, fold: str, o: dict, track: boo
     """Tune every selected row on the fold's val.h5 (rlsac.tune) -> what was chosen; writes the records."""
     from rlsac import tune
     from rlsac.config import section
-    from rlsac.evaluate import check_options, resolve_device, score
+    from rlsac.evaluate import check_options, make_estimator, resolve_device, score
     from rlsac.io import write_json
     from rlsac.tasks import task_class
     from rlsac.tracking import start_run
@@ -291,11 +291,15 @@ def tune_fold(p: dict, params: dict, regime: str, fold: str, o: dict, track: boo
             files[val] = data
     ev = section(params, "evaluate", task)
     device = resolve_device(o["device"])
+    bases = {name: {**row_options(row, p, ev, o), "data": str(data_dir(regime, fold, row["points"]) / "val.h5"),
+                    "iterations": c["iterations"]} for name, row in chosen_rows.items()}
+    for base in bases.values():  # every row's sampler built before the first record is written: a checkpoint whose
+        make_estimator(check_options(base), device)  # 'kind' does not match its weights failed in its row (#49)
     out = []
     for name, row in chosen_rows.items():
         val = data_dir(regime, fold, row["points"]) / "val.h5"
         data, val_scenes = files[val], tune.scenes_of(files[val])
-        base = {**row_options(row, p, ev, o), "data": str(val), "iterations": c["iterations"]}
+        base = bases[name]
 
         def run(options, data=data):
             return score(check_options(options), data, device)[0]

@@ -89,7 +89,7 @@ def load_plan(repo_dir: str | os.PathLike, names: str | None = None, runner: str
             raise pipeline_error(repo_dir, e) from None
         addr = {s: _address(s, root) for s in graph.nodes}
         by_addr = {a: s for s, a in addr.items()}
-        if names:
+        if names is not None:  # given: '' or ',' name no stage (an error), not every stage
             chosen = set()
             for name in filter(None, (n.strip() for n in names.split(","))):
                 hits = [a for a in by_addr if a == name or fnmatch.fnmatchcase(a, name)

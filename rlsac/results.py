@@ -43,6 +43,18 @@ def _load_json(path: Path, what: str) -> Any:
         raise _fail(path, f"not a valid {what} ({e.__class__.__name__})") from None
 
 
+def read_mapping(path: str | Path, what: str) -> dict[str, Any] | None:
+    """A JSON file that holds a mapping (a record a report reads) -> dict, None when absent; not JSON or not a
+    mapping is an error naming the file."""
+    path = Path(path)
+    if not path.is_file():
+        return None
+    d = _load_json(path, what)
+    if not isinstance(d, dict):
+        raise _fail(path, f"not a valid {what} (holds a {type(d).__name__}, not a mapping)")
+    return d
+
+
 def read_summary(path: str | Path, required: tuple[str, ...] = SUMMARY_REQUIRED) -> dict[str, Any] | None:
     """summary.json -> dict, None when absent. Refused: not JSON, not a mapping, a ``required`` field missing, a
     metric (mAA*, median*, the counts) that is not a finite number, a count that is not a whole number >= 0."""
@@ -90,14 +102,32 @@ def read_errors(path: str | Path, columns: tuple[str, ...] | None = None, n: int
         _check_numbers(path, frame, c, low=0.0)
     if not per_instance:
         return frame
+    where = "its summary counts"
     if n is None:
         s = read_summary(path.parent / "summary.json", required=())
         n = None if s is None else s.get("n_instances", s.get("n"))
+    if n is None:  # no summary (evaluate writes config.json before it): the count its configuration recorded
+        n, where = _configured_instances(path.parent / "config.json"), "its config.json counts"
     if n is not None and len(frame) != n:
-        raise _fail(path, f"{len(frame)} rows, not the {n} instances its summary counts (a truncated file?)")
+        raise _fail(path, f"{len(frame)} rows, not the {n} instances {where} (a truncated file?)")
     if "instance" in frame and frame["instance"].duplicated().any():
         raise _fail(path, f"instance {frame['instance'][frame['instance'].duplicated()].iloc[0]} appears twice")
     return frame
+
+
+def _configured_instances(path: Path) -> int | None:
+    """``n_instances`` of an evaluation's config.json (the data file's usable instances), None when the file or the
+    key is absent (results written before evaluate kept its configuration). Issue #49: a truncated errors.csv
+    without a summary beside it was pooled, its missing pairs silently dropped."""
+    if not path.is_file():
+        return None
+    conf = _load_json(path, "config.json")
+    if not isinstance(conf, dict):
+        raise _fail(path, f"not a valid config.json (holds a {type(conf).__name__}, not a mapping)")
+    n = conf.get("n_instances")
+    if n is not None and (not _finite_number(n) or n < 0 or n != int(n)):
+        raise _fail(path, f"'n_instances' is {n!r}, not a count")
+    return None if n is None else int(n)
 
 
 def read_errors_column(path: str | Path, column: str = "err_deg") -> np.ndarray | None:

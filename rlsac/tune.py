@@ -189,17 +189,18 @@ def record_options(path: str | Path, task: str, method: str, checkpoint: str | N
     ``method`` field: a -fast row's is ``rlsac``) and, for a learned row, of this checkpoint: settings tuned for
     another row or model would be silently wrong. The evaluation's own checks (the test file's scenes against the
     record's validation scenes) are the fold stage's; here the record names them in ``val_scenes``."""
-    import json
+    from rlsac.results import read_record
 
     path = Path(path)
-    if not path.is_file():
-        raise RlsacError(f"--tuning {path}: no such file (records: reports/tuning/<task>/<regime>/<fold>/<row>.json)")
+    # the fold stages' reader: `chosen: {}` or `val_scenes: []` evaluated the cell untuned at exit 0 (issue #49)
     try:
-        rec = json.loads(path.read_text())
-    except (OSError, ValueError) as e:
-        raise RlsacError(f"--tuning {path}: not a tuning record ({e.__class__.__name__})") from None
-    if not isinstance(rec, dict) or not isinstance(rec.get("chosen"), dict) or "method" not in rec:
-        raise RlsacError(f"--tuning {path}: not a tuning record (no 'chosen' settings or 'method')")
+        rec = read_record(path)
+    except RlsacError as e:
+        raise RlsacError(f"--tuning {e}") from None
+    if rec is None:
+        raise RlsacError(f"--tuning {path}: no such file (records: reports/tuning/<task>/<regime>/<fold>/<row>.json)")
+    if "method" not in rec:
+        raise RlsacError(f"--tuning {path}: not a tuning record (no 'method')")
     if rec.get("task") != task or rec["method"] != method:
         raise RlsacError(f"--tuning {path}: a record of task {rec.get('task')!r}, method {rec['method']!r}, not "
                          f"task {task!r}, method {method!r}")

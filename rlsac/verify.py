@@ -171,7 +171,7 @@ def is_training(address: str, outs: list[str]) -> bool:
 def select(stages: list[dict], names: str | None, sample: int | None, seed: int, include_train: bool) -> list[dict]:
     """--stages (addresses, fnmatch patterns or a foreach name) or every committed stage (training ones only
     with --include-train), then --sample N of them drawn with random.Random(seed); sorted by address."""
-    if names:
+    if names is not None:  # given: '' or ',' name no stage (an error below), not every stage
         chosen: dict[str, dict] = {}
         for name in filter(None, (n.strip() for n in names.split(","))):
             hits = [s for s in stages if fnmatch.fnmatchcase(s["address"], name)
@@ -182,6 +182,8 @@ def select(stages: list[dict], names: str | None, sample: int | None, seed: int,
             if not ok:  # a pattern may also match data stages: only one that matches nothing else is an error
                 raise RlsacError(f"{hits[0]['address']} cannot be verified: {hits[0]['why']}")
             chosen.update((s["address"], s) for s in ok)
+        if not chosen:
+            raise RlsacError(f"--stages {names!r}: names no stage (dvc stage list shows the names)")
         pool = list(chosen.values())
     else:
         pool = [s for s in stages if s["committed"] and (include_train or not s["train"])]

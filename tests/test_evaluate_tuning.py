@@ -38,6 +38,10 @@ def test_a_record_gives_its_chosen_settings(tmp_path):
     ({"task": "essential"}, (), "task 'essential'"),
     ({"checkpoint": "checkpoints/folds/hard/castle/rlsac.pt", "method": "magsac"}, (), "tuned for checkpoint"),
     ({"chosen": None}, (), "not a tuning record"),
+    # issue #49: accepted, and the cell evaluated untuned at exit 0 (the fold stages' reader refused them)
+    ({"chosen": {}}, (), "'chosen' is {}"),
+    ({"val_scenes": []}, (), "not the validation scenes"),
+    ({"chosen": {"threshold_px": "x"}}, (), "chosen setting 'threshold_px' is 'x'"),
 ])
 def test_a_record_of_another_row_is_refused(tmp_path, changes, args, match):
     with pytest.raises(RlsacError, match=match):
@@ -55,11 +59,14 @@ def _evaluate(tmp_path: Path, *extra: str):
     ({"method": "usac"}, (), "error: --tuning"),
     ({}, ("--threshold-px", "0.5"), "sets threshold_px; give --threshold-px or --tuning, not both"),
     (None, (), "error: --tuning"),  # not JSON
+    ("[]", (), "not a tuning record (holds a list"),  # valid JSON, not a record
+    ("null", (), "not a tuning record (holds a NoneType"),
+    ({"chosen": {}}, (), "'chosen' is {}"),
 ])
 def test_the_command_refuses_a_bad_record_on_one_line_before_any_work(tmp_path, record, extra, match):
-    if record is None:
+    if record is None or isinstance(record, str):
         f = tmp_path / "rec.json"
-        f.write_text("{not json")
+        f.write_text(record or "{not json")
     else:
         f = _record(tmp_path, **record)
     r = _evaluate(tmp_path, "--tuning", str(f), *extra)

@@ -1296,6 +1296,41 @@ def _kind_mismatch_setup(root: Path, f: dict) -> None:
     torch.save(ckpt, path)
 
 
+def _network_as_actor(path: Path, task_name: str = "fundamental") -> Path:
+    """An NG-RANSAC network (it reads the task's data features only) saved without its 'kind': it loads as an RLSAC
+    actor, whose sampler feeds it the environment's memory channels too."""
+    import torch
+
+    from rlsac.policy import Actor, PolicyConf
+    from rlsac.tasks import get_task
+
+    _tiny_checkpoint(path, task_name)
+    ckpt = torch.load(path, weights_only=False)
+    features = get_task(task_name).feature_dim
+    ckpt["actor"] = Actor(features, config.build(PolicyConf, ckpt["conf"]["policy"])).state_dict()
+    ckpt["in_channels"] = features
+    torch.save(ckpt, path)
+    return path
+
+
+def _folds_tune_kind_setup(root: Path, f: dict) -> None:
+    """--only ransac,rlsac, the second row's checkpoint an NG-RANSAC network without its kind: ransac's record stays
+    (the validation file's scene s1 is made a training building, so the tuning itself would run)."""
+    import shutil
+
+    (root / "data/folds/hard/castle").mkdir(parents=True)
+    shutil.copy(f["fund"], root / "data/folds/hard/castle/val.h5")
+    _network_as_actor(root / "checkpoints/folds/hard/castle/rlsac.pt")
+    _committed(root / "reports/tuning/fundamental/hard/castle/ransac.json")
+    scenes = "model_regime: hard, scenes: {castle: c1, other: s1}, test: [castle]"
+    (root / "params.yaml").write_text(FOLDS_EVAL_PARAMS.replace("model_regime: hard", scenes)
+                                      + "tuning: {threshold_px: [1.0], prefilter: [1.0], iterations: 5}\n")
+
+
+def _plot_kind_setup(root: Path, f: dict) -> None:
+    _network_as_actor(root / "ck.pt", "line")
+
+
 def _select_setup(summary: str, data: str = ""):
     def setup(root: Path, f: dict) -> None:
         import torch
@@ -1333,6 +1368,12 @@ ISSUE49_TRACKED = [
     ("evaluate-kind-not-the-weights", _kind_mismatch_setup,
      ["evaluate", "--task", "line", "--method", "ngransac", "--checkpoint", "ck.pt", "--data", "{lines}",
       "--out-dir", "ev", "--params", "", "--iterations", "5"], "ck.pt: its network reads 5 input channels, not the 2"),
+    ("folds-tune-second-row-kind-not-the-weights", _folds_tune_kind_setup,
+     ["folds", "--stage", "tune", "--regime", "hard", "--fold", "castle", "--only", "ransac,rlsac"],
+     "rlsac.pt: its network reads 261 input channels, not the 264"),
+    ("plot-kind-not-the-weights", _plot_kind_setup,
+     _plot("which=line", "line_checkpoint=ck.pt", "line_data={lines}", "out_dir=figs"),
+     "ck.pt: its network reads 2 input channels, not the 5 a rlsac sampler"),
     ("select-kept-eval-list", _select_setup("[]"), _select(), "not a valid summary.json (holds a list"),
     ("select-kept-eval-corrupt", _select_setup("{not json"), _select(), "not a valid summary.json (JSONDecodeError)"),
     ("select-training-file-absent", _select_setup(json.dumps({"mAA": 0.5}), data="gone/train.h5"), _select(),
@@ -1366,6 +1407,43 @@ def test_issue49_bad_input_is_one_line_error(workdir, inputs, argv, fragment):
     assert time.monotonic() - t0 < 20  # within seconds: Ray's own connection retried for over 400 s
 
 
+@pytest.mark.parametrize("method", ["ngransac", "ngransac-lo"])
+def test_config_records_only_the_options_the_method_reads(workdir, inputs, method):
+    """NG-RANSAC draws its sets from its network: its config.json and MLflow params hold no sets_per_step /
+    policy_every (issue #49: recorded though ignored); RLSAC, which reads them, still records them."""
+    import torch
+
+    from rlsac.evaluate import NOT_RECORDED
+
+    net = _network_as_actor(workdir / "ng.pt", "line")
+    ckpt = torch.load(net, weights_only=False)
+    torch.save({**ckpt, "kind": "ngransac"}, net)
+    for m, ck, out in ((method, net, "ng"), ("rlsac", _tiny_checkpoint(workdir / "rl.pt", "line"), "rl")):
+        r = CliRunner().invoke(cli, ["evaluate", "--task", "line", "--method", m, "--checkpoint", str(ck), "--data",
+                                     str(inputs["lines"]), "--iterations", "5", "--out-dir", out, "--params", ""])
+        assert r.exit_code == 0, r.output
+    unread = set(NOT_RECORDED["ngransac"])
+    assert unread == {"sets_per_step", "policy_every"}
+    assert not unread & set(json.loads((workdir / "ng/config.json").read_text()))
+    assert unread <= set(json.loads((workdir / "rl/config.json").read_text()))
+    ng, rl = sorted(_all_runs(), key=lambda run: run.data.params["method"] != method)
+    assert not unread & set(ng.data.params) and unread <= set(rl.data.params)
+
+
+def test_committed_configs_record_only_the_options_their_method_reads():
+    """The committed NG-RANSAC results were rewritten once (issue #49) as evaluate now writes them."""
+    from rlsac.evaluate import NOT_RECORDED
+
+    root = Path(__file__).resolve().parents[1] / "reports/eval"
+    seen = 0
+    for f in root.glob("**/config.json"):
+        conf = json.loads(f.read_text())
+        unread = set(NOT_RECORDED.get(str(conf.get("method", "")).removesuffix("-lo"), ()))
+        seen += bool(unread)
+        assert not unread & set(conf), f
+    assert seen  # the NG-RANSAC rows are there
+
+
 # readers: each corrupt result file an error naming it (issue #49: coerced to NaN, a table lied at exit 0)
 LINE_RATE_DIR = Path(__file__).resolve().parents[1] / "reports/eval/lines"
 
@@ -1387,6 +1465,12 @@ def _errors_edit(kind):
     return edit
 
 
+def _truncated_without_summary(d: Path) -> None:
+    """errors.csv cut short and no summary.json beside it: its config.json still counts the instances."""
+    _errors_edit("truncated")(d)
+    (d / "summary.json").unlink()
+
+
 def _summary_edit(value):
     def edit(d: Path) -> None:
         f = d / "summary.json"
@@ -1403,6 +1487,8 @@ CORRUPT = {
     "errors-nan": (_errors_edit("nan"), "errors.csv: 'err_deg' is nan in row 1"),
     "errors-text": (_errors_edit("text"), "errors.csv: 'err_deg' holds 'oops', not a number"),
     "errors-truncated": (_errors_edit("truncated"), "errors.csv: 974 rows, not the 1000 instances"),
+    "errors-truncated-no-summary": (_truncated_without_summary,
+                                    "errors.csv: 974 rows, not the 1000 instances its config.json counts"),
     "errors-negative": (_errors_edit("negative"), "'err_deg' is -1 in row 1, not a finite number >= 0"),
     "summary-maa-text": (_summary_edit("high"), "summary.json: 'mAA' is 'high', not a finite number"),
     "summary-maa-nan": (_summary_edit(float("nan")), "summary.json: 'mAA' is nan, not a finite number"),
@@ -1426,6 +1512,66 @@ def test_corrupt_result_is_an_error_not_a_table(workdir, name):
     err = r.stderr.strip()
     assert err.startswith("error: ") and "\n" not in err and fragment in err, err
     assert "o0.7" in err and not (workdir / "out").exists()
+
+
+FOLD_CELL = Path(__file__).resolve().parents[1] / "reports/eval/folds/hard/castle"
+
+
+def _fold_cell_text(d: Path) -> None:
+    f = d / "errors.csv"
+    df = pd.read_csv(f, dtype={"pair": str})
+    df["err_R"] = df["err_R"].astype(object)
+    df.loc[5, "err_R"] = "oops"
+    df.to_csv(f, index=False)
+
+
+def _fold_cell_truncated(d: Path) -> None:
+    f = d / "errors.csv"
+    pd.read_csv(f, dtype={"pair": str}).iloc[:-25].to_csv(f, index=False)
+    (d / "summary.json").unlink()
+
+
+@pytest.mark.parametrize("which", ["claims", "paper"])
+@pytest.mark.parametrize("edit, fragment", [(_fold_cell_text, "errors.csv: 'err_R' holds 'oops', not a number"),
+                                            (_fold_cell_truncated, "300 rows, not the 325 instances its config.json")],
+                         ids=["text", "truncated-no-summary"])
+def test_claims_check_the_fold_cells_before_their_run(workdir, which, edit, fragment):
+    """`rlsac table --which claims` (and paper) read the fold cells too: a corrupt one is refused before the MLflow
+    run, nothing written (issue #49: it failed inside its run, which ended FAILED; a truncated cell without its
+    summary was pooled, the claim's pairs silently fewer)."""
+    import shutil
+
+    for row in ("rlsac", "uniform"):
+        shutil.copytree(FOLD_CELL / row / "i1000", workdir / "eval/folds/hard/castle" / row / "i1000")
+    edit(workdir / "eval/folds/hard/castle/uniform/i1000")
+    r = CliRunner().invoke(cli, ["table", "--which", which, "--eval-root", "eval", "--out-dir", "out"])
+    assert r.exit_code == 2, r.output
+    err = r.stderr.strip()
+    assert err.startswith("error: ") and "\n" not in err and fragment in err, err
+    assert not (workdir / "out").exists() and _all_runs() == []
+
+
+@pytest.mark.parametrize("name, text, fragment", [
+    ("synthetic_fit.json", "{bad", "synthetic_fit.json: not a valid synthetic fit record (JSONDecodeError)"),
+    ("synthetic_fit.json", '{"real": {"pairs": 3}}', "not a synthetic fit record (KeyError: 'fold')"),
+    ("positive_control.json", "[1]", "positive_control.json: not a valid positive control record (holds a list"),
+    ("folds/data/hard/castle.json", '{"splits": {}}', "castle.json: not a data record (KeyError: 'train')"),
+])
+def test_scale_report_refuses_a_corrupt_record_before_its_run(workdir, name, text, fragment):
+    """`rlsac table --which scale` reads the fold's data record, the positive control and the synthetic fit: a corrupt
+    one is an error naming it, before the MLflow run (issue #49's class: it was a JSONDecodeError / KeyError
+    traceback inside the run)."""
+    import shutil
+
+    shutil.copy(Path(__file__).resolve().parents[1] / "params.yaml", workdir / "params.yaml")
+    (workdir / "eval").mkdir()
+    _committed(workdir / "reports" / name, text)
+    before = _tree(workdir, skip=("mlflow.db", "mlflow.db.lock"))
+    r = CliRunner().invoke(cli, ["table", "--which", "scale", "--eval-root", "eval", "--out-dir", "reports"])
+    assert r.exit_code == 2, r.output
+    err = r.stderr.strip()
+    assert err.startswith("error: ") and "\n" not in err and fragment in err, err
+    assert _tree(workdir, skip=("mlflow.db", "mlflow.db.lock")) == before and _all_runs() == []
 
 
 def test_absent_result_is_a_dash_and_counted(workdir):
@@ -1546,7 +1692,86 @@ def test_pipeline_refuses_empty_stage_names_and_gpus_it_lacks(workdir):
     subprocess.run([sys.executable, "-m", "dvc", "init", "-q"], cwd=repo, check=True)
     (repo / "dvc.yaml").write_text(yaml.safe_dump({"stages": {"train_a": {"cmd": "echo a > a", "outs": ["a"]}}}))
     for argv, fragment in ((["pipeline", "--repo", "repo", ","], "stages ',': names no stage"),
+                           # '' named every stage: the whole pipeline ran (issue #49)
+                           (["pipeline", "--repo", "repo", ""], "stages '': names no stage"),
+                           (["verify", "--repo", "repo", "--stages", ""], "--stages '': names no stage"),
+                           (["verify", "--repo", "repo", "--stages", ","], "--stages ',': names no stage"),
                            (["pipeline", "--repo", "repo", "--gpus-per-train", "1"], "--gpus-per-train 1")):
         r = CliRunner().invoke(cli, argv)
         assert r.exit_code == 2 and fragment in r.stderr and "\n" not in r.stderr.strip(), r.output
     assert not (repo / "a").exists() and _all_runs() == []
+
+
+STAGE_WITH_A_RUN = """
+import pathlib, sys, time
+from rlsac.signals import interrupt_on_signals
+from rlsac.tracking import start_run
+with interrupt_on_signals(), start_run("stage", "in flight"):  # as every rlsac command holds its run
+    pathlib.Path(sys.argv[1]).write_text("started")
+    time.sleep(300)
+"""
+
+
+def test_pipeline_killed_ends_its_run_and_its_stages_runs_killed(workdir):
+    """`rlsac pipeline` SIGKILLed mid-stage (issue #49: its run and the in-flight stage's run stayed RUNNING for
+    good): the dead worker's guard SIGTERMs the stage, whose command ends its run KILLED, and the next command on the
+    host ends the pipeline's own run KILLED (tags host and pid)."""
+    import contextlib
+    import subprocess
+    import sys
+
+    import yaml
+
+    repo = workdir / "repo"
+    repo.mkdir()
+    subprocess.run(["git", "init", "-q"], cwd=repo, check=True)
+    subprocess.run([sys.executable, "-m", "dvc", "init", "-q"], cwd=repo, check=True)
+    (repo / "stage.py").write_text(STAGE_WITH_A_RUN)
+    started = workdir / "started"
+    (repo / "dvc.yaml").write_text(yaml.safe_dump({"stages": {"s": {
+        "cmd": f"{sys.executable} stage.py {started} && echo done > out", "outs": ["out"]}}}))
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    driver = subprocess.Popen([sys.executable, "-m", "rlsac.cli", "pipeline", "--repo", str(repo), "--workers", "1"],
+                              cwd=workdir, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        _check_killed_pipeline(driver, started, repo)
+    finally:  # what a SIGKILLed driver leaves: Ray's agents (orphaned, they outlive their raylet), a stage on failure
+        import psutil
+
+        for proc in psutil.process_iter():
+            with contextlib.suppress(psutil.Error):
+                if proc.pid != os.getpid() and Path(proc.cwd()).is_relative_to(workdir):
+                    proc.kill()
+
+
+def _check_killed_pipeline(driver, started: Path, repo: Path) -> None:
+    import signal
+    import time
+
+    import mlflow
+
+    from rlsac.tracking import start_run
+
+    deadline = time.monotonic() + 600  # Ray's start and the stage's: about a minute, many on a loaded machine
+    while not started.exists() and driver.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.5)
+    assert started.exists(), driver.poll()
+    driver.send_signal(signal.SIGKILL)
+    driver.wait()
+    client = mlflow.MlflowClient(os.environ["MLFLOW_TRACKING_URI"])
+
+    def run_of(experiment: str):
+        (run,) = client.search_runs([client.get_experiment_by_name(experiment).experiment_id])
+        return run
+
+    deadline = time.monotonic() + 120  # the guard sees its worker gone within a second, then SIGTERMs the stage
+    while run_of("stage").info.status == "RUNNING" and time.monotonic() < deadline:
+        time.sleep(0.5)
+    stage = run_of("stage")
+    assert stage.info.status == "KILLED" and stage.data.tags["error"] == "interrupted by SIGTERM", stage.data.tags
+    assert run_of("pipeline").info.status == "RUNNING"  # its process is gone: the next command closes it
+    with start_run("lines", "next"):
+        pass
+    pipeline = run_of("pipeline")
+    assert pipeline.info.status == "KILLED" and "ended while the run was RUNNING" in pipeline.data.tags["error"]
+    assert not (repo / "out").exists()

@@ -146,7 +146,8 @@ def _save(fig, out_dir: Path, name: str) -> list[str]:
 def _load_policy(path: str | None, task_name: str, device: str):
     """-> (actor, task, env conf, note), or (None, default task, EnvConf(), why) when no checkpoint is asked for
     (empty option). A checkpoint path that does not exist is an error, never a silent fallback."""
-    from rlsac.checkpoint import env_conf, load_actor, task_options
+    from rlsac.checkpoint import check_reads, env_conf, load_actor, task_options
+    from rlsac.rollout import in_channels
     from rlsac.tasks import task_from
 
     if not path:
@@ -156,6 +157,8 @@ def _load_policy(path: str | None, task_name: str, device: str):
     actor, conf = load_actor(path, device)
     conf = dict(conf or {})
     task = task_from(task_name, task_options(conf))
+    # an NG-RANSAC network without its 'kind' loads as an actor: a shape RuntimeError in the first step (issue #49)
+    check_reads(path, actor, in_channels(task), "rlsac")
     return actor, task, env_conf(conf), ""
 
 

@@ -9,7 +9,6 @@ Comparisons are paired on the test pairs and resample training seeds as well as 
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 from typing import Any
@@ -172,15 +171,39 @@ def choose(s: dict[str, Any], curves: pd.DataFrame, deployed: pd.DataFrame | Non
     return {"arm": arm, "step": int(step), "val_mAA": best, "table": at.reset_index(), "basis": basis}
 
 
+def _section(path: Path, what: str, render) -> list[str]:
+    """``render`` (the JSON mapping in ``path``) -> lines; [] when the file is absent. A corrupt file is one error
+    naming it (issue #49: a JSONDecodeError or KeyError traceback)."""
+    from rlsac.results import read_mapping
+
+    d = read_mapping(path, what)
+    if d is None:
+        return []
+    try:
+        return render(d)
+    except (KeyError, TypeError, ValueError, IndexError, StopIteration, AttributeError) as e:
+        raise RlsacError(f"{path}: not a {what} ({e.__class__.__name__}: {' '.join(str(e).split())[:80]}); re-run "
+                         "the stage that wrote it") from None
+
+
+def check_inputs(params: dict[str, Any], out_dir: str | Path = "reports") -> None:
+    """The records the report's sections read, rendered once: ``rlsac table --which scale`` calls it before its run."""
+    out_dir = Path(out_dir)
+    _pairs_line(lay.protocol(params), out_dir)
+    _section(out_dir / "positive_control.json", "positive control record", _positive_control)
+    _synthetic_fit(out_dir / "synthetic_fit.json")
+
+
 def _pairs_line(s: dict, out_dir: Path, min_matches: int | None = None) -> str:
     """How many training pairs the fold has: its data record (rlsac folds --stage data)."""
-    path = out_dir / "folds" / "data" / s["regime"] / f"{s['fold']}.json"
-    if not path.is_file():
-        return ""
-    splits = json.loads(path.read_text())["splits"]
-    return (f" The fold's training buildings give {splits['train']['pairs']} training and {splits['val']['pairs']} "
-            f"validation pairs: every pair the import keeps (at least {min_matches} SNN < 0.8 matches), so more real "
-            "pairs cannot come from these buildings; the pool multiplies the inputs per pair, not the pairs.")
+    def render(rec: dict) -> list[str]:
+        splits = rec["splits"]
+        return [f" The fold's training buildings give {splits['train']['pairs']} training and "
+                f"{splits['val']['pairs']} validation pairs: every pair the import keeps (at least {min_matches} SNN < "
+                "0.8 matches), so more real pairs cannot come from these buildings; the pool multiplies the inputs per "
+                "pair, not the pairs."]
+
+    return "".join(_section(out_dir / "folds" / "data" / s["regime"] / f"{s['fold']}.json", "data record", render))
 
 
 def _cell(row, key: str) -> str:
@@ -285,9 +308,7 @@ def markdown(s: dict, comp: pd.DataFrame, curves: pd.DataFrame, chosen: dict | N
                           f"`{chosen['arm']}` at {chosen['step']} steps (val mAA {chosen['val_mAA']:.3f}{nxt}).", ""]
     if not comp.empty:
         lines += _verdict(comp)
-    pc = out_dir / "positive_control.json"
-    if pc.is_file():
-        lines += _positive_control(json.loads(pc.read_text()))
+    lines += _section(out_dir / "positive_control.json", "positive control record", _positive_control)
     lines += _synthetic_fit(out_dir / "synthetic_fit.json")
     lines += _gpu_line()
     lines += ["## Figure", "", "![mAA against training steps](scale_curve.png)", ""]
@@ -320,9 +341,10 @@ def _pretrain_line(s: dict) -> str:
 
 def _synthetic_fit(path: Path) -> list[str]:
     """The synthetic generator's fitted statistics beside the real ones (stage synthetic_fit)."""
-    if not path.is_file():
-        return []
-    d = json.loads(path.read_text())
+    return _section(path, "synthetic fit record", _synthetic_rows)
+
+
+def _synthetic_rows(d: dict) -> list[str]:
     rows = ["## The synthetic generator, fitted to the fold's training pairs (stage synthetic_fit, "
             "reports/synthetic_fit.json)", "",
             "The pretrain arm's pairs (stage scale_synthetic): `rlsac.data.synthetic_pairs` with `snn=\"fitted\"` "

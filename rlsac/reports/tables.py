@@ -487,14 +487,26 @@ def build(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
         read_summary(path)
     for path in sorted(eval_root.glob("lines/*/o*/errors.csv")):
         read_errors(path)
-    if which in ("folds", "essential", "all"):  # one method shown as two rows: refused before the MLflow run
-        from rlsac.results import check_distinct, collect, load_records
+    # the fold benchmarks' cells each table reads (collect reads every cell's errors.csv and config.json), before the
+    # MLflow run: the claims and the paper's claims read them too (issue #49: `--which claims` met a corrupt cell
+    # inside its run, which ended FAILED)
+    subs = {"folds": ("folds",), "essential": ("essential",), "all": ("folds", "essential"),
+            "claims": ("folds", "essential"), "paper": ("folds",)}.get(which, ())
+    from rlsac.results import check_distinct, collect, load_records
 
-        for sub in ("folds", "essential") if which == "all" else (which,):
-            check_distinct(collect(eval_root, sub), sub)  # collect reads every cell's errors.csv
+    for sub in subs:
+        cells = collect(eval_root, sub)
+        if which in ("folds", "essential", "all"):  # one method shown as two rows: refused here too
+            check_distinct(cells, sub)
+    if which in ("folds", "essential", "all"):
         for path in sorted((out_dir / "tuning").glob("**/*.json")):  # the tables' tuning sections read them
             read_record(path)
         load_records(out_dir / "folds" / "data")
+    if which == "scale":  # its records (data, positive control, synthetic fit) before the run, as the results
+        from rlsac.config import read_params
+        from rlsac.reports import scale
+
+        scale.check_inputs(read_params(options.get("params") or "params.yaml"), out_dir)
     check_writable(out_dir / "metrics.json")
     check_store(track, "reports")
     with start_run("reports", f"table {which}", params={"which": which, "eval_root": str(eval_root),
