@@ -201,11 +201,15 @@ def fill_fold(recipe: Any, fold: str, where: str = "recipe") -> Any:
     """``recipe`` with ``{fold}`` replaced by ``fold`` in every string (nested mappings and lists); RlsacError for any
     other placeholder."""
     placeholders(recipe, where)
-    if isinstance(recipe, dict):
-        return {k: fill_fold(v, fold, f"{where}.{k}") for k, v in recipe.items()}
-    if isinstance(recipe, list):
-        return [fill_fold(v, fold, f"{where}[{i}]") for i, v in enumerate(recipe)]
-    return recipe.replace(FOLD_PLACEHOLDER, fold) if isinstance(recipe, str) else recipe
+
+    def fill(v: Any) -> Any:
+        if isinstance(v, dict):
+            return {k: fill(x) for k, x in v.items()}
+        if isinstance(v, list):
+            return [fill(x) for x in v]
+        return v.replace(FOLD_PLACEHOLDER, fold) if isinstance(v, str) else v
+
+    return fill(recipe)
 
 
 def pool_file(fold: str) -> Path:
