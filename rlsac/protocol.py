@@ -98,7 +98,9 @@ def read(params: dict[str, Any], methods: Mapping[str, Any] | None = None,
     if set(p["regimes"]) != set(p["pool"]):
         raise RlsacError(f"folds.regimes {p['regimes']} and the keys of folds.pool {sorted(p['pool'])} differ")
     trained = trained_models(p)
-    if set(trained) != set(p["train"]) or len(set(trained)) != len(trained):
+    staged = {m for m in set(p["train"]) - set(trained)  # a pool recipe waiting for its runs (_check_pool_models)
+              if ((p["train"][m] or {}).get("episodes") or {}).get("pool") == POOL_TEMPLATE}
+    if set(trained) != set(p["train"]) - staged or len(set(trained)) != len(trained):
         raise RlsacError(f"folds.models + folds.ablation_models {trained} and the keys of folds.train "
                          f"{sorted(p['train'])} differ")
     if not set(p["prob_models"]) <= set(trained):
@@ -264,8 +266,15 @@ def _check_pool_models(p: dict[str, Any]) -> None:
                                  f"{p['model_regime']!r} to hold at least as many (folds.pool.{p['model_regime']} = "
                                  f"{size})")
         elif held:
-            raise RlsacError(f"{where} holds {FOLD_PLACEHOLDER}: only a model of folds.pool_models {pool} may (its "
-                             "training stages are the ones that depend on the fold's pool)")
+            # a pool recipe not (yet) in the benchmark's lists: a model whose runs span sessions joins models,
+            # seed_models and pool_models when they are recorded (until then it has no stage)
+            rest = {**recipe, "episodes": {k: v for k, v in episodes.items() if k != "pool"}} \
+                if isinstance(episodes, dict) else recipe
+            staged = isinstance(episodes, dict) and episodes.get("pool") == POOL_TEMPLATE and not placeholders(rest,
+                                                                                                          where)
+            if not staged or model in p["models"] + p["seed_models"] + p["ablation_models"]:
+                raise RlsacError(f"{where} holds {FOLD_PLACEHOLDER}: only a model of folds.pool_models {pool} may (its "
+                                 "training stages are the ones that depend on the fold's pool)")
 
 
 def trained_models(p: dict[str, Any]) -> list[str]:

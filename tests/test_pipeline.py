@@ -201,7 +201,8 @@ def test_each_stage_depends_on_its_own_recipe_and_no_ignored_file():
     # the file models train on the fold's files (fold_train); the pool models (RLSAC at scale) on its pool too
     trains = [s for s in stages if s[0].startswith("fold_train@")]
     pools = [s for s in stages if s[0].startswith("fold_train_pool@")]
-    assert len(trains) == 4 * len(f["file_models"]) and len(pools) == 4 * len(f["pool_models"]) > 0
+    # (the paper profile's pool model waits outside the lists until its runs are recorded: the quick profile has one)
+    assert len(trains) == 4 * len(f["file_models"]) and len(pools) == 4 * len(f["pool_models"])
     assert sorted(f["file_models"] + f["pool_models"]) == sorted(f["models"])
     seeded = [s for s in stages if s[0].startswith(("fold_train_seed@", "fold_train_pool_seed@"))]
     assert len(seeded) == 4 * len(f["seed_models"]) * len(f["seeds"])
