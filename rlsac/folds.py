@@ -281,11 +281,11 @@ def train_models(p: dict, params: dict, regime: str, fold: str, models: list[str
         pool = (opts.get("episodes") or {}).get("pool")
         if pool and not Path(pool).is_file():
             raise RlsacError(f"{pool}: no pool file for model {m} (run `rlsac folds --stage pool --fold {fold}` first)")
-    for opts in options.values():
+    confs = {m: check(opts, track) for m, opts in options.items()}  # every model checked before the first trains
+    for m, opts in options.items():
         # a run of this very recipe stopped part-way (SIGTERM at a session's end saves its state): resume it, which
         # gives the uninterrupted run's bytes; a finished state or another recipe's trains from the start as before
-        done = saved_step(opts)
-        if 0 < done < check(opts, track).sac.total_steps:
+        if 0 < saved_step(opts) < confs[m].sac.total_steps:
             opts["resume"] = True
     return {m: train(opts, track=track) for m, opts in options.items()}
 
