@@ -14,6 +14,7 @@ import click
 from rlsac import numerics
 from rlsac.errors import RlsacError
 from rlsac.methods import METHODS
+from rlsac.scale import STAGES as SCALE_STAGES  # light: the study's code loads when a stage runs
 
 
 class _UserError(click.ClickException):
@@ -342,9 +343,7 @@ def folds(tracking: bool, **options) -> None:
 
 
 @cli.command()
-@click.option("--stage", type=click.Choice(["pool", "train", "evaluate", "evaluate-final", "validate", "control",
-                                           "fit", "synthetic"]),
-              required=True,
+@click.option("--stage", type=click.Choice(SCALE_STAGES), required=True,
               help="pool: the fold's training pairs with the pool's points each (data/scale/<fold>/pool.h5); train: "
                    "one run of an arm and seed with its step snapshots; evaluate: every snapshot on the fold's test "
                    "pairs at scale.iterations (evaluate-final: those of scale.final_steps at "

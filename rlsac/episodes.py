@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 import torch
 
 from rlsac.errors import RlsacError
+from rlsac.tasks.registry import prefiltered
 
 
 @dataclass
@@ -99,11 +100,9 @@ class RedrawnPairs:
             s = flip[:, None]
             size1, size2 = torch.where(s, size2, size1), torch.where(s, size1, size2)
         batch = {"coords": coords, "mask": mask, "features": raw, "size1": size1, "size2": size2}
-        if len(self.prefilter):  # the evaluation's pre-filter (rlsac.tasks.prefiltered), unless it leaves < m points
-            r = self.prefilter.to(coords.device)[extra[:, n + 1]]
-            kept = mask & (self.task.match_quality(batch) <= r[:, None].to(coords.dtype))
-            enough = kept.sum(-1, keepdim=True) >= self.task.sample_size
-            batch["mask"] = mask = torch.where(enough, kept, mask)
+        if len(self.prefilter):  # the evaluation's pre-filter at the episode's drawn ratio, unless it leaves < m points
+            batch = prefiltered(self.task, batch, self.prefilter.to(coords.device)[extra[:, n + 1]], keep_short=True)
+            mask = batch["mask"]
         feats = self.task.features(batch)
         return {"coords": coords, "mask": mask}, feats, self.actor.graph(feats, mask)
 

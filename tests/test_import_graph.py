@@ -35,14 +35,15 @@ LAYERS = (
     # foundations: errors, numeric modes, configs and params, files, devices, signals, MLflow, maths, the network
     ("rlsac", "rlsac.errors", "rlsac.numerics", "rlsac.config", "rlsac.io", "rlsac.devices", "rlsac.progress",
      "rlsac.signals", "rlsac.tracking", "rlsac.geometry", "rlsac.metrics", "rlsac.sampling", "rlsac.policy",
-     "rlsac.episodes", "rlsac.kernels"),
+     "rlsac.kernels"),
     # the protocol's vocabulary (names, paths, budgets) and the data files
     ("rlsac.protocol", "rlsac.scale_layout", "rlsac.data*"),
     # the estimation problems
     ("rlsac.tasks*",),
-    # sampling, scoring, the environment (in its parts), SAC, the checkpoint format, NG-RANSAC's network
+    # sampling, scoring, the environment (in its parts), SAC and its episodes (they pre-filter as the task does), the
+    # checkpoint format, NG-RANSAC's network
     ("rlsac.lo", "rlsac.baselines", "rlsac.env", "rlsac.env_state", "rlsac.env_bookkeeping", "rlsac.env_scoring",
-     "rlsac.rollout", "rlsac.sac", "rlsac.checkpoint", "rlsac.ngransac"),
+     "rlsac.rollout", "rlsac.sac", "rlsac.episodes", "rlsac.checkpoint", "rlsac.ngransac"),
     # the registries over them (methods, learners on their harness), evaluation, tuning, the result readers
     ("rlsac.methods", "rlsac.learners*", "rlsac.train", "rlsac.evaluate", "rlsac.tune", "rlsac.results"),
     # the reports: tables and figures from the results

@@ -132,13 +132,20 @@ def opencv_threshold(o: dict[str, Any], task: Task) -> float:
     return task.opencv_threshold if o.get("threshold_px") is None else task.px_thresholds(o["threshold_px"])[1]
 
 
-def prefiltered(task: Task, batch: dict, prefilter: float | None) -> dict:
+def prefiltered(task: Task, batch: dict, prefilter: float | torch.Tensor | None, keep_short: bool = False) -> dict:
     """``batch`` with mask (B, N) cleared where the match quality (the SNN ratio) is above ``prefilter``: the
-    tutorial's pre-filter, applied before any method sees the pair (None: the batch unchanged)."""
+    tutorial's pre-filter, applied before any method sees the pair (None: the batch unchanged). ``prefilter``: one
+    ratio, or a (B,) tensor of one per instance (training draws one per episode, rlsac.episodes). ``keep_short``: an
+    instance the filter would leave with fewer points than a minimal sample keeps its mask (training's episodes
+    need a sample; the evaluation scores such a pair as it comes)."""
     if prefilter is None:
         return batch
-    keep = task.match_quality(batch) <= float(prefilter)
-    return {**batch, "mask": batch["mask"] & keep}
+    quality = task.match_quality(batch)
+    ratio = prefilter[:, None].to(quality.dtype) if torch.is_tensor(prefilter) else float(prefilter)
+    keep = batch["mask"] & (quality <= ratio)
+    if keep_short:
+        keep = torch.where(keep.sum(-1, keepdim=True) >= task.sample_size, keep, batch["mask"])
+    return {**batch, "mask": keep}
 
 
 def task_names() -> tuple[str, ...]:
