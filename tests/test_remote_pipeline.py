@@ -122,3 +122,20 @@ def test_bad_remote_is_one_error_line_before_any_work(tmp_path, s3, monkeypatch)
         assert r.output.startswith("error: ") and message in r.output and len(r.output.splitlines()) == 1, r.output
         assert time.monotonic() - t0 < 60, args  # an endpoint that does not answer is not waited on for minutes
     assert not (repo / "a.txt").exists() and not (repo / "dvc.lock").exists()
+
+
+def test_a_dvc_remote_by_name_carries_its_endpoint(tmp_path, s3, monkeypatch):
+    """`--remote NAME`: a DVC remote of the repository, its `endpointurl` from `dvc remote modify` (no AWS_ENDPOINT_URL
+    in the environment), as docs/reproducing.md shows it."""
+    endpoint = os.environ["AWS_ENDPOINT_URL"]
+    monkeypatch.delenv("AWS_ENDPOINT_URL")
+    repo = make_repo(tmp_path / "repo", {"a": TOY["a"], "b": TOY["b"]})
+    for args in (["remote", "add", "store", f"s3://{BUCKET}/named"], ["remote", "modify", "store", "endpointurl",
+                                                                       endpoint]):
+        assert dvc(repo, *args).returncode == 0
+    r = run_pipeline("--repo", str(repo), "--no-tracking", "--remote", "store")
+    assert r.exit_code == 0, r.output
+    assert summary(r.output)[0].startswith("pipeline: 2 done"), r.output
+    assert (repo / "b.txt").read_text() == "ba"
+    assert json.loads(dvc(repo, "status", "--json").stdout) == {}
+    assert s3.list_objects_v2(Bucket=BUCKET, Prefix="named/files/md5/")["KeyCount"] > 0
