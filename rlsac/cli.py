@@ -510,6 +510,9 @@ def verify(tracking: bool, platform_only: bool, **options) -> None:
 @click.option("--runner", type=click.Choice(["direct", "dvc"]), default="direct", show_default=True,
               help="direct: a task runs the stage's command and this command writes dvc.lock (one writer, atomic); "
                    "dvc: a task runs `dvc repro -s <stage>`.")
+@click.option("--remote", help="Nodes share no disk: each stage's inputs and outputs travel through this S3 bucket "
+                               "(s3://bucket/prefix, or a DVC remote's name; endpoint and credentials from the AWS_* "
+                               "environment variables or the DVC remote's config).")
 @tracking_option
 def pipeline(tracking: bool, stages: tuple[str, ...], **options) -> None:
     """Run the DVC pipeline's out-of-date stages (or STAGES: names, foreach groups or patterns, with what they

@@ -46,6 +46,7 @@ DEFAULTS: dict[str, Any] = {
     "gpu_stages": "*train*",  # fnmatch pattern(s), comma-separated, on the stage address
     "dry_run": False,  # print the plan, run nothing
     "runner": "direct",  # direct: the stage's command, its lock entry by the driver (rlsac.dvc_stage); dvc: repro -s
+    "remote": None,  # s3://bucket/prefix or a DVC remote's name: nodes share no disk, files travel by it (transfer)
 }
 RUNNERS = ("direct", "dvc")
 LOG_DIR = Path("logs") / "pipeline"
@@ -69,13 +70,16 @@ def _address(stage, root: Path) -> str:
     return dvcfile if name is None else name if dvcfile == "dvc.yaml" else f"{dvcfile}:{name}"
 
 
-def load_plan(repo_dir: str | os.PathLike, names: str | None = None, runner: str | None = None) -> dict:
+def load_plan(repo_dir: str | os.PathLike, names: str | None = None, runner: str | None = None,
+              remote: bool = False) -> dict:
     """-> {"root", "order" (every runnable stage, dependencies first), "deps" {address: [addresses it needs]},
     "todo" (addresses to run, in order), "selected" (addresses considered), "specs" and "writer"}. With ``runner``
     "direct", "specs" {address: what a task needs to run it, rlsac.dvc_stage.stage_spec} (a ``.dvc`` file's stage
     has none: it keeps ``dvc repro -s``) and "writer" (the lock files' one writer, rlsac.dvc_stage.LockWriter), made
     while the repository lock is held; else {} and None. Raises RlsacError on a path that is not a DVC repository,
-    an unreadable pipeline, a lock file not laid out as DVC writes it, or a name that matches no stage."""
+    an unreadable pipeline, a lock file not laid out as DVC writes it, or a name that matches no stage. With
+    ``remote`` (nodes share no disk), "paths" {address: its dependencies that travel, rlsac.transfer.stage_paths},
+    and RlsacError for a stage to run that only ``dvc repro -s`` runs (a ``.dvc`` file's)."""
     import networkx as nx
 
     from rlsac.verify import open_repo, pipeline_error
@@ -113,7 +117,7 @@ def load_plan(repo_dir: str | os.PathLike, names: str | None = None, runner: str
         deps = {addr[s]: sorted(addr[d] for d in graph.successors(s) if d in run_set) for s in runnable}
         todo: list[str] = []
         why: dict[str, str] = {}
-        specs, writer = {}, None
+        specs, writer, paths = {}, None, {}
         from dvc.lock import LockError
 
         for attempt in range(LOCK_TRIES):
@@ -125,6 +129,8 @@ def load_plan(repo_dir: str | os.PathLike, names: str | None = None, runner: str
                             todo.append(addr[s])
                     if runner == "direct" and todo:
                         specs, writer = _direct(repo, root, [by_addr[a] for a in todo])
+                    if remote and todo:
+                        paths = _travelling(root, [by_addr[a] for a in todo], specs)
                 break
             except LockError as e:  # another dvc process holds the repository or a stage's outputs (or has
                 # just been killed and is not yet reaped: DVC drops its entries once the process is gone)
@@ -134,7 +140,7 @@ def load_plan(repo_dir: str | os.PathLike, names: str | None = None, runner: str
     finally:
         repo.close()
     return {"root": root, "order": [addr[s] for s in runnable], "deps": deps, "todo": todo, "why": why,
-            "selected": sorted(addr[s] for s in ordered), "specs": specs, "writer": writer}
+            "selected": sorted(addr[s] for s in ordered), "specs": specs, "writer": writer, "paths": paths}
 
 
 def _direct(repo, root: Path, stages: list) -> tuple[dict, Any]:
@@ -146,6 +152,19 @@ def _direct(repo, root: Path, stages: list) -> tuple[dict, Any]:
         s.dvcfile = files.setdefault(s.path, s.dvcfile)
     specs = {_address(s, root): stage_spec(s, root) for s in stages}
     return {a: sp for a, sp in specs.items() if sp is not None}, LockWriter(repo, stages)
+
+
+def _travelling(root: Path, stages: list, specs: dict) -> dict[str, list[str]]:
+    """--remote's part of the plan: each stage's dependencies that go through the bucket."""
+    from rlsac.transfer import stage_paths
+
+    out = {}
+    for s in stages:
+        a = _address(s, root)
+        if a not in specs:
+            raise RlsacError(f"--remote: {a} is a .dvc file's stage (`dvc repro -s` runs it, in a shared folder only)")
+        out[a] = stage_paths(s, root)
+    return out
 
 
 # Why a stage is out of date (the dry run's plan): its own change; an upstream stage's change; only its outputs are
@@ -254,8 +273,7 @@ def start_guarded(argv: list[str], **kwargs) -> subprocess.Popen:
 
 
 def _error(rc: int | None, log: str) -> str:
-    line = first_error_line(Path(log).read_text(errors="replace"))
-    return f"killed by {signal.Signals(-rc).name}: {line}" if rc and rc < 0 else line
+    return _error_text(rc, Path(log).read_text(errors="replace"))
 
 
 def run_stage(root: str, address: str, env: dict[str, str], log: str) -> dict:
@@ -290,6 +308,30 @@ def run_direct(root: str, address: str, spec: dict, env: dict[str, str], log: st
     return r
 
 
+def run_remote(conf: dict, tree: str, address: str, spec: dict, deps: list[dict], env: dict[str, str],
+               log: str) -> dict:
+    """The direct runner on a node that shares no folder with the driver (``--remote``, rlsac.transfer.run_on_node:
+    a Ray task's body). ``log``: its path from the repository root. -> run_direct's result with "outs" (what the
+    driver brings back), "log_text" and "ignore" as paths from the root."""
+    from rlsac.dvc_stage import python_bin_env
+    from rlsac.dvc_stage import run as run_direct_stage
+    from rlsac.transfer import run_on_node
+
+    def run(root: str, spec: dict, env: dict[str, str], log: str) -> dict:
+        return run_direct_stage(root, spec, python_bin_env(env), log, start=start_guarded)
+
+    r = run_on_node(conf, tree, spec, deps, env, log, run)
+    r["stage"] = address
+    if r["status"] == "failed":
+        r["error"] = _error_text(r["rc"], r["log_text"])
+    return r
+
+
+def _error_text(rc: int | None, text: str) -> str:
+    line = first_error_line(text)
+    return f"killed by {signal.Signals(-rc).name}: {line}" if rc and rc < 0 else line
+
+
 # ------------------------------------------------------------------------------------------------- scheduling
 
 
@@ -310,6 +352,12 @@ def _check_options(o: dict) -> None:
         raise RlsacError(f"--runner {o['runner']}: one of {', '.join(RUNNERS)}")
     if o["address"] and o["address"] != "auto":
         _check_address(o["address"])
+    if o["remote"] is not None:
+        from rlsac.transfer import check_url
+
+        check_url(o["remote"])
+        if o["runner"] != "direct":  # `dvc repro -s` reads and writes the driver's folder
+            raise RlsacError("--remote runs stages with the direct runner only (--runner dvc needs a shared folder)")
 
 
 def _check_tracking_server() -> None:
@@ -407,9 +455,30 @@ def _descendants(address: str, dependents: dict[str, list[str]]) -> set[str]:
     return out
 
 
+def _bring_back(plan: dict, r: dict) -> None:
+    """--remote: a finished stage's log and outputs into the driver's workspace, before its lock entry is written
+    and before any dependent starts (a stage whose outputs do not come back failed)."""
+    from rlsac.dvc_stage import write_atomic
+
+    outs, text = r.pop("outs", None), r.pop("log_text", None)
+    if text is not None:
+        r["log"] = str(plan["root"] / LOG_DIR / (re.sub(r"[^\w.@-]", "_", r["stage"]) + ".log"))
+        Path(r["log"]).parent.mkdir(parents=True, exist_ok=True)
+        write_atomic(Path(r["log"]), text)
+    if r["status"] == "done":
+        r["ignore"] = [str(plan["root"] / p) for p in r.get("ignore") or []]
+        try:
+            plan["remote"].bring_back(outs or [])
+        except Exception as e:
+            r.update(status="failed", error=f"outputs not brought back from {plan['remote'].store.url}: "
+                                            f"{e.__class__.__name__}: {' '.join(str(e).split())[:300]}")
+
+
 def _record(plan: dict, address: str, r: dict) -> None:
     """A direct-run stage that finished: its lock entry into dvc.lock (a stage whose entry cannot be written failed:
     the next run re-runs it); the entry leaves the result."""
+    if plan.get("remote") is not None:
+        _bring_back(plan, r)
     entry, ignore = r.pop("entry", None), r.pop("ignore", None)
     if r["status"] != "done" or entry is None:
         return
@@ -431,7 +500,8 @@ def schedule(plan: dict, o: dict, ray, progress: Callable[[dict], None] | None =
     root = str(plan["root"])
     env = {k: os.environ[k] for k in FORWARD_ENV if k in os.environ}
     env.setdefault("OMP_NUM_THREADS", "1")
-    task, direct = ray.remote(run_stage), ray.remote(run_direct)
+    task, direct, remote = ray.remote(run_stage), ray.remote(run_direct), ray.remote(run_remote)
+    ws = plan.get("remote")  # --remote: rlsac.transfer.Workspace
     waiting = {a: {d for d in plan["deps"][a] if d in todo} for a in todo}
     dependents: dict[str, list[str]] = {a: [] for a in todo}
     for a, ds in waiting.items():
@@ -446,7 +516,11 @@ def schedule(plan: dict, o: dict, ray, progress: Callable[[dict], None] | None =
             if o["gpus_per_train"] > 0 and _is_gpu_stage(a, o["gpu_stages"]):
                 opts["num_gpus"] = o["gpus_per_train"]
             log = str(plan["root"] / LOG_DIR / (re.sub(r"[^\w.@-]", "_", a) + ".log"))
-            if a in plan.get("specs", {}):
+            if ws is not None:  # its inputs into the bucket first: the task fetches them on its node
+                deps = ws.send(plan["paths"][a])
+                rel = os.path.relpath(log, plan["root"])
+                running[remote.options(**opts).remote(ws.conf, ws.tree, a, plan["specs"][a], deps, env, rel)] = a
+            elif a in plan.get("specs", {}):
                 running[direct.options(**opts).remote(root, a, plan["specs"][a], env, log)] = a
             else:
                 running[task.options(**opts).remote(root, a, env, log)] = a
@@ -487,22 +561,32 @@ def pipeline(options: dict[str, Any], track: bool = True) -> dict:
 
     o = {**DEFAULTS, **{k: v for k, v in options.items() if v is not None}}
     _check_options(o)
-    plan = load_plan(o["repo"], o["stages"], None if o["dry_run"] else o["runner"])
+    remote = o["remote"] is not None and not o["dry_run"]
+    plan = load_plan(o["repo"], o["stages"], None if o["dry_run"] else o["runner"], remote=remote)
     skipped = [a for a in plan["order"] if a not in plan["todo"]]
     base = {"root": str(plan["root"]), "n_selected": len(plan["order"]), "todo": plan["todo"], "run_id": None}
     if o["dry_run"]:
         return {**base, "dry_run": True, "results": {a: {"stage": a, "status": "skipped"} for a in skipped},
                 "counts": {"skipped": len(skipped)}, "wall_s": 0.0, "workers": None, "why": plan["why"]}
     check_store(track, "pipeline")
-    params = {k: o[k] for k in ("stages", "workers", "address", "gpus_per_train", "gpu_stages", "runner")}
+    params = {k: o[k] for k in ("stages", "workers", "address", "gpus_per_train", "gpu_stages", "runner", "remote")}
     params.update(repo=str(plan["root"]), n_todo=len(plan["todo"]))
     t0 = time.time()
     if not o["address"] and plan["todo"]:  # a local cluster has this machine's GPUs: known before Ray starts
         import torch
 
         _check_resources(o, plan, {"GPU": torch.cuda.device_count()})
+    if remote and plan["todo"]:  # the bucket answers and holds the code tree before Ray or MLflow starts
+        from rlsac.transfer import Workspace
+
+        plan["remote"] = Workspace(o["remote"], plan["root"])
     # Ray before the MLflow run: a cluster that cannot start or lacks the GPUs asked for fails with no run
-    ray, started = _start_ray(o) if plan["todo"] else (None, False)
+    try:
+        ray, started = _start_ray(o) if plan["todo"] else (None, False)
+    except BaseException:
+        if plan.get("remote") is not None:
+            plan["remote"].close()
+        raise
     try:
         resources = ray.cluster_resources() if ray is not None else {}
         workers = int(resources.get("CPU", 0))
@@ -527,6 +611,8 @@ def pipeline(options: dict[str, Any], track: bool = True) -> dict:
     finally:
         if started:
             ray.shutdown()
+        if plan.get("remote") is not None:
+            plan["remote"].close()
     return summary
 
 

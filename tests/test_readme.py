@@ -171,7 +171,8 @@ def check_mlflow(argv: list[str]) -> None:
     cmd.make_context(argv[1], argv[2:])
 
 
-EXPORTS = {"MLFLOW_TRACKING_URI", "OMP_NUM_THREADS", "RAY_AUTH_TOKEN", "RAY_AUTH_MODE"}
+EXPORTS = {"MLFLOW_TRACKING_URI", "OMP_NUM_THREADS", "RAY_AUTH_TOKEN", "RAY_AUTH_MODE", "AWS_ACCESS_KEY_ID",
+           "AWS_SECRET_ACCESS_KEY", "AWS_ENDPOINT_URL"}  # the last three: rlsac pipeline --remote's bucket
 
 
 def check_ray(argv: list[str]) -> None:
