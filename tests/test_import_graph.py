@@ -50,7 +50,7 @@ LAYERS = (
     ("rlsac.reports*",),
     # the runners: a protocol's stages, the studies, the pipeline
     ("rlsac.folds", "rlsac.selection", "rlsac.ablate", "rlsac.scale", "rlsac.positive_control", "rlsac.commands",
-     "rlsac.line_calibration", "rlsac.verify", "rlsac.dvc_stage", "rlsac.pipeline"),
+     "rlsac.line_calibration", "rlsac.verify", "rlsac.dvc_stage", "rlsac.transfer", "rlsac.pipeline"),
     # the command line
     ("rlsac.cli",),
 )
