@@ -33,6 +33,7 @@ from rlsac.protocol import (  # noqa: F401
     DEFAULTS,
     OUR_SAMPLERS,
     SUB,
+    at_suffix,
     budgets,
     checkpoint,
     checkpoint_model,
@@ -58,9 +59,9 @@ from rlsac.protocol import (  # noqa: F401
 )
 from rlsac.tune import tuned_settings  # noqa: F401
 
-STAGES = ("data", "train", "tune", "evaluate", "select")
+STAGES = ("data", "train", "tune", "evaluate", "select", "retune")
 OPTIONS: dict[str, Any] = {"stage": None, "regime": None, "fold": None, "model": None, "only": None, "points": None,
-                           "task": "fundamental",
+                           "task": "fundamental", "tune_iterations": None,
                            "params": "params.yaml",
                            "device": "auto", "threads": 1}
 
@@ -133,6 +134,8 @@ def for_task(p: dict[str, Any], params: dict[str, Any], task: str) -> dict[str, 
 
 
 def check_options(options: dict[str, Any], p: dict[str, Any] | None = None) -> dict[str, Any]:
+    from rlsac.config import check_value
+
     unknown = sorted(set(options) - set(OPTIONS))
     if unknown:
         raise RlsacError(f"unknown folds option(s) {unknown}; known: {sorted(OPTIONS)}")
@@ -143,7 +146,7 @@ def check_options(options: dict[str, Any], p: dict[str, Any] | None = None) -> d
         if o["regime"] not in p["regimes"]:
             raise RlsacError(f"unknown regime {o['regime']!r} (known: {', '.join(p['regimes'])})")
         split_scenes(p, o["fold"] or "")
-        if o["stage"] in ("data", "train", "select") and o["task"] != "fundamental":
+        if o["stage"] in ("data", "train", "select", "retune") and o["task"] != "fundamental":
             raise RlsacError(f"folds --stage {o['stage']} is the fundamental benchmark's (--task essential has tune "
                              "and evaluate only: it reads the fundamental folds' data, its models train with `rlsac "
                              "train --task essential`)")
@@ -161,6 +164,15 @@ def check_options(options: dict[str, Any], p: dict[str, Any] | None = None) -> d
             if int(o["points"]) not in p["points"] or o["regime"] not in p["variant_regimes"]:
                 raise RlsacError(f"folds --points {o['points']} --regime {o['regime']}: the N study prepares N of "
                                  f"folds.points {p['points']} in folds.variant_regimes {p['variant_regimes']}")
+        if o["tune_iterations"] is not None:
+            # issue #47 item 7 (a): tune at the budget the row is tested at (the tutorial's protocol), beside the
+            # tables' rows tuned at tuning.iterations; a budget the regime is not tested at would test nothing
+            o["tune_iterations"] = check_value("--tune-iterations", o["tune_iterations"], int, "[1, inf)")
+            if o["stage"] not in ("tune", "evaluate"):
+                raise RlsacError("folds --tune-iterations goes with --stage tune or evaluate")
+            if o["tune_iterations"] not in p["iterations"][o["regime"]]:
+                raise RlsacError(f"folds --tune-iterations {o['tune_iterations']}: not a test budget of regime "
+                                 f"{o['regime']!r} (folds.iterations {p['iterations'][o['regime']]})")
         if o["only"] is not None:
             o["only"] = [s.strip() for s in str(o["only"]).split(",") if s.strip()]
             known = set(rows(p, o["fold"], o["regime"]))
@@ -279,6 +291,8 @@ def tune_fold(p: dict, params: dict, regime: str, fold: str, o: dict, track: boo
     from rlsac.tracking import start_run
 
     c = tune.conf(params)
+    at = o.get("tune_iterations")  # None: the tables' budget, tuning.iterations
+    c["iterations"] = c["iterations"] if at is None else at
     chosen_rows = _selected(p, fold, o, "val")
     task = p["task"]
     train_scenes, test_scenes = (scene_list(s) for s in split_scenes(p, fold))
@@ -305,7 +319,7 @@ def tune_fold(p: dict, params: dict, regime: str, fold: str, o: dict, track: boo
             return score(check_options(options), data, device)[0]
 
         tags = {"benchmark": SUB[task], "regime": regime, "fold": fold, "row": name}
-        with start_run(task_class(task).experiment, f"tune {SUB[task]} {regime} {fold} {name}",
+        with start_run(task_class(task).experiment, f"tune {SUB[task]}{at_suffix(at)} {regime} {fold} {name}",
                        params={**base, "grid": c},
                        tags=tags, enabled=track) as mlrun:
             best, points = tune.search(run, base, c, row["knobs"])
@@ -315,7 +329,7 @@ def tune_fold(p: dict, params: dict, regime: str, fold: str, o: dict, track: boo
                       "val_pairs": int(len(data["pair"])), "iterations": c["iterations"], "seed": int(p["seed"]),
                       "criterion": f"validation {tune.CRITERION}@10deg of max(err_R, err_t)", "chosen": best,
                       "val": {k: top[k] for k in ("mAA", "mAA_R", "mAA_t")}, "grid": points}
-            write_json(tune.record_path(regime, fold, name, task), record)
+            write_json(tune.record_path(regime, fold, name, task, at), record)
             mlrun.metrics({f"val_{k}": v for k, v in record["val"].items()})
             mlrun.params({f"chosen.{k}": v for k, v in best.items()})
         out.append({"row": name, "chosen": best, **record["val"]})
@@ -332,15 +346,18 @@ def evaluate_fold(p: dict, params: dict, regime: str, fold: str, o: dict, track:
     train_scenes, test_scenes = (scene_list(s) for s in split_scenes(p, fold))
     task = p["task"]
     ev = section(params, "evaluate", task)
+    at = o.get("tune_iterations")  # rows tuned at this budget are tested at it alone (their own folder)
     # every record read and checked before the first evaluation
-    settings = {name: tuned_settings(ev, regime, fold, name, train_scenes, test_scenes, task) for name in chosen_rows}
+    settings = {name: tuned_settings(ev, regime, fold, name, train_scenes, test_scenes, task, at)
+                for name in chosen_rows}
     jobs = []
     for name, row in chosen_rows.items():
-        for it in p["iterations"][regime]:
-            tags = {"benchmark": SUB[task], "regime": regime, "fold": fold, "model": name}
+        for it in p["iterations"][regime] if at is None else [at]:
+            tags = {"benchmark": SUB[task] + at_suffix(at), "regime": regime, "fold": fold, "model": name}
             test = data_dir(regime, fold, row["points"]) / "test.h5"
             jobs.append((name, int(it), {**row_options(row, p, ev, o), **settings[name], "data": str(test),
-                                         "iterations": int(it), "out_dir": str(eval_dir(regime, fold, name, it, task)),
+                                         "iterations": int(it),
+                                         "out_dir": str(eval_dir(regime, fold, name, it, task, at)),
                                          "tags": tags}))
     # every evaluation checked (its checkpoint loaded, the test file read) before the first one writes anything
     check_all([opts for _, _, opts in jobs], track)
@@ -366,7 +383,8 @@ def folds(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
         torch.set_num_threads(int(o["threads"]))
     t0 = time.time()
     regime, fold = o["regime"], o["fold"]
-    result: dict[str, Any] = {"stage": o["stage"], "task": o["task"], "regime": regime, "fold": fold}
+    result: dict[str, Any] = {"stage": o["stage"], "task": o["task"], "regime": regime, "fold": fold,
+                              "tuned_at": o["tune_iterations"]}
     if o["stage"] == "data":
         made = make_data(p, section(params, "fundamental"), regime, fold, track, o["points"])
         result["files"] = {k: {"out": v["out"], "pairs": v["pairs"], "skipped": v["skip_reasons"],
@@ -381,6 +399,10 @@ def folds(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
         from rlsac.selection import select_fold
 
         result["selection"] = select_fold(p, params, regime, fold, o["model"], o, track)
+    elif o["stage"] == "retune":
+        from rlsac.folds_retune import retune_fold
+
+        result["retuned"] = retune_fold(p, params, regime, fold, o)
     else:
         result["evaluations"] = evaluate_fold(p, params, regime, fold, o, track)
     result["seconds"] = round(time.time() - t0, 1)
@@ -399,7 +421,10 @@ def format_summary(s: dict[str, Any]) -> str:
                                 f"{v['best_step']})" for m, v in s["models"].items())
     if s["stage"] == "tune":
         return head + "; ".join(f"{t['row']}: {t['chosen']} (val mAA {t['mAA']:.3f})" for t in s["tuned"]) + (
-            f" -> {tune.record_path(s['regime'], s['fold'], '-', s['task']).parent}")
+            f" -> {tune.record_path(s['regime'], s['fold'], '-', s['task'], s.get('tuned_at')).parent}")
+    if s["stage"] == "retune":
+        return head + "; ".join(f"{r['row']}: {r['distinct']} setting(s) chosen in {r['draws']} draws" for r in
+                                s["retuned"]) + f" -> {', '.join(r['file'] for r in s['retuned'])}"
     if s["stage"] == "select":
         sel = s["selection"]
         return head + f"{sel['model']}: kept step {sel['kept_step']} of {sel['steps']}; " + "; ".join(
@@ -407,4 +432,4 @@ def format_summary(s: dict[str, Any]) -> str:
             for st, per in sel["test"].items()) + f" -> {', '.join(sel['files'])}"
     return head + "; ".join(f"{e['method']}@{e['iterations']} R {e['mAA_R']:.3f} t {e['mAA_t']:.3f}"
                             for e in s["evaluations"]) + (
-        f" -> {eval_dir(s['regime'], s['fold'], '-', 1, s['task']).parent.parent}")
+        f" -> {eval_dir(s['regime'], s['fold'], '-', 1, s['task'], s.get('tuned_at')).parent.parent}")
