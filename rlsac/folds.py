@@ -14,6 +14,9 @@ Stages (one DVC stage per regime x fold, per model for training):
     data      data/folds/<regime>/<fold>/{train,val,test}.h5 (--points N: data/folds/<regime>-n<N>/<fold>, Table 3 c)
     train     checkpoints/folds/<regime>/<fold>/<model>.pt
     evaluate  reports/eval/folds/<regime>/<fold>/<method>/i<iterations>/{errors.csv,summary.json}
+    retune    reports/retune/fundamental/<regime>/<fold>/<row>.json (issue #47 item 7 b, rlsac.folds_retune)
+With --tune-iterations N, tune and evaluate tune at N and test at N alone (issue #47 item 7 a): records
+reports/tuning_at<N>/, results reports/eval/folds_at<N>/, beside the tables' own.
 The data stage also writes reports/folds/data/<regime>/<fold>.json (pairs, dropped pairs and why, ground-truth
 inlier-ratio distribution per split): the tables read that record, never data/ itself.
 """

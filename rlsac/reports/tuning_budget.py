@@ -72,8 +72,8 @@ def budget_rows(c: dict[str, Any], eval_root: Path, out_dir: Path) -> tuple[list
             for col, name in (("err_R", "R"), ("err_t", "t")):
                 s = seed_bootstrap_maa(a[col].to_numpy()[None], b[col].to_numpy()[None], LIMIT,
                                        strata=a["fold"].to_numpy(), n_boot=N_BOOT, seed=0)
-                row[f"mAA_{name} tuned@{c['tuned_at_tables']}"] = round(s["mean_b"], 3)
-                row[f"mAA_{name} tuned@{it}"] = round(s["mean_a"], 3)
+                row[f"mAA_{name} tuned@{c['tuned_at_tables']}"] = f"{s['mean_b']:.3f}"
+                row[f"mAA_{name} tuned@{it}"] = f"{s['mean_a']:.3f}"
                 row[f"{name}: @{it} − @{c['tuned_at_tables']} [95%]"] = _ci(s)
                 row[f"_{name}"] = s
             rows.append(row)
@@ -152,9 +152,9 @@ def retune_rows(c: dict[str, Any], out_dir: Path) -> tuple[list[dict[str, Any]],
                        f"{np.mean([np.mean(np.array(r['choices']) != r['full']) for r in recs]):.2f}"}
             for col, name in (("err_R", "R"), ("err_t", "t")):
                 s = spread(recs, it, col, LIMIT)
-                row[f"mAA_{name}: tables"] = round(s["full"], 3)
+                row[f"mAA_{name}: tables"] = f"{s['full']:.3f}"
                 row[f"mAA_{name}: re-tuned sd [95% range]"] = f"{s['sd']:.3f} [{s['lo']:.3f}, {s['hi']:.3f}]"
-                row[f"mAA_{name}: tables' ±"] = round(s["half"], 3)
+                row[f"mAA_{name}: tables' ±"] = f"{s['half']:.3f}"
                 row[f"_{name}"] = s
             rows.append(row)
     return rows, missing
