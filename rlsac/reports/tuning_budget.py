@@ -196,7 +196,8 @@ def decision(rows: list[dict[str, Any]], margin: float, eval_root: Path) -> str:
     moved = [c for c in claims if c["claims.md"] != c["widened"]]
     table = ("\n" + pd.DataFrame(moved).to_markdown(index=False) + "\n") if moved else ""
     return (
-        f"**Decision.** The largest re-tuning sd is {sd:.3f} ({row}, mAA_{name} at {it} iterations). A claim sets two "
+        f"**Decision.** The largest re-tuning sd is {sd:.3f} ({row}, mAA_{name} at {it} iterations; the mean over "
+        f"the rows, budgets and metrics measured: {np.mean([x[0] for x in sds]):.3f}). A claim sets two "
         f"rows against each other, each tuned on its own: re-tuning both moves their difference by about "
         f"{Z95}·√2·sd = ±{add:.3f} (95%), {add / margin:.0%} of the tie margin ±{margin} "
         "(rlsac.reports.claims.TIE_MARGIN). It is folded into the **intervals**, not the tie margin: a wider margin "
