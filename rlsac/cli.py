@@ -307,13 +307,17 @@ def ablate(tracking: bool, sets: tuple[str, ...], **options) -> None:
 
 
 @cli.command()
-@click.option("--stage", type=click.Choice(["data", "train", "tune", "evaluate", "select", "retune"]), required=True,
-              help="data: prepare the fold's train/val/test files; train: its RLSAC models; tune: choose every row's "
+@click.option("--stage", type=click.Choice(["data", "pool", "train", "tune", "evaluate", "select", "retune"]),
+              required=True,
+              help="data: prepare the fold's train/val/test files; pool: its training pairs with the model regime's "
+                   "pool of matches each (data/folds/pool/<fold>.h5, the episodes of folds.pool_models); train: its "
+                   "RLSAC models; tune: choose every row's "
                    "settings on the fold's val.h5 (reports/tuning/); evaluate: every row at every budget on test.h5 "
                    "with its tuned settings; select: replay a model's training and test every validated actor "
                    "(reports/selection/); retune: re-choose --only's settings on bootstrap resamples of val.h5 and "
                    "test each choice (reports/retune/, params tuning_budget).")
-@click.option("--regime", required=True, help="Data regime, a key of params.yaml folds.pool (e.g. easy, hard).")
+@click.option("--regime", help="Data regime, a key of params.yaml folds.pool (e.g. easy, hard); required but with "
+                               "--stage pool (the model regime's).")
 @click.option("--fold", required=True, help="Test building, one of params.yaml folds.test (e.g. castle).")
 @click.option("--model", help="With --stage train: one model of folds.models, ablation_models or the N study's "
                               "<model>-n<N> [default: all of them]; with --stage select: a model of "

@@ -12,6 +12,8 @@ learned sampler alone) and each RLSAC model of ``models`` (train overrides over 
 
 Stages (one DVC stage per regime x fold, per model for training):
     data      data/folds/<regime>/<fold>/{train,val,test}.h5 (--points N: data/folds/<regime>-n<N>/<fold>, Table 3 c)
+    pool      data/folds/pool/<fold>.h5: the fold's training pairs with the model regime's pool size as points per
+              pair, what the models of folds.pool_models redraw their episodes from (rlsac.episodes)
     train     checkpoints/folds/<regime>/<fold>/<model>.pt
     evaluate  reports/eval/folds/<regime>/<fold>/<method>/i<iterations>/{errors.csv,summary.json}
     retune    reports/retune/fundamental/<regime>/<fold>/<row>.json (issue #47 item 7 b, rlsac.folds_retune)
@@ -45,8 +47,10 @@ from rlsac.protocol import (  # noqa: F401
     data_regime,
     derived_models,
     eval_dir,
+    fill_fold,
     model_method,
     points_name,
+    pool_file,
     read,
     row_options,
     rows,
@@ -62,7 +66,7 @@ from rlsac.protocol import (  # noqa: F401
 )
 from rlsac.tune import tuned_settings  # noqa: F401
 
-STAGES = ("data", "train", "tune", "evaluate", "select", "retune")
+STAGES = ("data", "pool", "train", "tune", "evaluate", "select", "retune")
 OPTIONS: dict[str, Any] = {"stage": None, "regime": None, "fold": None, "model": None, "only": None, "points": None,
                            "task": "fundamental", "tune_iterations": None,
                            "params": "params.yaml",
@@ -132,7 +136,8 @@ def for_task(p: dict[str, Any], params: dict[str, Any], task: str) -> dict[str, 
     return {**p, "task": task, "methods": list(e["methods"]), "models": ["rlsac"], "lo_models": [], "fast": [],
             "lo_methods": [], "variant_regimes": [e["regime"]], "ablation_models": [], "prob_models": [],
             "points": [], "points_models": [], "points_methods": [], "seeds": list(e["seeds"]),
-            "seed_models": ["rlsac"], "select_models": [],
+            "seed_models": ["rlsac"], "select_models": [], "pool_models": [], "file_models": ["rlsac"],
+            "file_seed_models": ["rlsac"],
             "regimes": [e["regime"]], "model_regime": e["regime"], "iterations": {e["regime"]: list(e["iterations"])}}
 
 
@@ -146,10 +151,17 @@ def check_options(options: dict[str, Any], p: dict[str, Any] | None = None) -> d
     if o["stage"] not in STAGES:
         raise RlsacError(f"folds --stage must be one of {', '.join(STAGES)}, got {o['stage']!r}")
     if p is not None:
+        if o["stage"] == "pool":  # one pool per fold: the model regime's pool size (its models train on that regime)
+            if o["regime"] not in (None, p["model_regime"]):
+                raise RlsacError(f"folds --stage pool prepares the pool of folds.model_regime {p['model_regime']!r} "
+                                 f"(leave --regime out), got --regime {o['regime']!r}")
+            o["regime"] = p["model_regime"]
+        if o["regime"] is None:
+            raise RlsacError(f"folds --stage {o['stage']} needs --regime (one of {', '.join(p['regimes'])})")
         if o["regime"] not in p["regimes"]:
             raise RlsacError(f"unknown regime {o['regime']!r} (known: {', '.join(p['regimes'])})")
         split_scenes(p, o["fold"] or "")
-        if o["stage"] in ("data", "train", "select", "retune") and o["task"] != "fundamental":
+        if o["stage"] in ("data", "pool", "train", "select", "retune") and o["task"] != "fundamental":
             raise RlsacError(f"folds --stage {o['stage']} is the fundamental benchmark's (--task essential has tune "
                              "and evaluate only: it reads the fundamental folds' data, its models train with `rlsac "
                              "train --task essential`)")
@@ -223,6 +235,33 @@ def make_data(p: dict, fundamental: dict, regime: str, fold: str, track: bool,
     return out
 
 
+def prepare_pool(p: dict, params: dict, fold: str, n_points: int, out: str | Path, track: bool) -> dict[str, Any]:
+    """The fold's training pairs (the train holdout of its training buildings) prepared again with ``n_points`` points
+    per pair (the ``n_points`` lowest-SNN matches, descriptors included) into ``out``: the pool redrawn episodes draw
+    from (rlsac.episodes). The fold benchmark's pools (``make_pool``) and the scale study's (rlsac.scale) -> prepare's
+    summary."""
+    from rlsac.config import section
+    from rlsac.data.tutorial import PrepareConf, prepare
+
+    fundamental = section(params, "fundamental")
+    train_scenes, _ = split_scenes(p, fold)
+    conf = PrepareConf(root=fundamental.get("raw", "data/raw/strecha"), split="all", scenes=train_scenes,
+                       n_points=int(n_points), pool=0, holdout="train", val_fraction=float(p["val_fraction"]),
+                       max_pairs_per_scene=int(fundamental.get("max_pairs_per_scene", 0)), out=str(out))
+    return prepare(conf, track=track, progress=False)
+
+
+def make_pool(p: dict, params: dict, fold: str, track: bool) -> dict[str, Any]:
+    """``rlsac folds --stage pool``: the fold's pool file (``pool_file``) with folds.pool of the model regime as points
+    per pair (the matches its training file's points were drawn from) -> {pool, pairs, points}."""
+    n = int(p["pool"][p["model_regime"]])
+    if n <= 0:
+        raise RlsacError(f"folds.pool.{p['model_regime']} = {n}: the model regime keeps no pool of matches to prepare "
+                         "(folds --stage pool needs folds.model_regime's pool size > 0)")
+    made = prepare_pool(p, params, fold, n, pool_file(fold), track)
+    return {"pool": made["out"], "pairs": made["pairs"], "points": n}
+
+
 def _import_record(root: str) -> dict[str, Any]:
     """What the import kept and dropped (its summary.json beside the layout), if present."""
     import json
@@ -253,11 +292,15 @@ def train_models(p: dict, params: dict, regime: str, fold: str, models: list[str
                 raise RlsacError(f"{d / f'{split}.h5'}: no such file (run `rlsac folds --stage data` first)")
             read(d / f"{split}.h5")
     options = {m: train_options(p, params, regime, fold, m, o) for m in models}
-    for opts in options.values():
+    for m, opts in options.items():
+        pool = (opts.get("episodes") or {}).get("pool")
+        if pool and not Path(pool).is_file():
+            raise RlsacError(f"{pool}: no pool file for model {m} (run `rlsac folds --stage pool --fold {fold}` first)")
+    confs = {m: check(opts, track) for m, opts in options.items()}  # every model checked before the first trains
+    for m, opts in options.items():
         # a run of this very recipe stopped part-way (SIGTERM at a session's end saves its state): resume it, which
         # gives the uninterrupted run's bytes; a finished state or another recipe's trains from the start as before
-        done = saved_step(opts)
-        if 0 < done < check(opts, track).sac.total_steps:
+        if 0 < saved_step(opts) < confs[m].sac.total_steps:
             opts["resume"] = True
     return {m: train(opts, track=track) for m, opts in options.items()}
 
@@ -393,6 +436,8 @@ def folds(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
         result["files"] = {k: {"out": v["out"], "pairs": v["pairs"], "skipped": v["skip_reasons"],
                                "mean_gt_inlier_ratio": v["mean_gt_inlier_ratio_sampson_2px"]}
                            for k, v in made.items()}
+    elif o["stage"] == "pool":
+        result["pool"] = make_pool(p, params, fold, track)
     elif o["stage"] == "train":
         models = [o["model"]] if o["model"] else trained_models(p) + list(derived_models(p))
         result["models"] = train_models(p, params, regime, fold, models, o, track)
@@ -419,6 +464,8 @@ def format_summary(s: dict[str, Any]) -> str:
     if s["stage"] == "data":
         return head + "; ".join(f"{k} {v['pairs']} pairs, inlier ratio {v['mean_gt_inlier_ratio']:.2f} -> {v['out']}"
                                 for k, v in s["files"].items())
+    if s["stage"] == "pool":
+        return head + f"{s['pool']['pairs']} training pairs, {s['pool']['points']} points each -> {s['pool']['pool']}"
     if s["stage"] == "train":
         return head + "; ".join(f"{m} -> {v['checkpoint']} (best {v['selection']} {v['best_score']:.3f} at step "
                                 f"{v['best_step']})" for m, v in s["models"].items())

@@ -11,6 +11,7 @@ Imports nothing above rlsac.config: a report reads the names here, never a runne
 from __future__ import annotations
 
 import copy
+import re
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
@@ -33,6 +34,13 @@ DEFAULTS: dict[str, Any] = {
     "methods": ["uniform", "ransac", "opencv_ransac", "usac", "usac_accurate", "magsac"],
     "models": ["rlsac"],
     "train": {"rlsac": {}},
+    # models of folds.models whose episodes are redrawn from the fold's pool of matches (their recipe's episodes.pool
+    # names data/folds/pool/{fold}.h5: ``pool_file``, filled per fold by ``train_options``), so their training depends
+    # on that file too (dvc.yaml's fold_train_pool*); file_models / file_seed_models: the other models of folds.models
+    # / seed_models (dvc.yaml's fold_train / fold_train_seed iterate them), None = derived; given, they must be that
+    "pool_models": [],
+    "file_models": None,
+    "file_seed_models": None,
     "iterations": [10, 100, 1000],
     "seed": 0,
     "model_regime": "hard",
@@ -85,10 +93,14 @@ def read(params: dict[str, Any], methods: Mapping[str, Any] | None = None,
     all_scenes = [s for b in p["scenes"] for s in scene_list(p["scenes"][b])]
     if len(all_scenes) != len(set(all_scenes)):
         raise RlsacError("folds.scenes: a scene belongs to two buildings")
+    if "pool" in p["regimes"]:  # data/folds/pool/ holds the folds' pools of matches (pool_file)
+        raise RlsacError("folds.regimes: 'pool' names the folder of the folds' pools of matches (data/folds/pool)")
     if set(p["regimes"]) != set(p["pool"]):
         raise RlsacError(f"folds.regimes {p['regimes']} and the keys of folds.pool {sorted(p['pool'])} differ")
     trained = trained_models(p)
-    if set(trained) != set(p["train"]) or len(set(trained)) != len(trained):
+    staged = {m for m in set(p["train"]) - set(trained)  # a pool recipe waiting for its runs (_check_pool_models)
+              if ((p["train"][m] or {}).get("episodes") or {}).get("pool") == POOL_TEMPLATE}
+    if set(trained) != set(p["train"]) - staged or len(set(trained)) != len(trained):
         raise RlsacError(f"folds.models + folds.ablation_models {trained} and the keys of folds.train "
                          f"{sorted(p['train'])} differ")
     if not set(p["prob_models"]) <= set(trained):
@@ -134,6 +146,7 @@ def read(params: dict[str, Any], methods: Mapping[str, Any] | None = None,
             if not set(p[key]) <= seeded:
                 raise RlsacError(f"folds.{key} {p[key]}: with folds.seeds every one must be trained with the other "
                                  f"seeds too (in folds.seed_models or seed_ablation_models)")
+    _check_pool_models(p)
     if not set(p["select_models"]) <= set(p["seed_models"]):
         raise RlsacError(f"folds.select_models {p['select_models']} must be models of folds.seed_models "
                          f"{p['seed_models']} (the study covers every training seed)")
@@ -156,6 +169,112 @@ def read(params: dict[str, Any], methods: Mapping[str, Any] | None = None,
             raise RlsacError(f"folds.seeds {p['seeds']} holds seed {conf.seed}, the seed of model {model!r} itself "
                              "(its recipe's train seed): list the other seeds")
     return p
+
+
+PLACEHOLDER = re.compile(r"\{([^{}]*)\}")
+FOLD_PLACEHOLDER = "{fold}"  # the one placeholder a fold recipe may hold: the fold's name (``fill_fold``)
+
+
+def _strings(value: Any, where: str):
+    """Every string of a recipe (nested mappings and lists) with its dotted key."""
+    if isinstance(value, dict):
+        for k, v in value.items():
+            yield from _strings(v, f"{where}.{k}")
+    elif isinstance(value, list):
+        for i, v in enumerate(value):
+            yield from _strings(v, f"{where}[{i}]")
+    elif isinstance(value, str):
+        yield where, value
+
+
+def placeholders(recipe: Any, where: str) -> set[str]:
+    """The placeholders (``{name}``) of a recipe's strings; RlsacError for any but ``{fold}``."""
+    found = set()
+    for key, text in _strings(recipe, where):
+        for name in PLACEHOLDER.findall(text):
+            if "{" + name + "}" != FOLD_PLACEHOLDER:
+                raise RlsacError(f"{key} = {text!r}: unknown placeholder {{{name}}} (a fold recipe may hold only "
+                                 f"{FOLD_PLACEHOLDER}, the fold's name)")
+            found.add(name)
+    return found
+
+
+def fill_fold(recipe: Any, fold: str, where: str = "recipe") -> Any:
+    """``recipe`` with ``{fold}`` replaced by ``fold`` in every string (nested mappings and lists); RlsacError for any
+    other placeholder."""
+    placeholders(recipe, where)
+
+    def fill(v: Any) -> Any:
+        if isinstance(v, dict):
+            return {k: fill(x) for k, x in v.items()}
+        if isinstance(v, list):
+            return [fill(x) for x in v]
+        return v.replace(FOLD_PLACEHOLDER, fold) if isinstance(v, str) else v
+
+    return fill(recipe)
+
+
+def pool_file(fold: str) -> Path:
+    """The fold's pool of matches (``rlsac folds --stage pool``): its training pairs with the model regime's pool
+    size as points per pair, what the pool models' episodes are redrawn from."""
+    return Path("data") / "folds" / "pool" / f"{fold}.h5"
+
+
+POOL_TEMPLATE = str(pool_file(FOLD_PLACEHOLDER))  # data/folds/pool/{fold}.h5: a pool model's episodes.pool
+
+
+def _check_pool_models(p: dict[str, Any]) -> None:
+    """folds.pool_models: models of folds.models whose recipe redraws episodes from the fold's pool (episodes.pool
+    with {fold}); file_models / file_seed_models: the other models of models / seed_models, none in both; a recipe
+    with a placeholder belongs to a pool model (only their stages depend on the fold's pool)."""
+    pool, models = p["pool_models"], p["models"]
+    if len(set(pool)) != len(pool) or not set(pool) <= set(models):
+        raise RlsacError(f"folds.pool_models {pool} must be distinct models of folds.models {models}")
+    for key, of in (("file_models", "models"), ("file_seed_models", "seed_models")):
+        want = [m for m in p[of] if m not in pool]
+        if p[key] is None:
+            p[key] = want
+        both = sorted(set(p[key]) & set(pool))
+        if both:
+            raise RlsacError(f"folds.{key} and folds.pool_models both hold {both}: a model trains on the fold's files "
+                             "or redraws episodes from its pool, not both")
+        if p[key] != want:
+            raise RlsacError(f"folds.{key} {p[key]} must be folds.{of} without folds.pool_models: {want}")
+    if p["seeds"] and not set(pool) <= set(p["seed_models"]):
+        raise RlsacError(f"folds.pool_models {pool} must be models of folds.seed_models {p['seed_models']} "
+                         "(dvc.yaml's fold_train_pool_seed trains every pool model with every seed of folds.seeds)")
+    for key in ("points_models", "select_models"):  # their stages re-train with the fold's files only
+        if set(pool) & set(p[key]):
+            raise RlsacError(f"folds.{key} {p[key]}: a pool model ({sorted(set(pool) & set(p[key]))}) has no "
+                             "such stages (they train on the fold's files)")
+    size = p["pool"].get(p["model_regime"], 0)
+    for model, recipe in p["train"].items():
+        where = f"folds.train.{model}"
+        held = placeholders(recipe or {}, where)
+        episodes = (recipe or {}).get("episodes") or {}
+        if model in pool:
+            src = episodes.get("pool") if isinstance(episodes, dict) else None
+            if not isinstance(src, str) or FOLD_PLACEHOLDER not in src:
+                raise RlsacError(f"{where}: a model of folds.pool_models redraws its episodes from the fold's pool: "
+                                 f"episodes.pool must name it with {FOLD_PLACEHOLDER} ({POOL_TEMPLATE}), got {src!r}")
+            if src != POOL_TEMPLATE:
+                raise RlsacError(f"{where}.episodes.pool {src!r}: the fold's pool is {POOL_TEMPLATE} (what "
+                                 "`rlsac folds --stage pool` writes and dvc.yaml's fold_train_pool* depend on)")
+            points = episodes.get("points", 150)
+            if size <= 0 or (isinstance(points, int) and points > size):
+                raise RlsacError(f"{where}: episodes of {points} points need the pool of folds.model_regime "
+                                 f"{p['model_regime']!r} to hold at least as many (folds.pool.{p['model_regime']} = "
+                                 f"{size})")
+        elif held:
+            # a pool recipe not (yet) in the benchmark's lists: a model whose runs span sessions joins models,
+            # seed_models and pool_models when they are recorded (until then it has no stage)
+            rest = {**recipe, "episodes": {k: v for k, v in episodes.items() if k != "pool"}} \
+                if isinstance(episodes, dict) else recipe
+            staged = isinstance(episodes, dict) and episodes.get("pool") == POOL_TEMPLATE and not placeholders(rest,
+                                                                                                          where)
+            if not staged or model in p["models"] + p["seed_models"] + p["ablation_models"]:
+                raise RlsacError(f"{where} holds {FOLD_PLACEHOLDER}: only a model of folds.pool_models {pool} may (its "
+                                 "training stages are the ones that depend on the fold's pool)")
 
 
 def trained_models(p: dict[str, Any]) -> list[str]:
@@ -264,9 +383,14 @@ def _typed(p: dict[str, Any]) -> dict[str, Any]:
 
     if p["variant_regimes"] is None:
         p["variant_regimes"] = list(p["regimes"])
+    for key in ("file_models", "file_seed_models"):  # None: derived from models / seed_models (_check_pool_models)
+        if p[key] is not None and not isinstance(p[key], list):
+            raise RlsacError(f"folds.{key} must be a list, got {p[key]!r}")
+        if p[key] is not None:
+            p[key] = [check_value(f"folds.{key}", v, str) for v in p[key]]
     for key in ("test", "regimes", "methods", "models", "lo_models", "fast", "lo_methods", "variant_regimes",
                 "ablation_models", "prob_models", "points_models", "points_methods", "seed_models", "select_models",
-                "seed_ablation_models"):
+                "seed_ablation_models", "pool_models"):
         if not isinstance(p[key], list):
             raise RlsacError(f"folds.{key} must be a list, got {p[key]!r}")
         p[key] = [check_value(f"folds.{key}", v, str) for v in p[key]]
@@ -377,7 +501,9 @@ def train_options(p: dict, params: dict, regime: str, fold: str, model: str, o: 
     derived = derived_models(p).get(model, {"recipe": model, "points": None, "seed": None})
     d = data_dir(regime, fold, derived["points"])
     base = section(params, "train", "fundamental")
-    recipe = deep_update(base, copy.deepcopy(p["train"][derived["recipe"]] or {}))
+    # {fold} of a pool model's recipe (episodes.pool: data/folds/pool/{fold}.h5) is this fold's
+    recipe = deep_update(base, fill_fold(copy.deepcopy(p["train"][derived["recipe"]] or {}), fold,
+                                         f"folds.train.{derived['recipe']}"))
     if derived["seed"] is not None:
         recipe["seed"] = derived["seed"]
     return deep_update(recipe, {

@@ -77,18 +77,11 @@ def scale(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
 
 
 def make_pool(p: dict, params: dict, s: dict, track: bool) -> dict[str, Any]:
-    """The fold's training pairs (the train holdout of its training buildings) with the pool's points each."""
-    from rlsac.config import section
-    from rlsac.data.tutorial import PrepareConf, prepare
-    from rlsac.folds import split_scenes
+    """The fold's training pairs (the train holdout of its training buildings) with the pool's points each
+    (rlsac.folds.prepare_pool, as the fold benchmark's pools)."""
+    from rlsac.folds import prepare_pool
 
-    fundamental = section(params, "fundamental")
-    train_scenes, _ = split_scenes(p, s["fold"])
-    conf = PrepareConf(root=fundamental.get("raw", "data/raw/strecha"), split="all", scenes=train_scenes,
-                       n_points=int(s["pool"]), pool=0, holdout="train", val_fraction=float(p["val_fraction"]),
-                       max_pairs_per_scene=int(fundamental.get("max_pairs_per_scene", 0)),
-                       out=str(lay.pool_file(s["fold"])))
-    made = prepare(conf, track=track, progress=False)
+    made = prepare_pool(p, params, s["fold"], int(s["pool"]), lay.pool_file(s["fold"]), track)
     return {"pool": made["out"], "pairs": made["pairs"]}
 
 

@@ -48,6 +48,12 @@ def test_every_test_building_is_tested_once_and_never_trained_on(params):
         assert sorted(tested) == sorted(every) and len(every) == 6 and len(p["test"]) == 4
 
 
+# a model of folds.pool_models: the scale study's recipe on every fold (params.yaml folds.train.rlsac-scale)
+SCALE = {"models": ["rlsac", "rlsac-scale"], "pool_models": ["rlsac-scale"],
+         "train": {"rlsac": {}, "rlsac-scale": {"sac": {"total_steps": 10000}, "selection": "last", "episodes": {
+             "pool": "data/folds/pool/{fold}.h5", "points": 150, "swap": True}}}}
+
+
 @pytest.mark.parametrize("change, message", [
     ({"scenes": {"a": "x,y", "b": "y"}, "test": ["a"]}, "two buildings"),
     ({"test": ["moon"]}, "folds.test"),
@@ -67,10 +73,79 @@ def test_every_test_building_is_tested_once_and_never_trained_on(params):
     ({"select_models": ["rlsac"], "seed_models": ["rlsac"], "select_iterations": [7]}, "select_iterations"),
     ({"select_tie": 2.0}, "select_tie"),
     ({"select_iterations": "1000"}, "select_iterations"),
+    # RLSAC at scale's kind of model (folds.pool_models): its recipe names the fold's pool with {fold}
+    ({**SCALE, "train": {"rlsac": {}, "rlsac-scale": {"episodes": {"pool": "data/folds/pool/castle.h5"}}}},
+     r"episodes.pool must name it with \{fold\}"),
+    ({**SCALE, "train": {"rlsac": {}, "rlsac-scale": {}}}, r"episodes.pool must name it with \{fold\}"),
+    ({**SCALE, "train": {"rlsac": {}, "rlsac-scale": {"episodes": {"pool": "data/{fold}.h5"}}}},
+     "the fold's pool is data/folds/pool/"),
+    ({**SCALE, "file_models": ["rlsac", "rlsac-scale"]}, r"both hold \['rlsac-scale'\]"),
+    ({**SCALE, "file_models": []}, "folds.file_models .* must be folds.models without folds.pool_models"),
+    ({**SCALE, "seed_models": ["rlsac"], "file_seed_models": ["rlsac"], "seeds": [1]}, "fold_train_pool_seed"),
+    ({**SCALE, "pool_models": ["rlsac-other"]}, "folds.pool_models"),
+    ({**SCALE, "train": {"rlsac": {"episodes": {"pool": "data/folds/pool/{fold}.h5"}},
+                         "rlsac-scale": SCALE["train"]["rlsac-scale"]}}, "only a model of folds.pool_models"),
+    ({**SCALE, "train": {"rlsac": {"out": "x/{regime}.pt"}, "rlsac-scale": SCALE["train"]["rlsac-scale"]}},
+     r"unknown placeholder \{regime\}"),
+    ({**SCALE, "pool": {"easy": 0, "hard": 100}}, "at least as many"),
+    ({**SCALE, "regimes": ["easy", "pool"], "pool": {"easy": 0, "pool": 1000}}, "data/folds/pool"),
 ])
 def test_protocol_rejects_inconsistent_folds(change, message):
     with pytest.raises(RlsacError, match=message):
         folds.protocol({"folds": change})
+
+
+def test_pool_models_train_on_their_folds_pool_with_every_seed():
+    """RLSAC at scale (folds.pool_models): {fold} of its recipe is the fold trained, for the model and each training
+    seed; it is a row of every regime like rlsac; the other models are the file models (dvc.yaml's fold_train)."""
+    p = folds.protocol({"folds": {**SCALE, "seeds": [1, 2], "seed_models": ["rlsac", "rlsac-scale"]}})
+    assert p["file_models"] == ["rlsac"] and p["file_seed_models"] == ["rlsac"] and p["pool_models"] == ["rlsac-scale"]
+    o = {"device": "cpu", "threads": 1}
+    for fold in ("castle", "entry"):
+        for model in ("rlsac-scale", "rlsac-scale-s2"):
+            opts = folds.train_options(p, {}, "hard", fold, model, o)
+            assert opts["episodes"] == {"pool": f"data/folds/pool/{fold}.h5", "points": 150, "swap": True}, model
+            assert opts["data"] == f"data/folds/hard/{fold}/train.h5" and opts["selection"] == "last"
+            assert opts["sac"]["total_steps"] == 10000 and opts["out"] == f"checkpoints/folds/hard/{fold}/{model}.pt"
+        assert folds.pool_file(fold) == Path(f"data/folds/pool/{fold}.h5")
+        assert "episodes" not in folds.train_options(p, {}, "hard", fold, "rlsac", o)
+    assert folds.train_options(p, {}, "hard", "castle", "rlsac-scale-s2", o)["seed"] == 2
+    assert p["train"]["rlsac-scale"]["episodes"]["pool"] == "data/folds/pool/{fold}.h5"  # the recipe itself unfilled
+    for regime in ("easy", "hard"):
+        rows = folds.rows(p, "castle", regime)
+        assert rows["rlsac-scale-s1"]["checkpoint"] == Path("checkpoints/folds/hard/castle/rlsac-scale-s1.pt")
+        assert rows["rlsac-scale"]["method"] == "rlsac"
+    assert folds.fill_fold({"a": ["x/{fold}", 3], "b": "{fold}{fold}"}, "f") == {"a": ["x/f", 3], "b": "ff"}
+    with pytest.raises(RlsacError, match=r"unknown placeholder \{seed\}"):
+        folds.fill_fold({"a": {"b": "x/{seed}.h5"}}, "castle")
+    # the pool stage: one per fold, of the model regime
+    assert folds.check_options({"stage": "pool", "fold": "castle"}, p)["regime"] == "hard"
+    with pytest.raises(RlsacError, match="leave --regime out"):
+        folds.check_options({"stage": "pool", "regime": "easy", "fold": "castle"}, p)
+    with pytest.raises(RlsacError, match="needs --regime"):
+        folds.check_options({"stage": "tune", "fold": "castle"}, p)
+
+
+@pytest.mark.parametrize("params", ["params.yaml", "experiments/quick/params.yaml"])
+def test_profiles_train_rlsac_at_scale_on_the_folds_pool(params):
+    """Both profiles: rlsac-scale is a pool model with every seed (the paper profile's waits outside the lists until
+    its runs, trained across sessions, are recorded), outside the lists whose stages re-train with the fold's files
+    only, and the paper profile's recipe is the scale study's."""
+    p = folds.protocol(load_params(ROOT / params))
+    if params == "params.yaml":  # staged: its recipe defined, no stage yet
+        p = folds.protocol({"folds": {**load_params(ROOT / params)["folds"], "pool_models": ["rlsac-scale"],
+                                      "models": p["models"] + ["rlsac-scale"],
+                                      "seed_models": p["seed_models"] + ["rlsac-scale"],
+                                      "file_models": None, "file_seed_models": None}})
+    assert p["pool_models"] == ["rlsac-scale"] and "rlsac-scale" in p["models"] and "rlsac-scale" in p["seed_models"]
+    for key in ("select_models", "lo_models", "fast", "ablation_models", "prob_models", "points_models"):
+        assert "rlsac-scale" not in p[key], key
+    recipe = p["train"]["rlsac-scale"]
+    assert recipe["episodes"] == {"pool": "data/folds/pool/{fold}.h5", "points": 150, "swap": True}
+    assert recipe["selection"] == "last"
+    if params == "params.yaml":
+        assert recipe["sac"]["total_steps"] == 10000  # the scale study's choice on validation (reports/scale.md)
+        assert p["pool"][p["model_regime"]] == 1000
 
 
 def test_unknown_fold_and_regime_are_user_errors():
@@ -146,6 +221,39 @@ def test_pool_draws_from_lower_ranked_matches_with_the_pairs_own_seed(imported, 
     key = pool["pair"][3]
     i, j = 3, int(np.flatnonzero((both["pair"] == key) & (both["scene"] == "fountain-P11"))[0])
     np.testing.assert_array_equal(pool["coords"][i], both["coords"][j])
+
+
+def test_pool_stage_prepares_the_folds_training_pairs_with_the_pool_size(imported, tmp_path, monkeypatch):
+    """`rlsac folds --stage pool`: the fold's training pairs (the train holdout of the other buildings) with the model
+    regime's pool size as points per pair, the matches the training file's points were drawn from; the scale study's
+    pool (rlsac.scale.make_pool) is the same preparation. A pool model refuses to train without it."""
+    from rlsac import scale
+
+    monkeypatch.chdir(tmp_path)
+    params = {"fundamental": {"raw": str(imported), "n_points": 40, "max_pairs_per_scene": 8},
+              "folds": {**SCALE, "test": ["fountain"], "scenes": {"fountain": "fountain-P11", "entry": "entry-P10"},
+                        "val_fraction": 0.3, "pool": {"easy": 0, "hard": 150}, "methods": ["uniform"],
+                        "train": {"rlsac": {}, "rlsac-scale": {"episodes": {
+                            "pool": "data/folds/pool/{fold}.h5", "points": 40, "swap": True}}}}}
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
+    base = ["folds", "--fold", "fountain", "--device", "cpu", "--no-tracking"]
+    r = CliRunner().invoke(cli, base + ["--stage", "data", "--regime", "hard"])
+    assert r.exit_code == 0, r.output
+    r = CliRunner().invoke(cli, base + ["--stage", "train", "--regime", "hard", "--model", "rlsac-scale"])
+    assert r.exit_code == 2 and "data/folds/pool/fountain.h5: no pool file" in r.output
+    r = CliRunner().invoke(cli, base + ["--stage", "pool"])
+    assert r.exit_code == 0, r.output
+    assert "150 points each -> data/folds/pool/fountain.h5" in r.output
+    pool, attrs = fundamental.read(tmp_path / "data/folds/pool/fountain.h5")
+    train, _ = fundamental.read(tmp_path / "data/folds/hard/fountain/train.h5")
+    assert pool["coords"].shape[1] == 150 and attrs["n_points"] == 150 and "entry-P10" in attrs["scenes"]
+    assert list(pool["pair"]) == list(train["pair"])  # the training pairs, the same order
+    p = folds.protocol(params)
+    made = scale.make_pool(p, params, {"fold": "fountain", "pool": 150}, track=False)
+    again, _ = fundamental.read(made["pool"])
+    assert made["pool"] == "data/scale/fountain/pool.h5" and made["pairs"] == len(pool["pair"])
+    for k in pool:
+        np.testing.assert_array_equal(again[k], pool[k], err_msg=k)
 
 
 def test_a_pairs_result_does_not_depend_on_the_other_pairs(imported, tmp_path):
@@ -526,6 +634,49 @@ def test_a_models_cell_must_hold_the_checkpoint_its_folder_names(tmp_path, row, 
             results._check_cell(cell, row, 100)
 
 
+def test_fold_table_shows_rlsac_at_scale_absent_then_with_its_seeds(tmp_path):
+    """Table 2's row "RLSAC at scale" (rlsac-scale) with its legend line: "–" in every cell while its results are
+    absent (no CSV row: the CSVs hold results), then its numbers, its paired difference to rlsac, its controls and
+    its across-seed comparisons like rlsac's once its seeds' results exist."""
+    label = fold_table.NAMES["rlsac-scale"]
+    assert label == "RLSAC at scale"
+    ev = tmp_path / "eval"
+    for fold in ("a", "b"):
+        _write_errors(ev, "hard", fold, "rlsac", 100, [0.5] * 4, [0.5] * 4)
+        _write_errors(ev, "hard", fold, "rlsac-s1", 100, [0.5, 20.0] * 2, [0.5] * 4)
+        _write_errors(ev, "hard", fold, "uniform", 100, [0.5, 20.0] * 2, [0.5, 20.0] * 2)
+    fold_table.build(ev, tmp_path / "out", tmp_path / "rec")
+    md = (tmp_path / "out" / "table2_folds.md").read_text()
+    assert ("RLSAC at scale (`rlsac-scale`, not in the paper; five training seeds like RLSAC): the scale study's "
+            "recipe: 10000 steps (33x), episodes redrawn from each pair's 1000 lowest-SNN matches with the images "
+            "swapped, last actor; reports/scale.md.") in md
+    line = next(x for x in md.split("### 100 iterations", 1)[1].splitlines() if x.startswith(f"| {label} "))
+    assert set(c.strip() for c in line.split("|")[2:-1]) == {"no LO", "–"}
+    assert "rlsac-scale" not in set(pd.read_csv(tmp_path / "out" / "table2_folds.csv")["method"])
+    assert "rlsac-scale" not in set(pd.read_csv(tmp_path / "out" / "folds_iterations.csv")["method"])
+    assert label not in md.split("### Across training seeds", 1)[1]
+    # no such row where it is not expected (Table E's default)
+    fold_table.build(ev, tmp_path / "outE", tmp_path / "rec", sub="folds", stem="t", expected=())
+    assert f"| {label} " not in (tmp_path / "outE" / "t.md").read_text()
+    # its results: the row, its difference to rlsac, its controls, and its seeds against rlsac's and the controls'
+    for fold in ("a", "b"):
+        _write_errors(ev, "hard", fold, "rlsac-scale", 100, [0.5] * 4, [20.0, 0.5] * 2)
+        _write_errors(ev, "hard", fold, "rlsac-scale-s1", 100, [0.5] * 4, [0.5, 0.5, 0.5, 5.5])
+    fold_table.build(ev, tmp_path / "out2", tmp_path / "rec")
+    md = (tmp_path / "out2" / "table2_folds.md").read_text()
+    line = next(x for x in md.split("### 100 iterations", 1)[1].splitlines() if x.startswith(f"| {label} "))
+    cells = [c.strip() for c in line.split("|")[1:-1]]
+    assert cells[3:5] == ["1.000", "0.500"] and cells[-2].startswith("+0.000") and cells[-1].startswith("-0.500")
+    assert "rlsac-scale" in set(pd.read_csv(tmp_path / "out2" / "table2_folds.csv")["method"])
+    control = md.split("### RLSAC − uniform", 1)[1].split("###", 1)[0]
+    assert f"| {label} " in control
+    seeds = md.split("### Across training seeds", 1)[1].split("### Across training seeds, per test building", 1)[0]
+    vs = {c.strip(): [x.strip() for x in line.split("|")[1:-1]] for line in seeds.splitlines()
+          if line.startswith("|") and f"{label} (2 seeds)" in line for c in [line.split("|")[3]]}
+    assert fold_table.NAMES["rlsac"] + " (2 seeds)" in vs and fold_table.NAMES["uniform"] in vs
+    assert vs[fold_table.NAMES["rlsac"] + " (2 seeds)"][3] == "1.000 ± 0.000"  # both seeds of rlsac-scale: every pair
+
+
 def test_fold_table_without_results_writes_nothing(tmp_path):
     got = fold_table.build(tmp_path / "none", tmp_path / "out", tmp_path / "rec")
     assert got["files"] == [] and not (tmp_path / "out").exists()
@@ -727,3 +878,13 @@ def test_a_fold_model_stopped_part_way_resumes_its_own_state(tmp_path, monkeypat
             torch.save({"step": step, "conf": state_conf}, tmp_path / "m.state.pt")
         folds.train_models(p, {}, "hard", "castle", ["m"], {}, track=False)
         assert calls.pop() is want, (step, want)
+
+
+def test_a_pool_recipe_may_wait_outside_the_lists_until_its_runs_are_recorded():
+    """A pool model trained across sessions: its recipe is defined (rlsac folds --params with it listed trains it)
+    while params.yaml's lists leave it out, so dvc.yaml has none of its stages yet; listed as a file model, refused."""
+    staged = {**SCALE, "models": ["rlsac"], "pool_models": []}
+    p = folds.protocol({"folds": staged})
+    assert p["pool_models"] == [] and p["file_models"] == ["rlsac"]
+    with pytest.raises(RlsacError, match="only a model of folds.pool_models"):
+        folds.protocol({"folds": {**staged, "models": ["rlsac", "rlsac-scale"]}})

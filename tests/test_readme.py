@@ -377,7 +377,8 @@ def test_interval_check_finds_a_stale_quote(tmp_path):
 
 
 # ------------------------------------------------------------------------------------ quoted point values (issue #47)
-POINT = re.compile(r"(?<![\w.])([+\-−]?)(\d+\.\d{3})(?!\d)")
+# (not part of a dotted address or version: 192.168.*, 1.2.345.6)
+POINT = re.compile(r"(?<![\w.])([+\-−]?)(\d+\.\d{3})(?!\d)(?!\.[\d*])")
 # files `rlsac table`, `rlsac calibrate-lines` and benchmarks/line_landscape.py write (the hand-written pages are not)
 GENERATED = ("table*.md", "claims.md", "selection.md", "paper.md", "scale.md", "positive_control.md",
              "tuning_budget.md", "calibration_*.md", "*.csv", "metrics.json")
@@ -399,6 +400,11 @@ def test_every_quoted_number_is_a_generated_one(doc):
     generated report holds: no number typed from an earlier record."""
     stale = sorted(point_values(doc.read_text()) - generated_values(ROOT / "reports"))
     assert not stale, f"{doc.name}: {len(stale)} number(s) in no generated file, e.g. {stale[:5]}"
+
+
+def test_point_values_are_numbers_not_addresses():
+    assert point_values("mAA 0.735, −0.013 [−0.034, +0.009]; hosts 192.168.*, 10.1.234.5") == \
+        {0.735, -0.013, -0.034, 0.009}
 
 
 def test_point_value_check_finds_a_stale_number(tmp_path):

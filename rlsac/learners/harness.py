@@ -102,7 +102,7 @@ class TrainConf:
 # checkpoints (and so their bytes) are what they were (rlsac verify --include-train)
 LATER_DEFAULTS = {"episodes": to_dict(EpisodeConf()), "snapshot_steps": [], "kernels": "aten", "init": ""}
 # keys added to a section after runs that stored it, left out while at their default (the scale study's states resume
-# only a state whose stored configuration is their own: rlsac.scale.saved_step)
+# only a state whose stored configuration is their own: saved_step below)
 LATER_SECTION_DEFAULTS = {"episodes": {"prefilter": []}}
 
 
