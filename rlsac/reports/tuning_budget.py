@@ -21,10 +21,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from rlsac.errors import RlsacError
 from rlsac.io import atomic_path, write_text
-
-Z95 = 1.96  # a normal 95% half-width in sd; the re-tuning spread is near normal for rows with many settings chosen
+from rlsac.reports.retuning import Z95, halfwidth, load_retune, spread, widen
 
 
 def _cells(root: Path, regime: str, row: str, it: int) -> pd.DataFrame | None:
@@ -80,54 +78,6 @@ def budget_rows(c: dict[str, Any], eval_root: Path, out_dir: Path) -> tuple[list
     return rows, missing
 
 
-def load_retune(out_dir: Path, regime: str, row: str) -> list[dict[str, Any]]:
-    """The re-tuning records of ``row`` in ``regime``, one per fold (fold order), each checked for the fields the
-    report reads: one choice per draw, test errors for every chosen setting at every budget."""
-    from rlsac.results import read_mapping
-
-    recs = []
-    for path in sorted((out_dir / "retune" / "fundamental" / regime).glob(f"*/{row}.json")):
-        rec = read_mapping(path, "re-tuning record")
-        try:
-            n, k = len(rec["test_scenes"]), len(rec["settings"])
-            chosen = {rec["full"], *rec["choices"]}
-            ok = rec["choices"] and all(isinstance(i, int) and 0 <= i < k for i in chosen) and rec["test"] and all(
-                len(per[str(i)][col]) == n for per in rec["test"].values() for i in chosen for col in ("err_R",
-                                                                                                       "err_t"))
-        except (KeyError, TypeError):
-            ok = False
-        if not ok:
-            raise RlsacError(f"{path}: not a re-tuning record of `rlsac folds --stage retune` (choices, settings and "
-                             "test errors of every chosen setting); re-run the command that wrote it, or remove it")
-        recs.append({**rec, "path": str(path)})
-    return recs
-
-
-def spread(recs: list[dict[str, Any]], it: int, col: str, limit: float) -> dict[str, Any]:
-    """The test mAA (column ``col``) each draw's re-chosen settings give, the folds pooled (each fold its own choice
-    in that draw; every fold must have made as many draws) -> {full, mean, sd, lo, hi, half} where ``full`` is the
-    choice on all validation pairs (the tables' setting) and ``half`` the half-width of its own 95% bootstrap interval
-    over the test pairs, resampled within each test building as the tables do."""
-    from rlsac.metrics import accuracy_per_instance, stratified_draws
-    from rlsac.protocol import N_BOOT
-
-    draws = {len(r["choices"]) for r in recs}
-    if len(draws) != 1:
-        raise RlsacError(f"re-tuning records with different numbers of draws {sorted(draws)}: "
-                         + ", ".join(r["path"] for r in recs))
-    acc = [{int(i): accuracy_per_instance(np.asarray(e[col], np.float64), limit) for i, e in r["test"][str(it)].items()}
-           for r in recs]
-    full = np.concatenate([a[r["full"]] for a, r in zip(acc, recs, strict=True)])
-    per = np.array([np.concatenate([a[r["choices"][b]] for a, r in zip(acc, recs, strict=True)]).mean()
-                    for b in range(draws.pop())])
-    strata = np.concatenate([[i] * len(r["test_scenes"]) for i, r in enumerate(recs)])
-    boot = full[stratified_draws(np.random.default_rng(0), strata, N_BOOT)].mean(axis=1)
-    lo, hi = np.percentile(boot, [2.5, 97.5])
-    sd = float(per.std(ddof=1)) if per.size > 1 else 0.0
-    return {"full": float(full.mean()), "mean": float(per.mean()), "sd": sd,
-            "lo": float(np.percentile(per, 2.5)), "hi": float(np.percentile(per, 97.5)), "half": float((hi - lo) / 2)}
-
-
 def retune_rows(c: dict[str, Any], out_dir: Path) -> tuple[list[dict[str, Any]], list[str]]:
     """Part (b): one row per (row, budget) with re-tuning records for every fold; -> (rows, missing rows)."""
     from rlsac.protocol import LIMIT
@@ -161,55 +111,53 @@ def retune_rows(c: dict[str, Any], out_dir: Path) -> tuple[list[dict[str, Any]],
 
 
 def widened(eval_root: Path, s: float) -> list[dict[str, str]]:
-    """Every fold claim of claims.md (rlsac.reports.claims.CLAIMS) with each metric's interval widened by the
-    re-tuning half-width ``s`` in quadrature (lo − √((diff − lo)² + s²), hi + √((hi − diff)² + s²)), its verdict
-    before and after; claims whose rows are absent are left out."""
+    """Every fold claim of claims.md (rlsac.reports.claims.CLAIMS): its verdict on the pairs-and-seeds interval alone
+    and with the re-tuning half-width ``s`` added in quadrature (rlsac.reports.retuning.widen), as claims.md now
+    judges it; claims whose rows are absent are left out."""
     from rlsac.reports.claims import CLAIMS, combine, verdict
     from rlsac.reports.folds import seed_comparison
     from rlsac.results import collect, seed_runs
 
     res, out = collect(eval_root, "folds"), []
     for c in (c for c in CLAIMS if c.sub == "folds"):
-        seeds, now, wide = seed_runs(res, c.regime), [], []
+        seeds, before, after = seed_runs(res, c.regime), [], []
         for name in c.metrics:
             got = seed_comparison(res, seeds, c.regime, c.model, c.control, c.iterations, f"err_{name}")
             if got is None:
                 break
-            st = got[0]
-            lo = st["diff"] - float(np.hypot(st["diff"] - st["lo"], s))
-            hi = st["diff"] + float(np.hypot(st["hi"] - st["diff"], s))
-            now.append(verdict(c.kind, st["lo"], st["hi"], c.margin))
-            wide.append(verdict(c.kind, lo, hi, c.margin))
+            st, wide = got[0], widen(got[0], s)
+            before.append(verdict(c.kind, st["lo"], st["hi"], c.margin))
+            after.append(verdict(c.kind, wide["lo"], wide["hi"], c.margin))
         else:
-            out.append({"claim": c.text, "claims.md": combine(now), "widened": combine(wide)})
+            out.append({"claim": c.text, "pairs and seeds only": combine(before), "claims.md": combine(after)})
     return out
 
 
-def decision(rows: list[dict[str, Any]], margin: float, eval_root: Path) -> str:
-    """The generated verdict of part (b): what re-tuning adds to a difference of two rows, against the tie margin."""
-    sds = [(r[f"_{n}"]["sd"], r["row"], r["iterations"], n) for r in rows for n in ("R", "t")]
-    if not sds:
-        return "No re-tuning records: nothing to decide.\n"
-    sd, row, it, name = max(sds)
-    add = Z95 * np.sqrt(2) * sd  # both rows of a claim re-tuned independently: their selection sds add in quadrature
-    claims = widened(eval_root, float(add))
-    moved = [c for c in claims if c["claims.md"] != c["widened"]]
+def decision(rows: list[dict[str, Any]], margin: float, eval_root: Path, out_dir: Path) -> str:
+    """The generated verdict of part (b): what re-tuning adds to a difference of two rows, against the tie margin,
+    and which claims it moves."""
+    term = halfwidth(out_dir)
+    if term is None or not rows:
+        return "No re-tuning records: nothing to decide, and no interval carries the term.\n"
+    sds = [r[f"_{n}"]["sd"] for r in rows for n in ("R", "t")]
+    add = term["s"]
+    claims = widened(eval_root, add)
+    moved = [c for c in claims if c["pairs and seeds only"] != c["claims.md"]]
     table = ("\n" + pd.DataFrame(moved).to_markdown(index=False) + "\n") if moved else ""
     return (
-        f"**Decision.** The largest re-tuning sd is {sd:.3f} ({row}, mAA_{name} at {it} iterations; the mean over "
-        f"the rows, budgets and metrics measured: {np.mean([x[0] for x in sds]):.3f}). A claim sets two "
-        f"rows against each other, each tuned on its own: re-tuning both moves their difference by about "
-        f"{Z95}·√2·sd = ±{add:.3f} (95%), {add / margin:.0%} of the tie margin ±{margin} "
+        f"**Decision.** The largest re-tuning sd is {term['sd']:.3f} ({term['row']}, mAA_{term['metric']} at "
+        f"{term['iterations']} iterations; the mean over the rows, budgets and metrics measured: {np.mean(sds):.3f}). "
+        "A claim sets two rows against each other, each tuned on its own: re-tuning both moves their difference by "
+        f"about {Z95}·√2·sd = ±{add:.3f} (95%), {add / margin:.0%} of the tie margin ±{margin} "
         "(rlsac.reports.claims.TIE_MARGIN). It is folded into the **intervals**, not the tie margin: a wider margin "
-        "would make a tie *easier* to support when the extra variance should make every verdict harder. "
-        "Recommendation for rlsac.reports.claims: widen each fold claim's interval by this term in quadrature "
-        "(lo − √((diff − lo)² + s²), hi + …, s the two rows' re-tuning 95% half-width), which needs a re-tuning sd "
-        "for every row a claim names — learned rows included (their grid runs the network at every point) — so it "
-        "is not applied to claims.md here; until then, read a verdict whose interval end lies within "
-        f"±{add:.3f} of 0 or of ±{margin} as inconclusive.\n\n"
-        f"Widened so (the largest sd for every claim: conservative, most of all for the models over five training "
-        f"seeds, each seed tuned on its own), {len(moved)} of the {len(claims)} fold claims of claims.md change "
-        "verdict" + (":\n" if moved else ".\n") + table)
+        "would make a tie *easier* to support when the extra variance should make every verdict harder. Every fold "
+        "claim of claims.md and every mAA claim of paper.md on the fold benchmark has its interval widened by this "
+        "term in quadrature (rlsac.reports.retuning.widen: lo − √((diff − lo)² + s²), hi + √((hi − diff)² + s²)), "
+        "with the largest sd for every claim: conservative, most of all for the learned rows over five training "
+        "seeds, each seed tuned on its own, which were not re-tuned (their grids run the network at every point). "
+        "Median-error claims keep their intervals (the term is in mAA).\n\n"
+        f"{len(moved)} of the {len(claims)} fold claims of claims.md change verdict with the term"
+        + (":\n" if moved else ".\n") + table)
 
 
 def build(params: dict[str, Any], eval_root: str | Path = "reports/eval",
@@ -258,7 +206,7 @@ def build(params: dict[str, Any], eval_root: str | Path = "reports/eval",
     df_b = pd.DataFrame([{k: v for k, v in r.items() if not k.startswith("_")} for r in b_rows])
     if b_rows:
         sec_b += df_b.to_markdown(index=False, disable_numparse=True) + "\n\n"
-    sec_b += decision(b_rows, TIE_MARGIN, eval_root)
+    sec_b += decision(b_rows, TIE_MARGIN, eval_root, out_dir)
     missing = a_missing + b_missing
     tail = ("\nNot compared (results absent): " + "; ".join(missing) + ".\n") if missing else ""
     write_text(out_dir / "tuning_budget.md", head + sec_a + sec_b + tail)
