@@ -327,6 +327,27 @@ def _selected(p: dict, fold: str, o: dict, split: str) -> dict[str, dict[str, An
     return chosen
 
 
+def threshold_only(c: dict, record: dict) -> dict:
+    """The tuning grid ``c`` with the pre-filter fixed at ``record``'s choice (a tables' tuning record): a learned row
+    re-tuned at its test budget re-chooses its threshold alone (params tuning_budget.learned: its grid runs the
+    network at every point); its knobs stay the record's too."""
+    pre = record["chosen"].get("prefilter", 1.0)
+    return {**c, "prefilter": [pre], "start_prefilter": pre, "extend_prefilter": False, "rounds": 1}
+
+
+def tuned_record(regime: str, fold: str, row: str, task: str, train_scenes, test_scenes) -> dict:
+    """The tables' tuning record of ``row`` (reports/tuning/...), read and checked as the evaluation reads it."""
+    from rlsac import tune
+    from rlsac.results import read_record
+
+    path = tune.record_path(regime, fold, row, task)
+    rec = read_record(path)
+    if rec is None:
+        raise RlsacError(f"{path}: no tuning record (a learned row re-tuned at the test budget keeps its pre-filter: "
+                         "run `rlsac folds --stage tune` first)")
+    return {**rec, "chosen": tune.check_record(rec, path, regime, fold, row, train_scenes, test_scenes)}
+
+
 def tune_fold(p: dict, params: dict, regime: str, fold: str, o: dict, track: bool) -> list[dict]:
     """Tune every selected row on the fold's val.h5 (rlsac.tune) -> what was chosen; writes the records."""
     from rlsac import tune
@@ -353,6 +374,11 @@ def tune_fold(p: dict, params: dict, regime: str, fold: str, o: dict, track: boo
     device = resolve_device(o["device"])
     bases = {name: {**row_options(row, p, ev, o), "data": str(data_dir(regime, fold, row["points"]) / "val.h5"),
                     "iterations": c["iterations"]} for name, row in chosen_rows.items()}
+    if at is not None:  # a learned row re-tuned at the test budget re-chooses its threshold alone (threshold_only)
+        bad = [n for n, r in chosen_rows.items() if r["checkpoint"] is not None and r["knobs"]]
+        if bad:
+            raise RlsacError(f"folds --tune-iterations: learned rows with knobs of their own ({', '.join(bad)}) would "
+                             "need them fixed at the tables' choice too; re-tune them at tuning.iterations")
     for base in bases.values():  # every row's sampler built before the first record is written: a checkpoint whose
         make_estimator(check_options(base), device)  # 'kind' does not match its weights failed in its row (#49)
     out = []
@@ -364,15 +390,19 @@ def tune_fold(p: dict, params: dict, regime: str, fold: str, o: dict, track: boo
         def run(options, data=data):
             return score(check_options(options), data, device)[0]
 
+        grid, knobs = c, row["knobs"]
+        if at is not None and row["checkpoint"] is not None:  # a learned row at the test budget: its threshold alone
+            grid = threshold_only(c, tuned_record(regime, fold, name, task, train_scenes, test_scenes))
+
         tags = {"benchmark": SUB[task], "regime": regime, "fold": fold, "row": name}
         with start_run(task_class(task).experiment, f"tune {SUB[task]}{at_suffix(at)} {regime} {fold} {name}",
                        params={**base, "grid": c},
                        tags=tags, enabled=track) as mlrun:
-            best, points = tune.search(run, base, c, row["knobs"])
+            best, points = tune.search(run, base, grid, knobs)
             top = next(pt for pt in points if pt["settings"] == best)
             record = {"task": task, "regime": regime, "fold": fold, "row": name, "method": row["method"],
                       "checkpoint": base["checkpoint"], "data": str(val), "val_scenes": val_scenes,
-                      "val_pairs": int(len(data["pair"])), "iterations": c["iterations"], "seed": int(p["seed"]),
+                      "val_pairs": int(len(data["pair"])), "iterations": grid["iterations"], "seed": int(p["seed"]),
                       "criterion": f"validation {tune.CRITERION}@10deg of max(err_R, err_t)", "chosen": best,
                       "val": {k: top[k] for k in ("mAA", "mAA_R", "mAA_t")}, "grid": points}
             write_json(tune.record_path(regime, fold, name, task, at), record)

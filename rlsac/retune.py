@@ -32,6 +32,11 @@ DEFAULTS: dict[str, Any] = {
     "retune_draws": 200,
     "retune_seed": 0,
     "retune_iterations": [1000],
+    # learned rows (a checkpoint each, e.g. rlsac and its seed rows rlsac-s<k>) re-tuned at ``iterations`` in
+    # ``learned_regimes``: their threshold alone, at the tables' pre-filter (their grid runs the network at every
+    # point, ~0.3 s a pair at 1000 iterations; the pre-filter and the row's knobs stay the tables' choice)
+    "learned": [],
+    "learned_regimes": [],
 }
 
 
@@ -47,7 +52,7 @@ def conf(params: dict[str, Any]) -> dict[str, Any]:
     c["retune_draws"] = check_value("tuning_budget.retune_draws", c["retune_draws"], int, "[1, 100000]")
     c["retune_seed"] = check_value("tuning_budget.retune_seed", c["retune_seed"], int, "[0, 4294967295]")
     c["retune_regime"] = check_value("tuning_budget.retune_regime", c["retune_regime"], str)
-    for key in ("regimes", "methods", "retune_methods", "retune_iterations"):
+    for key in ("regimes", "methods", "retune_methods", "retune_iterations", "learned", "learned_regimes"):
         if not isinstance(c[key], list):
             raise RlsacError(f"tuning_budget.{key} must be a list, got {c[key]!r}")
         c[key] = [check_value(f"tuning_budget.{key}", v, int if key == "retune_iterations" else str)
@@ -56,10 +61,13 @@ def conf(params: dict[str, Any]) -> dict[str, Any]:
         bad = sorted(set(c[key]) - set(p["methods"]))
         if bad:
             raise RlsacError(f"tuning_budget.{key} {bad}: not methods of folds.methods {p['methods']}")
-    bad = sorted(set(c["regimes"] + [c["retune_regime"]]) - set(p["regimes"]))
+    bad = sorted(set(c["learned"]) - set(p["models"]) - {f"{m}-s{k}" for m in p["seed_models"] for k in p["seeds"]})
+    if bad:
+        raise RlsacError(f"tuning_budget.learned {bad}: not models of folds.models or their seed rows")
+    bad = sorted(set(c["regimes"] + c["learned_regimes"] + [c["retune_regime"]]) - set(p["regimes"]))
     if bad:
         raise RlsacError(f"tuning_budget regime(s) {bad}: not regimes of folds.regimes {p['regimes']}")
-    for r in c["regimes"]:  # tuned at the budget it is tested at: a budget of the regime's tables
+    for r in c["regimes"] + c["learned_regimes"]:  # tuned at the budget it is tested at: one of the regime's tables
         if c["iterations"] not in p["iterations"][r]:
             raise RlsacError(f"tuning_budget.iterations {c['iterations']}: not a test budget of regime {r!r} "
                              f"(folds.iterations {p['iterations'][r]})")

@@ -143,7 +143,8 @@ def search(run, base: dict[str, Any], c: dict[str, Any], knobs: list[str],
     thresholds, filters = list(c["threshold_px"]), list(c["prefilter"])
     start = c["start_prefilter"] if c["start_prefilter"] in filters else filters[0]
     best: dict[str, Any] = {"threshold_px": thresholds[0], "prefilter": start}
-    extend_left = filter_left = c["extend"]
+    extend_left = c["extend"]
+    filter_left = c["extend"] if c.get("extend_prefilter", True) else 0  # off: the pre-filter grid is fixed
     for _ in range(c["rounds"]):  # alternate: the threshold grid (extended at an edge), then the pre-filter grid
         before = dict(best)
         while True:

@@ -163,3 +163,20 @@ def test_report_on_known_values(tmp_path, monkeypatch):
     path.write_text(json.dumps(rec))
     out = CliRunner().invoke(cli, ["table", "--which", "tuning-budget", "--no-tracking"])
     assert out.exit_code == 2 and out.output.startswith("error: ") and "not a re-tuning record" in out.output
+
+
+def test_a_learned_row_at_the_test_budget_re_chooses_its_threshold_alone():
+    """threshold_only: the tables' pre-filter (0.8) stays although 0.75 would score higher, no pre-filter grid point is
+    run, and the threshold is re-chosen (1.0 over the tables' 0.5)."""
+    c = {**tune.DEFAULTS, "iterations": 1000, "threshold_px": [0.5, 1.0], "prefilter": [0.75, 0.8, 1.0], "extend": 2}
+    grid = folds.threshold_only(c, {"chosen": {"threshold_px": 0.5, "prefilter": 0.8}})
+
+    def run(o):
+        v = 1.0 - abs(o["threshold_px"] - 1.0) - abs(o["prefilter"] - 0.75)
+        return {"mAA": v, "mAA_R": v, "mAA_t": v}
+
+    best, points = tune.search(run, {}, grid, [], on_settings=True)
+    assert best == {"threshold_px": 1.0, "prefilter": 0.8}
+    assert {pt["settings"]["prefilter"] for pt in points} == {0.8}
+    full, _ = tune.search(run, {}, c, [], on_settings=True)  # the tables' rule on this curve moves the pre-filter
+    assert full["prefilter"] == 0.75

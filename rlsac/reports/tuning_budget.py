@@ -15,6 +15,7 @@ Reads result files only (rlsac.results), never a runner.
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any
 
@@ -42,39 +43,62 @@ def _ci(d: dict[str, float]) -> str:
     return f"{d['diff']:+.3f} [{d['lo']:+.3f}, {d['hi']:+.3f}]"
 
 
-def budget_rows(c: dict[str, Any], eval_root: Path, out_dir: Path) -> tuple[list[dict[str, Any]], list[str]]:
-    """Part (a): one row per (regime, method) with results both ways; -> (rows, missing cells)."""
+def _budget_row(c: dict[str, Any], eval_root: Path, out_dir: Path, regime: str, label: str, names: list[str]
+                ) -> dict[str, Any] | str:
+    """Part (a) for one row over its training seeds ``names`` (a library row: one name): tuned@N against the tables'
+    cell, paired on the same test pairs, the seeds resampled too (rlsac.metrics.seed_bootstrap_maa) -> the report's
+    row, or the reason it is missing."""
     from rlsac.metrics import seed_bootstrap_maa
     from rlsac.protocol import LIMIT, N_BOOT, at_suffix
     from rlsac.results import pair_key, read_record
 
-    it, rows, missing = c["iterations"], [], []
-    for regime in c["regimes"]:
-        for m in c["methods"]:
-            base = _cells(eval_root / "folds", regime, m, it)
-            at = _cells(eval_root / f"folds{at_suffix(it)}", regime, m, it)
-            if base is None or at is None:
-                missing.append(f"{regime}/{m}")
-                continue
-            a, b = at.set_index(pair_key(at)), base.set_index(pair_key(base))
-            if set(a.index) != set(b.index):  # a fold present one way only: the comparison would not be paired
-                missing.append(f"{regime}/{m} (folds differ)")
-                continue
-            b = b.loc[a.index]
-            changed, folds = 0, sorted(set(a["fold"]))
-            for f in folds:
-                recs = [read_record(out_dir / f"tuning{s}" / "fundamental" / regime / f / f"{m}.json")
-                        for s in ("", at_suffix(it))]
-                changed += int(None not in recs and recs[0]["chosen"] != recs[1]["chosen"])
-            row = {"regime": regime, "row": m, "pairs": len(a), "folds re-chosen": f"{changed}/{len(folds)}"}
-            for col, name in (("err_R", "R"), ("err_t", "t")):
-                s = seed_bootstrap_maa(a[col].to_numpy()[None], b[col].to_numpy()[None], LIMIT,
-                                       strata=a["fold"].to_numpy(), n_boot=N_BOOT, seed=0)
-                row[f"mAA_{name} tuned@{c['tuned_at_tables']}"] = f"{s['mean_b']:.3f}"
-                row[f"mAA_{name} tuned@{it}"] = f"{s['mean_a']:.3f}"
-                row[f"{name}: @{it} − @{c['tuned_at_tables']} [95%]"] = _ci(s)
-                row[f"_{name}"] = s
-            rows.append(row)
+    it, at_runs, base_runs = c["iterations"], [], []
+    changed = total = 0
+    for name in names:
+        base = _cells(eval_root / "folds", regime, name, it)
+        at = _cells(eval_root / f"folds{at_suffix(it)}", regime, name, it)
+        if base is None or at is None:
+            return f"{regime}/{name}"
+        a, b = at.set_index(pair_key(at)), base.set_index(pair_key(base))
+        if set(a.index) != set(b.index):  # a fold present one way only: the comparison would not be paired
+            return f"{regime}/{name} (folds differ)"
+        if at_runs and list(a.index) != list(at_runs[0].index):
+            return f"{regime}/{name} (pairs differ between seeds)"
+        at_runs.append(a)
+        base_runs.append(b.loc[a.index])
+        for f in sorted(set(a["fold"])):
+            recs = [read_record(out_dir / f"tuning{s}" / "fundamental" / regime / f / f"{name}.json")
+                    for s in ("", at_suffix(it))]
+            changed += int(None not in recs and recs[0]["chosen"] != recs[1]["chosen"])
+            total += 1
+    first = at_runs[0]
+    row = {"regime": regime, "row": label, "pairs": len(first), "folds re-chosen": f"{changed}/{total}"}
+    for col, name in (("err_R", "R"), ("err_t", "t")):
+        s = seed_bootstrap_maa(np.stack([r[col].to_numpy() for r in at_runs]),
+                               np.stack([r[col].to_numpy() for r in base_runs]), LIMIT,
+                               strata=first["fold"].to_numpy(), n_boot=N_BOOT, seed=0)
+        row[f"mAA_{name} tuned@{c['tuned_at_tables']}"] = f"{s['mean_b']:.3f}"
+        row[f"mAA_{name} tuned@{it}"] = f"{s['mean_a']:.3f}"
+        row[f"{name}: @{it} − @{c['tuned_at_tables']} [95%]"] = _ci(s)
+        row[f"_{name}"] = s
+    return row
+
+
+def budget_rows(c: dict[str, Any], eval_root: Path, out_dir: Path) -> tuple[list[dict[str, Any]], list[str]]:
+    """Part (a): one row per (regime, method) with results both ways, then each learned model of
+    ``tuning_budget.learned`` over its training seeds (threshold alone, rlsac.folds.threshold_only);
+    -> (rows, missing cells)."""
+    groups = [(r, m, [m]) for r in c["regimes"] for m in c["methods"]]
+    models = [n for n in c["learned"] if not re.fullmatch(r".+-s\d+", n) or n.rsplit("-s", 1)[0] not in c["learned"]]
+    for r in c["learned_regimes"]:
+        for m in models:
+            names = [n for n in c["learned"] if n == m or (n.rsplit("-s", 1)[0] == m and n != m)]
+            label = f"{m} (threshold)" if len(names) == 1 else f"{m} ({len(names)} seeds, threshold)"
+            groups.append((r, label, names))
+    rows, missing = [], []
+    for regime, label, names in groups:
+        got = _budget_row(c, eval_root, out_dir, regime, label, names)
+        (missing.append(got) if isinstance(got, str) else rows.append(got))
     return rows, missing
 
 
@@ -182,7 +206,9 @@ def build(params: dict[str, Any], eval_root: str | Path = "reports/eval",
         f"pairs, grid and rule at {it} iterations (reports/tuning_at{it}/) and tested at {it} "
         f"(reports/eval/folds_at{it}/). Difference = tuned@{it} − the tables' cell, paired on the same test pairs, "
         f"95% interval: {N_BOOT} bootstrap draws of the pairs within each test building. `folds re-chosen`: folds "
-        "whose chosen settings differ.\n\n")
+        "whose chosen settings differ. A learned row (`threshold`: params tuning_budget.learned) re-chooses its "
+        "threshold alone at the tables' pre-filter (its grid runs the network at every point), over its training "
+        "seeds, which the interval resamples too; `folds re-chosen` counts its seeds x folds.\n\n")
     df_a = pd.DataFrame([{k: v for k, v in r.items() if not k.startswith("_")} for r in a_rows])
     if a_rows:
         moved = [r for r in a_rows if any(r[f"_{n}"]["lo"] > 0 or r[f"_{n}"]["hi"] < 0 for n in ("R", "t"))]
