@@ -308,13 +308,15 @@ def ablate(tracking: bool, sets: tuple[str, ...], **options) -> None:
 
 
 @cli.command()
-@click.option("--stage", type=click.Choice(["data", "pool", "train", "tune", "evaluate", "select"]), required=True,
+@click.option("--stage", type=click.Choice(["data", "pool", "train", "tune", "evaluate", "select", "retune"]),
+              required=True,
               help="data: prepare the fold's train/val/test files; pool: its training pairs with the model regime's "
                    "pool of matches each (data/folds/pool/<fold>.h5, the episodes of folds.pool_models); train: its "
                    "RLSAC models; tune: choose every row's "
                    "settings on the fold's val.h5 (reports/tuning/); evaluate: every row at every budget on test.h5 "
                    "with its tuned settings; select: replay a model's training and test every validated actor "
-                   "(reports/selection/).")
+                   "(reports/selection/); retune: re-choose --only's settings on bootstrap resamples of val.h5 and "
+                   "test each choice (reports/retune/, params tuning_budget).")
 @click.option("--regime", help="Data regime, a key of params.yaml folds.pool (e.g. easy, hard); required but with "
                                "--stage pool (the model regime's).")
 @click.option("--fold", required=True, help="Test building, one of params.yaml folds.test (e.g. castle).")
@@ -328,6 +330,9 @@ def ablate(tracking: bool, sets: tuple[str, ...], **options) -> None:
                    "matrix (Table E, params essential) on the fold data.")
 @click.option("--only", help="With --stage tune or evaluate: comma-separated rows (methods, models, <model>-lo, "
                              "<row>-fast, <row>-n<N>) [default: all].")
+@click.option("--tune-iterations", type=int,
+              help="With --stage tune or evaluate: tune at this budget instead of tuning.iterations, and test at it "
+                   "alone (a budget of folds.iterations; reports/tuning_at<N>/, reports/eval/folds_at<N>/).")
 @click.option("--params", "params", default="params.yaml", show_default=True,
               help="params.yaml: its folds, fundamental and train.fundamental sections.")
 @click.option("--threads", type=int, default=1, show_default=True, help="torch CPU threads (1 is fastest here).")
@@ -396,13 +401,14 @@ def select(tracking: bool, params_path: str, **options) -> None:
 
 @cli.command()
 @click.option("--which", type=click.Choice(["1", "2", "3", "iterations", "folds", "essential", "claims", "paper",
-                                           "selection", "scale", "all"]),
+                                           "selection", "scale", "tuning-budget", "all"]),
               default="all", show_default=True,
               help="Table 1 (lines), 2 (fundamental), 3 (ablations), the iterations CSV, Table 2 over the "
                    "leave-one-building-out folds, Table E (essential matrix, not in the paper), reports/claims.md "
                    "(every claim against its seed-aware interval), reports/paper.md (the paper's claims beside ours, "
                    "one verdict each), reports/selection.md (kept vs last checkpoint), reports/scale.md (the "
-                   "training-scale study, issue #46; not in all), or all.")
+                   "training-scale study, issue #46; not in all), reports/tuning_budget.md (tuning at the test "
+                   "budget and re-tuning variance, issue #47; not in all), or all.")
 @click.option("--eval-root", default="reports/eval", show_default=True, type=click.Path(file_okay=False),
               help="Root of the evaluation summaries (lines/, fundamental/, ablation/).")
 @click.option("--out-dir", default="reports", show_default=True, type=click.Path(file_okay=False))

@@ -269,6 +269,7 @@ PARAM_SECTIONS = {
     "essential": "rlsac.folds:check_essential",
     "ablation": "rlsac.ablate:protocol",
     "tuning": "rlsac.tune:conf",
+    "tuning_budget": "rlsac.retune:conf",
     "scale": "rlsac.scale_layout:protocol",
     "positive_control": "rlsac.positive_control:conf",
 }

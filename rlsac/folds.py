@@ -16,6 +16,9 @@ Stages (one DVC stage per regime x fold, per model for training):
               pair, what the models of folds.pool_models redraw their episodes from (rlsac.episodes)
     train     checkpoints/folds/<regime>/<fold>/<model>.pt
     evaluate  reports/eval/folds/<regime>/<fold>/<method>/i<iterations>/{errors.csv,summary.json}
+    retune    reports/retune/fundamental/<regime>/<fold>/<row>.json (issue #47 item 7 b, rlsac.folds_retune)
+With --tune-iterations N, tune and evaluate tune at N and test at N alone (issue #47 item 7 a): records
+reports/tuning_at<N>/, results reports/eval/folds_at<N>/, beside the tables' own.
 The data stage also writes reports/folds/data/<regime>/<fold>.json (pairs, dropped pairs and why, ground-truth
 inlier-ratio distribution per split): the tables read that record, never data/ itself.
 """
@@ -35,6 +38,7 @@ from rlsac.protocol import (  # noqa: F401
     DEFAULTS,
     OUR_SAMPLERS,
     SUB,
+    at_suffix,
     budgets,
     checkpoint,
     checkpoint_model,
@@ -62,9 +66,9 @@ from rlsac.protocol import (  # noqa: F401
 )
 from rlsac.tune import tuned_settings  # noqa: F401
 
-STAGES = ("data", "pool", "train", "tune", "evaluate", "select")
+STAGES = ("data", "pool", "train", "tune", "evaluate", "select", "retune")
 OPTIONS: dict[str, Any] = {"stage": None, "regime": None, "fold": None, "model": None, "only": None, "points": None,
-                           "task": "fundamental",
+                           "task": "fundamental", "tune_iterations": None,
                            "params": "params.yaml",
                            "device": "auto", "threads": 1}
 
@@ -138,6 +142,8 @@ def for_task(p: dict[str, Any], params: dict[str, Any], task: str) -> dict[str, 
 
 
 def check_options(options: dict[str, Any], p: dict[str, Any] | None = None) -> dict[str, Any]:
+    from rlsac.config import check_value
+
     unknown = sorted(set(options) - set(OPTIONS))
     if unknown:
         raise RlsacError(f"unknown folds option(s) {unknown}; known: {sorted(OPTIONS)}")
@@ -155,7 +161,7 @@ def check_options(options: dict[str, Any], p: dict[str, Any] | None = None) -> d
         if o["regime"] not in p["regimes"]:
             raise RlsacError(f"unknown regime {o['regime']!r} (known: {', '.join(p['regimes'])})")
         split_scenes(p, o["fold"] or "")
-        if o["stage"] in ("data", "pool", "train", "select") and o["task"] != "fundamental":
+        if o["stage"] in ("data", "pool", "train", "select", "retune") and o["task"] != "fundamental":
             raise RlsacError(f"folds --stage {o['stage']} is the fundamental benchmark's (--task essential has tune "
                              "and evaluate only: it reads the fundamental folds' data, its models train with `rlsac "
                              "train --task essential`)")
@@ -173,6 +179,15 @@ def check_options(options: dict[str, Any], p: dict[str, Any] | None = None) -> d
             if int(o["points"]) not in p["points"] or o["regime"] not in p["variant_regimes"]:
                 raise RlsacError(f"folds --points {o['points']} --regime {o['regime']}: the N study prepares N of "
                                  f"folds.points {p['points']} in folds.variant_regimes {p['variant_regimes']}")
+        if o["tune_iterations"] is not None:
+            # issue #47 item 7 (a): tune at the budget the row is tested at (the tutorial's protocol), beside the
+            # tables' rows tuned at tuning.iterations; a budget the regime is not tested at would test nothing
+            o["tune_iterations"] = check_value("--tune-iterations", o["tune_iterations"], int, "[1, inf)")
+            if o["stage"] not in ("tune", "evaluate"):
+                raise RlsacError("folds --tune-iterations goes with --stage tune or evaluate")
+            if o["tune_iterations"] not in p["iterations"][o["regime"]]:
+                raise RlsacError(f"folds --tune-iterations {o['tune_iterations']}: not a test budget of regime "
+                                 f"{o['regime']!r} (folds.iterations {p['iterations'][o['regime']]})")
         if o["only"] is not None:
             o["only"] = [s.strip() for s in str(o["only"]).split(",") if s.strip()]
             known = set(rows(p, o["fold"], o["regime"]))
@@ -312,6 +327,27 @@ def _selected(p: dict, fold: str, o: dict, split: str) -> dict[str, dict[str, An
     return chosen
 
 
+def threshold_only(c: dict, record: dict) -> dict:
+    """The tuning grid ``c`` with the pre-filter fixed at ``record``'s choice (a tables' tuning record): a learned row
+    re-tuned at its test budget re-chooses its threshold alone (params tuning_budget.learned: its grid runs the
+    network at every point); its knobs stay the record's too."""
+    pre = record["chosen"].get("prefilter", 1.0)
+    return {**c, "prefilter": [pre], "start_prefilter": pre, "extend_prefilter": False, "rounds": 1}
+
+
+def tuned_record(regime: str, fold: str, row: str, task: str, train_scenes, test_scenes) -> dict:
+    """The tables' tuning record of ``row`` (reports/tuning/...), read and checked as the evaluation reads it."""
+    from rlsac import tune
+    from rlsac.results import read_record
+
+    path = tune.record_path(regime, fold, row, task)
+    rec = read_record(path)
+    if rec is None:
+        raise RlsacError(f"{path}: no tuning record (a learned row re-tuned at the test budget keeps its pre-filter: "
+                         "run `rlsac folds --stage tune` first)")
+    return {**rec, "chosen": tune.check_record(rec, path, regime, fold, row, train_scenes, test_scenes)}
+
+
 def tune_fold(p: dict, params: dict, regime: str, fold: str, o: dict, track: bool) -> list[dict]:
     """Tune every selected row on the fold's val.h5 (rlsac.tune) -> what was chosen; writes the records."""
     from rlsac import tune
@@ -322,6 +358,8 @@ def tune_fold(p: dict, params: dict, regime: str, fold: str, o: dict, track: boo
     from rlsac.tracking import start_run
 
     c = tune.conf(params)
+    at = o.get("tune_iterations")  # None: the tables' budget, tuning.iterations
+    c["iterations"] = c["iterations"] if at is None else at
     chosen_rows = _selected(p, fold, o, "val")
     task = p["task"]
     train_scenes, test_scenes = (scene_list(s) for s in split_scenes(p, fold))
@@ -336,6 +374,11 @@ def tune_fold(p: dict, params: dict, regime: str, fold: str, o: dict, track: boo
     device = resolve_device(o["device"])
     bases = {name: {**row_options(row, p, ev, o), "data": str(data_dir(regime, fold, row["points"]) / "val.h5"),
                     "iterations": c["iterations"]} for name, row in chosen_rows.items()}
+    if at is not None:  # a learned row re-tuned at the test budget re-chooses its threshold alone (threshold_only)
+        bad = [n for n, r in chosen_rows.items() if r["checkpoint"] is not None and r["knobs"]]
+        if bad:
+            raise RlsacError(f"folds --tune-iterations: learned rows with knobs of their own ({', '.join(bad)}) would "
+                             "need them fixed at the tables' choice too; re-tune them at tuning.iterations")
     for base in bases.values():  # every row's sampler built before the first record is written: a checkpoint whose
         make_estimator(check_options(base), device)  # 'kind' does not match its weights failed in its row (#49)
     out = []
@@ -347,18 +390,22 @@ def tune_fold(p: dict, params: dict, regime: str, fold: str, o: dict, track: boo
         def run(options, data=data):
             return score(check_options(options), data, device)[0]
 
+        grid, knobs = c, row["knobs"]
+        if at is not None and row["checkpoint"] is not None:  # a learned row at the test budget: its threshold alone
+            grid = threshold_only(c, tuned_record(regime, fold, name, task, train_scenes, test_scenes))
+
         tags = {"benchmark": SUB[task], "regime": regime, "fold": fold, "row": name}
-        with start_run(task_class(task).experiment, f"tune {SUB[task]} {regime} {fold} {name}",
+        with start_run(task_class(task).experiment, f"tune {SUB[task]}{at_suffix(at)} {regime} {fold} {name}",
                        params={**base, "grid": c},
                        tags=tags, enabled=track) as mlrun:
-            best, points = tune.search(run, base, c, row["knobs"])
+            best, points = tune.search(run, base, grid, knobs)
             top = next(pt for pt in points if pt["settings"] == best)
             record = {"task": task, "regime": regime, "fold": fold, "row": name, "method": row["method"],
                       "checkpoint": base["checkpoint"], "data": str(val), "val_scenes": val_scenes,
-                      "val_pairs": int(len(data["pair"])), "iterations": c["iterations"], "seed": int(p["seed"]),
+                      "val_pairs": int(len(data["pair"])), "iterations": grid["iterations"], "seed": int(p["seed"]),
                       "criterion": f"validation {tune.CRITERION}@10deg of max(err_R, err_t)", "chosen": best,
                       "val": {k: top[k] for k in ("mAA", "mAA_R", "mAA_t")}, "grid": points}
-            write_json(tune.record_path(regime, fold, name, task), record)
+            write_json(tune.record_path(regime, fold, name, task, at), record)
             mlrun.metrics({f"val_{k}": v for k, v in record["val"].items()})
             mlrun.params({f"chosen.{k}": v for k, v in best.items()})
         out.append({"row": name, "chosen": best, **record["val"]})
@@ -375,15 +422,18 @@ def evaluate_fold(p: dict, params: dict, regime: str, fold: str, o: dict, track:
     train_scenes, test_scenes = (scene_list(s) for s in split_scenes(p, fold))
     task = p["task"]
     ev = section(params, "evaluate", task)
+    at = o.get("tune_iterations")  # rows tuned at this budget are tested at it alone (their own folder)
     # every record read and checked before the first evaluation
-    settings = {name: tuned_settings(ev, regime, fold, name, train_scenes, test_scenes, task) for name in chosen_rows}
+    settings = {name: tuned_settings(ev, regime, fold, name, train_scenes, test_scenes, task, at)
+                for name in chosen_rows}
     jobs = []
     for name, row in chosen_rows.items():
-        for it in p["iterations"][regime]:
-            tags = {"benchmark": SUB[task], "regime": regime, "fold": fold, "model": name}
+        for it in p["iterations"][regime] if at is None else [at]:
+            tags = {"benchmark": SUB[task] + at_suffix(at), "regime": regime, "fold": fold, "model": name}
             test = data_dir(regime, fold, row["points"]) / "test.h5"
             jobs.append((name, int(it), {**row_options(row, p, ev, o), **settings[name], "data": str(test),
-                                         "iterations": int(it), "out_dir": str(eval_dir(regime, fold, name, it, task)),
+                                         "iterations": int(it),
+                                         "out_dir": str(eval_dir(regime, fold, name, it, task, at)),
                                          "tags": tags}))
     # every evaluation checked (its checkpoint loaded, the test file read) before the first one writes anything
     check_all([opts for _, _, opts in jobs], track)
@@ -409,7 +459,8 @@ def folds(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
         torch.set_num_threads(int(o["threads"]))
     t0 = time.time()
     regime, fold = o["regime"], o["fold"]
-    result: dict[str, Any] = {"stage": o["stage"], "task": o["task"], "regime": regime, "fold": fold}
+    result: dict[str, Any] = {"stage": o["stage"], "task": o["task"], "regime": regime, "fold": fold,
+                              "tuned_at": o["tune_iterations"]}
     if o["stage"] == "data":
         made = make_data(p, section(params, "fundamental"), regime, fold, track, o["points"])
         result["files"] = {k: {"out": v["out"], "pairs": v["pairs"], "skipped": v["skip_reasons"],
@@ -426,6 +477,10 @@ def folds(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
         from rlsac.selection import select_fold
 
         result["selection"] = select_fold(p, params, regime, fold, o["model"], o, track)
+    elif o["stage"] == "retune":
+        from rlsac.folds_retune import retune_fold
+
+        result["retuned"] = retune_fold(p, params, regime, fold, o)
     else:
         result["evaluations"] = evaluate_fold(p, params, regime, fold, o, track)
     result["seconds"] = round(time.time() - t0, 1)
@@ -446,7 +501,10 @@ def format_summary(s: dict[str, Any]) -> str:
                                 f"{v['best_step']})" for m, v in s["models"].items())
     if s["stage"] == "tune":
         return head + "; ".join(f"{t['row']}: {t['chosen']} (val mAA {t['mAA']:.3f})" for t in s["tuned"]) + (
-            f" -> {tune.record_path(s['regime'], s['fold'], '-', s['task']).parent}")
+            f" -> {tune.record_path(s['regime'], s['fold'], '-', s['task'], s.get('tuned_at')).parent}")
+    if s["stage"] == "retune":
+        return head + "; ".join(f"{r['row']}: {r['distinct']} setting(s) chosen in {r['draws']} draws" for r in
+                                s["retuned"]) + f" -> {', '.join(r['file'] for r in s['retuned'])}"
     if s["stage"] == "select":
         sel = s["selection"]
         return head + f"{sel['model']}: kept step {sel['kept_step']} of {sel['steps']}; " + "; ".join(
@@ -454,4 +512,4 @@ def format_summary(s: dict[str, Any]) -> str:
             for st, per in sel["test"].items()) + f" -> {', '.join(sel['files'])}"
     return head + "; ".join(f"{e['method']}@{e['iterations']} R {e['mAA_R']:.3f} t {e['mAA_t']:.3f}"
                             for e in s["evaluations"]) + (
-        f" -> {eval_dir(s['regime'], s['fold'], '-', 1, s['task']).parent.parent}")
+        f" -> {eval_dir(s['regime'], s['fold'], '-', 1, s['task'], s.get('tuned_at')).parent.parent}")

@@ -75,7 +75,7 @@ def seed_bootstrap_maa(errors_a, errors_b, limit: float, strata=None, n_boot: in
     acc_a = np.stack([accuracy_per_instance(e, limit) for e in a])  # (S_a, M)
     acc_b = np.stack([accuracy_per_instance(e, limit) for e in b])
     rng = np.random.default_rng(seed)
-    idx = _stratified_draws(rng, strata, n_boot)  # (n_boot, M): the same instances for a and b
+    idx = stratified_draws(rng, strata, n_boot)  # (n_boot, M): the same instances for a and b
     per_a, per_b = acc_a[:, idx].mean(axis=2), acc_b[:, idx].mean(axis=2)  # (S, n_boot): each seed's resampled mAA
     pick_a = rng.integers(0, len(acc_a), size=(n_boot, len(acc_a)))
     if paired_seeds and len(acc_a) != len(acc_b):
@@ -102,7 +102,7 @@ def _strata(strata, m: int) -> np.ndarray:
     return strata
 
 
-def _stratified_draws(rng: np.random.Generator, strata: np.ndarray, n_boot: int) -> np.ndarray:
+def stratified_draws(rng: np.random.Generator, strata: np.ndarray, n_boot: int) -> np.ndarray:
     """(n_boot, M) instance indices, each draw resampling every stratum within itself (its size kept)."""
     return np.concatenate([rng.choice(np.flatnonzero(strata == k), size=(n_boot, int((strata == k).sum())))
                            for k in np.unique(strata)], axis=1)
@@ -122,7 +122,7 @@ def seed_bootstrap_median(errors_a, errors_b, strata=None, n_boot: int = 2000, s
     a, b = (np.where(np.isnan(e), np.inf, e) for e in (a, b))
     strata = _strata(strata, a.shape[1])
     rng = np.random.default_rng(seed)
-    idx = _stratified_draws(rng, strata, n_boot)
+    idx = stratified_draws(rng, strata, n_boot)
     per_a, per_b = np.median(a[:, idx], axis=2), np.median(b[:, idx], axis=2)  # (S, n_boot)
     pick_a = rng.integers(0, len(a), size=(n_boot, len(a)))
     pick_b = rng.integers(0, len(b), size=(n_boot, len(b)))

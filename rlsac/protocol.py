@@ -473,8 +473,16 @@ def checkpoint_model(path: str | Path) -> str | None:
     return None
 
 
-def eval_dir(regime: str, fold: str, method: str, iterations: int, task: str = "fundamental") -> Path:
-    return Path("reports") / "eval" / SUB[task] / regime / fold / method / f"i{int(iterations)}"
+def eval_dir(regime: str, fold: str, method: str, iterations: int, task: str = "fundamental",
+             tuned_at: int | None = None) -> Path:
+    """Where a row's evaluation at ``iterations`` goes; ``tuned_at``: the row tuned at that budget instead of
+    tuning.iterations (issue #47 item 7, <sub>_at<budget>: beside the tables' cells, never mixed with them)."""
+    return Path("reports") / "eval" / (SUB[task] + at_suffix(tuned_at)) / regime / fold / method / f"i{int(iterations)}"
+
+
+def at_suffix(tuned_at: int | None) -> str:
+    """The folder suffix of rows tuned at budget ``tuned_at`` ("" for the tables' own tuning, tuning.iterations)."""
+    return "" if tuned_at is None else f"_at{int(tuned_at)}"
 
 
 SUB = {"fundamental": "folds", "essential": "essential"}
@@ -505,6 +513,12 @@ def train_options(p: dict, params: dict, regime: str, fold: str, model: str, o: 
         "tags": {"command": "folds", "benchmark": "folds", "regime": regime, "fold": fold, "model": model}})
 
 
-def record_path(regime: str, fold: str, row: str, task: str = "fundamental") -> Path:
-    """Where ``rlsac folds --stage tune`` keeps row ``row``'s tuning record (rlsac.tune)."""
-    return Path("reports") / "tuning" / task / regime / fold / f"{row}.json"
+def record_path(regime: str, fold: str, row: str, task: str = "fundamental", tuned_at: int | None = None) -> Path:
+    """Where ``rlsac folds --stage tune`` keeps row ``row``'s tuning record (rlsac.tune); ``tuned_at``: the record of
+    ``--tune-iterations`` (reports/tuning_at<budget>/, not a dependency of the tables)."""
+    return Path("reports") / f"tuning{at_suffix(tuned_at)}" / task / regime / fold / f"{row}.json"
+
+
+def retune_path(regime: str, fold: str, row: str, task: str = "fundamental") -> Path:
+    """Where ``rlsac folds --stage retune`` keeps row ``row``'s re-tuning record (issue #47 item 7 b)."""
+    return Path("reports") / "retune" / task / regime / fold / f"{row}.json"

@@ -121,18 +121,21 @@ def _edges(grid: list[float], best: float, extend_left: int) -> list[float]:
     return []
 
 
-def search(run, base: dict[str, Any], c: dict[str, Any], knobs: list[str]) -> tuple[dict[str, Any], list[dict]]:
+def search(run, base: dict[str, Any], c: dict[str, Any], knobs: list[str],
+           on_settings: bool = False) -> tuple[dict[str, Any], list[dict]]:
     """Coordinate search of ``base`` options on the validation pairs.
 
     run(options) -> summary dict with ``CRITERION``; ``knobs``: the row's own settings after the threshold x
-    pre-filter grid (keys of ``c``). -> (chosen settings, every grid point as {settings, mAA, mAA_R, mAA_t})."""
+    pre-filter grid (keys of ``c``). -> (chosen settings, every grid point as {settings, mAA, mAA_R, mAA_t}).
+    ``on_settings``: run gets the grid point's settings themselves (rlsac.retune replays the rule on stored errors,
+    keyed by settings). The rule is this function's alone: the re-tuning study re-selects with it, never a copy."""
     points: list[dict] = []
     cache: dict[tuple, dict] = {}
 
     def score(settings: dict[str, Any]) -> float:
         key = tuple(sorted(settings.items()))
         if key not in cache:
-            s = run({**base, **_as_options(settings, base)})
+            s = run(dict(settings) if on_settings else {**base, **_as_options(settings, base)})
             cache[key] = {"settings": dict(settings), **{k: s[k] for k in ("mAA", "mAA_R", "mAA_t")}}
             points.append(cache[key])
         return cache[key][CRITERION]
@@ -140,7 +143,8 @@ def search(run, base: dict[str, Any], c: dict[str, Any], knobs: list[str]) -> tu
     thresholds, filters = list(c["threshold_px"]), list(c["prefilter"])
     start = c["start_prefilter"] if c["start_prefilter"] in filters else filters[0]
     best: dict[str, Any] = {"threshold_px": thresholds[0], "prefilter": start}
-    extend_left = filter_left = c["extend"]
+    extend_left = c["extend"]
+    filter_left = c["extend"] if c.get("extend_prefilter", True) else 0  # off: the pre-filter grid is fixed
     for _ in range(c["rounds"]):  # alternate: the threshold grid (extended at an edge), then the pre-filter grid
         before = dict(best)
         while True:
@@ -211,13 +215,16 @@ def record_options(path: str | Path, task: str, method: str, checkpoint: str | N
 
 
 def tuned_settings(ev: dict, regime: str, fold: str, name: str, train_scenes: list[str], test_scenes: list[str],
-                   task: str = "fundamental") -> dict[str, Any]:
+                   task: str = "fundamental", tuned_at: int | None = None) -> dict[str, Any]:
     """Row ``name``'s settings from its tuning record (chosen on the fold's validation pairs only, checked against
-    the test scenes) as evaluate options."""
+    the test scenes) as evaluate options; ``tuned_at``: the record tuned at that budget (``--tune-iterations``)."""
     from rlsac.results import read_record
 
-    path = record_path(regime, fold, name, task)
+    path = record_path(regime, fold, name, task, tuned_at)
     rec = read_record(path)  # `[]`, `null`, `chosen: {}`, `val_scenes: []` are refused by name (issue #49)
     if rec is None:
-        raise RlsacError(f"{path}: no tuning record (run `rlsac folds --stage tune` first)")
+        flag = "" if tuned_at is None else f" --tune-iterations {tuned_at}"
+        raise RlsacError(f"{path}: no tuning record (run `rlsac folds --stage tune{flag}` first)")
+    if tuned_at is not None and rec.get("iterations") != tuned_at:  # a record of another budget moved here by hand
+        raise RlsacError(f"{path}: tuned at {rec.get('iterations')!r} iterations, not {tuned_at}")
     return as_options(check_record(rec, path, regime, fold, name, train_scenes, test_scenes), ev.get("lo"))

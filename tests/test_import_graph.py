@@ -19,6 +19,7 @@ PKG = Path(__file__).resolve().parents[1] / "rlsac"
 # and sampler since issue #48 (its training is the learner rlsac.learners.ngransac); no report needs it either
 RUNNERS = (
     "rlsac.folds",
+    "rlsac.folds_retune",
     "rlsac.selection",
     "rlsac.train",
     "rlsac.evaluate",
@@ -45,12 +46,13 @@ LAYERS = (
     ("rlsac.lo", "rlsac.baselines", "rlsac.env", "rlsac.env_state", "rlsac.env_bookkeeping", "rlsac.env_scoring",
      "rlsac.rollout", "rlsac.sac", "rlsac.episodes", "rlsac.checkpoint", "rlsac.ngransac"),
     # the registries over them (methods, learners on their harness), evaluation, tuning, the result readers
-    ("rlsac.methods", "rlsac.learners*", "rlsac.train", "rlsac.evaluate", "rlsac.tune", "rlsac.results"),
+    ("rlsac.methods", "rlsac.learners*", "rlsac.train", "rlsac.evaluate", "rlsac.tune", "rlsac.retune",
+     "rlsac.results"),
     # the reports: tables and figures from the results
     ("rlsac.reports*",),
     # the runners: a protocol's stages, the studies, the pipeline
-    ("rlsac.folds", "rlsac.selection", "rlsac.ablate", "rlsac.scale", "rlsac.positive_control", "rlsac.commands",
-     "rlsac.line_calibration", "rlsac.verify", "rlsac.dvc_stage", "rlsac.transfer", "rlsac.pipeline"),
+    ("rlsac.folds", "rlsac.folds_retune", "rlsac.selection", "rlsac.ablate", "rlsac.scale", "rlsac.positive_control",
+     "rlsac.commands", "rlsac.line_calibration", "rlsac.verify", "rlsac.dvc_stage", "rlsac.transfer", "rlsac.pipeline"),
     # the command line
     ("rlsac.cli",),
 )

@@ -134,24 +134,32 @@ def combine(verdicts: list[str]) -> str:
     return "not supported" if "not supported" in verdicts else "inconclusive"
 
 
-def _row(claim: Claim, seeds: int | str, stats: dict[str, dict], pairs: int) -> dict[str, Any]:
-    """A row of claims.md from each metric's metrics.seed_bootstrap_maa result."""
+def _row(claim: Claim, seeds: int | str, stats: dict[str, dict], pairs: int, term: float | None = None
+         ) -> dict[str, Any]:
+    """A row of claims.md from each metric's metrics.seed_bootstrap_maa result; ``term``: the re-tuning half-width
+    (rlsac.reports.retuning) the verdict's interval carries besides pairs and seeds, None for none."""
+    from rlsac.reports.retuning import widen
+
     row: dict[str, Any] = {"claim": claim.text, "where": claim.where, "kind": claim.kind, "seeds": seeds,
                            "rows": f"{claim.model} − {claim.control}", "pairs": pairs}
     verdicts = []
     for name, s in stats.items():
+        row[f"{name}: model − control [95%]"] = f"{s['diff']:+.3f} [{s['lo']:+.3f}, {s['hi']:+.3f}]"
+        if term is not None:
+            s = widen(s, term)
+            row[f"{name}: with re-tuning [95%]"] = f"[{s['lo']:+.3f}, {s['hi']:+.3f}]"
         v = verdict(claim.kind, s["lo"], s["hi"], claim.margin)
         verdicts.append(v)
-        row[f"{name}: model − control [95%]"] = f"{s['diff']:+.3f} [{s['lo']:+.3f}, {s['hi']:+.3f}]"
         row[f"{name}: P(improve)"] = f"{s['p_improve']:.2f}"
         row[f"{name}: verdict"] = v
     row["verdict"] = combine(verdicts)
     return row
 
 
-def check(claim: Claim, res: dict[tuple[str, str, int], pd.DataFrame]) -> dict[str, Any] | None:
+def check(claim: Claim, res: dict[tuple[str, str, int], pd.DataFrame], term: float | None = None
+          ) -> dict[str, Any] | None:
     """The claim against ``res`` (rlsac.results.collect of its benchmark) -> a row of claims.md, or None when
-    its rows are missing."""
+    its rows are missing; ``term``: the re-tuning half-width its intervals carry (None: none)."""
     from rlsac.reports.folds import seed_comparison
     from rlsac.results import seed_runs
 
@@ -163,7 +171,7 @@ def check(claim: Claim, res: dict[tuple[str, str, int], pd.DataFrame]) -> dict[s
         if got is None:
             return None
         stats[name], pairs = got
-    return _row(claim, len(runs) if len(controls) == 1 else f"{len(runs)} vs {len(controls)}", stats, pairs)
+    return _row(claim, len(runs) if len(controls) == 1 else f"{len(runs)} vs {len(controls)}", stats, pairs, term)
 
 
 def check_lines(claim: Claim, root: Path) -> dict[str, Any] | None:
@@ -193,21 +201,25 @@ def build(eval_root: str | Path = "reports/eval", out_dir: str | Path = "reports
     """Write <out_dir>/claims.{md,csv} from the fold and line results; -> {"files", "missing"} (claims whose rows
     are absent)."""
     from rlsac.protocol import N_BOOT, PAIRED_BOOT
+    from rlsac.reports.retuning import halfwidth
     from rlsac.results import collect
 
+    retuning = halfwidth(out_dir)  # the fold claims' intervals carry it (reports/tuning_budget.md, part b)
+    term = None if retuning is None else retuning["s"]
     line_root = Path(eval_root) / "lines"
     results = {sub: collect(eval_root, sub) for sub in sorted({c.sub for c in claims} - {"lines"})}
     have_lines = any(line_root.glob("*/o*/errors.csv"))
     rows, missing = [], []
     for c in claims:
-        row = check_lines(c, line_root) if c.sub == "lines" else check(c, results[c.sub])
+        row = check_lines(c, line_root) if c.sub == "lines" else check(c, results[c.sub], term)
         (rows.append(row) if row is not None else missing.append(c.text))
     if not any(results.values()) and not have_lines:
         print(f"claims: no results under {eval_root}; nothing written")
         return {"files": [], "missing": missing}
     # results but no claim's rows (a profile with other budgets or rows, e.g. the quick one): the files say so
     df = pd.DataFrame(rows, columns=None if rows else ["claim", "where", "rows", "kind", "seeds", "pairs", "verdict"])
-    metric_cols = {name: [c for c in (f"{name}: model − control [95%]", f"{name}: P(improve)", f"{name}: verdict")
+    metric_cols = {name: [c for c in (f"{name}: model − control [95%]", f"{name}: with re-tuning [95%]",
+                                      f"{name}: P(improve)", f"{name}: verdict")
                           if c in df.columns] for name in ("R", "t", "angle")}
     base = ["claim", "where", "rows", "kind", "seeds", "pairs"]
     df = df[base + [c for cs in metric_cols.values() for c in cs] + ["verdict"]].fillna("–")  # a metric not spoken of
@@ -227,8 +239,12 @@ def build(eval_root: str | Path = "reports/eval", out_dir: str | Path = "reports
                                                                                     "not supported"))
             + f"; {one_seed} rest on one training seed.\n\n")
     is_line = df["claim"].isin([c.text for c in claims if c.sub == "lines"])
+    tuned = ("no re-tuning records (reports/retune): the intervals resample pairs and seeds only" if retuning is None
+             else f"`with re-tuning`: the interval widened in quadrature by ±{retuning['s']:.3f}, what re-choosing "
+                  "both rows' settings on resampled validation pairs moves a difference by (reports/tuning_budget.md, "
+                  "part b; the largest re-tuning sd measured, for every claim); the verdict reads that interval")
     sections = (("Fold benchmarks (Table 2, Table 3, Table E): mAA@10° of R and t pooled over the folds, the pairs "
-                 f"resampled within each test building ({N_BOOT} draws), tie margin ±{TIE_MARGIN} mAA.",
+                 f"resampled within each test building ({N_BOOT} draws), tie margin ±{TIE_MARGIN} mAA; {tuned}.",
                  ~is_line, metric_cols["R"] + metric_cols["t"]),
                 (f"Lines (Table 1): mAA@0.5° of the line angle at {LINE_ITERATIONS} hypotheses on a rate's test "
                  f"instances (`pairs`; {PAIRED_BOOT} draws), tie margin ±{LINE_TIE_MARGIN} mAA.", is_line,

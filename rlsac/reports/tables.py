@@ -457,7 +457,8 @@ def metrics(eval_root: str | Path = "reports/eval", out_dir: str | Path = "repor
 
 # ------------------------------------------------------------------------------------------- command
 
-WHICH = ("1", "2", "3", "iterations", "folds", "essential", "claims", "paper", "selection", "scale", "all")
+WHICH = ("1", "2", "3", "iterations", "folds", "essential", "claims", "paper", "selection", "scale", "tuning-budget",
+         "all")
 ALL = ("1", "folds", "essential", "claims", "paper", "selection")
 
 
@@ -507,13 +508,19 @@ def build(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
         from rlsac.reports import scale
 
         scale.check_inputs(read_params(options.get("params") or "params.yaml"), out_dir)
+    if which == "tuning-budget":  # its params (rows, budgets) before the run, as the scale study's records
+        from rlsac.config import read_params
+        from rlsac.retune import conf
+
+        conf(read_params(options.get("params") or "params.yaml"))
     check_writable(out_dir / "metrics.json")
     check_store(track, "reports")
     with start_run("reports", f"table {which}", params={"which": which, "eval_root": str(eval_root),
                                                         "out_dir": str(out_dir)},
                    tags={"command": "table"}, enabled=track) as run:
         with all_or_nothing():  # a failure half-way (a bad record, a folder in the way) leaves every table as it was
-            for key in ("1", "2", "3", "iterations", "folds", "essential", "claims", "paper", "selection", "scale"):
+            for key in ("1", "2", "3", "iterations", "folds", "essential", "claims", "paper", "selection", "scale",
+                        "tuning-budget"):
                 # "all" = the pipeline's tables; 2, 3 and iterations (the retired 87-pair split) by name only
                 if which != key and not (which == "all" and key in ALL):
                     continue
@@ -543,6 +550,14 @@ def build(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
                     files += got["files"]
                     missing += got["missing"]
                     continue
+                if key == "tuning-budget":  # issue #47 item 7: tuning at the test budget, re-tuning variance
+                    from rlsac.config import read_params
+                    from rlsac.reports import tuning_budget
+
+                    got = tuning_budget.build(read_params(options.get("params") or "params.yaml"), eval_root, out_dir)
+                    files += got["files"]
+                    missing += got["missing"]
+                    continue
                 if key == "paper":  # issue #47: the paper's claims beside ours, one verdict each
                     from rlsac.reports import paper_report
 
@@ -562,7 +577,8 @@ def build(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
                     df = builders[key](eval_root, out_dir)
                     files += list(df.attrs["files"].values())
                 missing += df.attrs["missing"]
-            if which != "scale":  # metrics.json is the tables stage's output; the scale study's report is its own stage
+            # metrics.json is the tables stage's output; these two reports are stages of their own
+            if which not in ("scale", "tuning-budget"):
                 metrics(eval_root, out_dir)
                 files.append(str(out_dir / "metrics.json"))
         for f in files:
