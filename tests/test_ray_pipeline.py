@@ -305,6 +305,14 @@ def test_expected_seconds_are_measured_else_the_groups_mean_else_one():
         "train@1": 100.0, "train@3": 200.0, "plot": 5.0, "tables": 1.0}
 
 
+def test_a_stage_prefers_the_node_of_its_parent_with_the_most_output_bytes():
+    from rlsac.pipeline import _main_parent
+
+    plan = {"deps": {"c": ["a", "b", "x"], "d": ["x"]}}
+    placed = {"a": ("node-1", 10), "b": ("node-2", 500)}  # x ran in an earlier run (or not on a node): no preference
+    assert _main_parent("c", plan, placed) == "node-2" and _main_parent("d", plan, placed) is None
+
+
 class WorkerCrashedError(Exception):  # as Ray names a dead worker's error
     pass
 
