@@ -8,9 +8,15 @@ DVC's code, and this process, the one writer, merges the entries into ``dvc.lock
 (rlsac.dvc_stage): no DVC repository lock is held while stages run, and the lock is byte for byte a serial
 ``dvc repro``'s. With ``runner="dvc"`` the task runs ``dvc --wait-for-lock repro -s <stage>`` (DVC parses and
 rewrites the whole lock under its repository lock for each stage). A stage found up to date when its turn comes (its
-inputs came back the same) is reported skipped. A failed stage (or a lost worker) stops its dependents; every other
-stage still runs; running the command again resumes (what finished is up to date). On a cluster (``address``) every
-stage logs to MLFLOW_TRACKING_URI, which must then be an http(s) server.
+inputs came back the same) is reported skipped. A failed stage stops its dependents; every other stage still runs;
+running the command again resumes (what finished is up to date). A stage whose worker or node died runs again, up to
+``retries`` times (it is idempotent: its outputs are removed before its command runs), then counts as failed. On a
+cluster (``address``) every stage logs to MLFLOW_TRACKING_URI, which must then be an http(s) server.
+
+Of the stages ready to run, the one with the longest expected path to the end of the plan starts first
+(``bottom_levels``; times from earlier runs' ``stage_s`` metrics), and only as many are handed to Ray as the cluster
+has room for, so Ray's queue keeps that order. With ``remote`` a stage prefers (softly) the node where its parent with
+the largest outputs ran: that node's cache holds them (rlsac.transfer.NodeCache).
 
 A task's process group is watched by a small guard process: if the Ray worker dies (killed, node lost, driver
 interrupted), the guard sends the stage SIGTERM (an ``rlsac`` command ends its MLflow run KILLED) and, 10 s later,

@@ -11,9 +11,11 @@ S3 bucket, by DVC's own S3 filesystem (``dvc-s3``) and object layout (``dvc_data
   node then needs the bucket only, no access to the git server;
 - a stage's inputs: before it starts, the driver hashes each of its dependencies (parameters files come with the
   tree) with DVC's code and uploads what the bucket lacks;
-- the task (``run_on_node``), on whatever node Ray picks, unpacks the tree into a fresh folder of its own, fetches
-  the inputs, runs the stage as the direct runner does (rlsac.dvc_stage.run: its lock entry by DVC's code), uploads
-  its outputs, removes the folder, and returns the lock entry, its outputs' hashes and its log;
+- the task (``run_on_node``), on whatever node Ray picks (the node of the stage's main parent, where it can), unpacks
+  the tree into a fresh folder of its own, fetches the inputs (from the node's cache of objects, ``NodeCache``, where
+  an earlier task of the node fetched or made them), runs the stage as the direct runner does (rlsac.dvc_stage.run:
+  its lock entry by DVC's code), uploads its outputs, removes the folder, and returns the lock entry, its outputs'
+  hashes and its log;
 - the driver (``Workspace.bring_back``) downloads the outputs into its own workspace, each checked against its md5
   and moved into place by a rename, before it writes the lock entry and before any dependent starts.
 
