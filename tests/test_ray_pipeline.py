@@ -305,6 +305,29 @@ def test_expected_seconds_are_measured_else_the_groups_mean_else_one():
         "train@1": 100.0, "train@3": 200.0, "plot": 5.0, "tables": 1.0}
 
 
+def test_the_order_takes_the_stage_times_earlier_runs_of_the_repository_logged(tmp_path, monkeypatch):
+    """The bottom levels come from the `stage_s/<stage>` metrics of earlier pipeline runs of the same repository
+    (another repository's runs are left out); with tracking off every stage counts 1."""
+    import mlflow
+
+    from rlsac.pipeline import _priorities, stage_metric
+
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
+    client = mlflow.MlflowClient(uri)
+    exp = client.create_experiment("pipeline")
+    for repo, seconds in ((tmp_path / "repo", 50.0), (tmp_path / "other", 900.0)):
+        run = client.create_run(exp)
+        client.log_param(run.info.run_id, "repo", str(repo))
+        client.log_metric(run.info.run_id, stage_metric("short@1"), seconds)
+        client.set_terminated(run.info.run_id)
+    plan = {"root": tmp_path / "repo", "todo": ["chain_1", "chain_2", "short@1", "short@2"],
+            "deps": {"chain_1": [], "chain_2": ["chain_1"], "short@1": [], "short@2": []}}
+    # short@2: its group's mean
+    assert _priorities(plan, track=True) == {"chain_1": 2.0, "chain_2": 1.0, "short@1": 50.0, "short@2": 50.0}
+    assert _priorities(plan, track=False) == {"chain_1": 2.0, "chain_2": 1.0, "short@1": 1.0, "short@2": 1.0}
+
+
 def test_a_stage_prefers_the_node_of_its_parent_with_the_most_output_bytes():
     from rlsac.pipeline import _main_parent
 
