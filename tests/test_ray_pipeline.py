@@ -136,6 +136,7 @@ def test_failed_stage_stops_dependents_only(tmp_path):
     assert "done     a, b, d" in lines
     assert any(ln.startswith("failed   c: error: c broke here (log ") for ln in lines), r.output
     assert "not run  e" in lines
+    assert not any(ln.startswith("retried") for ln in lines), r.output  # a command's failure is not a lost worker
     assert (repo / "b.txt").exists() and (repo / "d.txt").exists() and not (repo / "e.txt").exists()
 
 
