@@ -783,7 +783,11 @@ def _priorities(plan: dict, track: bool) -> dict[str, float]:
 
     measured = {}
     if track and plan["todo"]:
-        measured = logged_stage_times(os.environ.get("MLFLOW_TRACKING_URI", DEFAULT_URI), plan["todo"], plan["root"])
+        try:  # an order, not a result: a store that cannot answer (busy, old schema) leaves every stage at 1
+            measured = logged_stage_times(os.environ.get("MLFLOW_TRACKING_URI", DEFAULT_URI), plan["todo"],
+                                          plan["root"])
+        except Exception as e:  # noqa: BLE001 (MLflow's and the HTTP client's errors alike)
+            print(f"pipeline: no stage times from the tracking store ({type(e).__name__}); every stage counts 1")
     todo = set(plan["todo"])
     deps = {a: [d for d in plan["deps"][a] if d in todo] for a in plan["todo"]}
     return bottom_levels(deps, expected_seconds(plan["todo"], measured))
