@@ -96,35 +96,12 @@ def stage_times(deps: dict[str, list[str]], table: dict[str, float]) -> dict[str
     return out
 
 
-def _order(deps: dict[str, list[str]]) -> list[str]:
-    """Dependencies first."""
-    seen, out = set(), []
-
-    def visit(a: str, stack: tuple = ()) -> None:
-        if a in seen:
-            return
-        if a in stack:
-            raise SystemExit(f"error: a cycle through {a}")
-        for d in deps[a]:
-            visit(d, (*stack, a))
-        seen.add(a)
-        out.append(a)
-
-    for a in sorted(deps):
-        visit(a)
-    return out
-
-
 def tails(deps: dict[str, list[str]], times: dict[str, float]) -> dict[str, float]:
-    """Each stage's longest path to the end of the pipeline, itself included."""
-    dependents: dict[str, list[str]] = {a: [] for a in deps}
-    for a, ds in deps.items():
-        for d in ds:
-            dependents[d].append(a)
-    tail: dict[str, float] = {}
-    for a in reversed(_order(deps)):
-        tail[a] = times[a] + max((tail[b] for b in dependents[a]), default=0.0)
-    return tail
+    """Each stage's longest path to the end of the pipeline, itself included (what ``rlsac pipeline`` starts first:
+    rlsac.pipeline.bottom_levels)."""
+    from rlsac.pipeline import bottom_levels
+
+    return bottom_levels(deps, times)
 
 
 def critical_path(deps: dict[str, list[str]], times: dict[str, float]) -> tuple[float, list[str]]:
@@ -182,25 +159,14 @@ def group_of(address: str) -> str:
 def mlflow_times(uri: str, deps: dict[str, list[str]], repo: str | os.PathLike | None = None) -> dict[str, float]:
     """{address: seconds} of the stages of ``deps`` that a pipeline run of the MLflow store ``uri`` timed (its metric
     ``stage_s/<address>``, logged as the stage ended); of several runs, the latest's. ``repo``: only the runs of that
-    DVC repository (their param ``repo``; a store may hold the quick profile's runs, whose stages have the same
-    names)."""
+    DVC repository (rlsac.pipeline.logged_stage_times, which ``rlsac pipeline`` orders its stages by)."""
     from mlflow.tracking import MlflowClient
 
-    from rlsac.pipeline import stage_metric
+    from rlsac.pipeline import logged_stage_times
 
-    client = MlflowClient(uri)
-    exp = client.get_experiment_by_name("pipeline")
-    if exp is None:
+    if MlflowClient(uri).get_experiment_by_name("pipeline") is None:
         raise SystemExit(f"error: {uri}: no pipeline runs (experiment 'pipeline')")
-    names = {stage_metric(a): a for a in deps}
-    out: dict[str, float] = {}
-    runs = client.search_runs([exp.experiment_id], order_by=["attributes.start_time ASC"], max_results=50000)
-    root = None if repo is None else str(Path(repo).resolve())
-    for run in runs:  # oldest first: a later run's time of a stage replaces an earlier one's
-        if root is not None and run.data.params.get("repo") != root:
-            continue
-        out.update({names[k]: float(v) for k, v in run.data.metrics.items() if k in names})
-    return out
+    return logged_stage_times(uri, list(deps), repo)
 
 
 LOG_OUTLIER = 5.0  # a log span this many times its group's median spans two runs of the stage, not one

@@ -519,6 +519,9 @@ def verify(tracking: bool, platform_only: bool, **options) -> None:
 @click.option("--remote", help="Nodes share no disk: each stage's inputs and outputs travel through this S3 bucket "
                                "(s3://bucket/prefix, or a DVC remote's name; endpoint and credentials from the AWS_* "
                                "environment variables or the DVC remote's config).")
+@click.option("--retries", type=click.IntRange(min=0), default=2, show_default=True,
+              help="Runs again of a stage whose Ray worker or node died (a stage is idempotent: its outputs are "
+                   "removed before its command runs); a stage whose command failed is not run again.")
 @tracking_option
 def pipeline(tracking: bool, stages: tuple[str, ...], **options) -> None:
     """Run the DVC pipeline's out-of-date stages (or STAGES: names, foreach groups or patterns, with what they

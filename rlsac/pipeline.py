@@ -8,9 +8,15 @@ DVC's code, and this process, the one writer, merges the entries into ``dvc.lock
 (rlsac.dvc_stage): no DVC repository lock is held while stages run, and the lock is byte for byte a serial
 ``dvc repro``'s. With ``runner="dvc"`` the task runs ``dvc --wait-for-lock repro -s <stage>`` (DVC parses and
 rewrites the whole lock under its repository lock for each stage). A stage found up to date when its turn comes (its
-inputs came back the same) is reported skipped. A failed stage (or a lost worker) stops its dependents; every other
-stage still runs; running the command again resumes (what finished is up to date). On a cluster (``address``) every
-stage logs to MLFLOW_TRACKING_URI, which must then be an http(s) server.
+inputs came back the same) is reported skipped. A failed stage stops its dependents; every other stage still runs;
+running the command again resumes (what finished is up to date). A stage whose worker or node died runs again, up to
+``retries`` times (it is idempotent: its outputs are removed before its command runs), then counts as failed. On a
+cluster (``address``) every stage logs to MLFLOW_TRACKING_URI, which must then be an http(s) server.
+
+Of the stages ready to run, the one with the longest expected path to the end of the plan starts first
+(``bottom_levels``; times from earlier runs' ``stage_s`` metrics), and only as many are handed to Ray as the cluster
+has room for, so Ray's queue keeps that order. With ``remote`` a stage prefers (softly) the node where its parent with
+the largest outputs ran: that node's cache holds them (rlsac.transfer.NodeCache).
 
 A task's process group is watched by a small guard process: if the Ray worker dies (killed, node lost, driver
 interrupted), the guard sends the stage SIGTERM (an ``rlsac`` command ends its MLflow run KILLED) and, 10 s later,
@@ -47,6 +53,7 @@ DEFAULTS: dict[str, Any] = {
     "dry_run": False,  # print the plan, run nothing
     "runner": "direct",  # direct: the stage's command, its lock entry by the driver (rlsac.dvc_stage); dvc: repro -s
     "remote": None,  # s3://bucket/prefix or a DVC remote's name: nodes share no disk, files travel by it (transfer)
+    "retries": 2,  # runs again of a stage whose worker or node died (not of one whose command failed)
 }
 RUNNERS = ("direct", "dvc")
 LOG_DIR = Path("logs") / "pipeline"
@@ -204,6 +211,79 @@ def _groups(addresses: list[str]) -> dict[str, int]:
     return out
 
 
+# ------------------------------------------------------------------------------------- which ready stage first
+
+
+def bottom_levels(deps: dict[str, list[str]], seconds: dict[str, float]) -> dict[str, float]:
+    """{address: its bottom level}: the expected seconds of the longest chain from the stage (itself included) to
+    the end of the plan. ``deps``: {address: the addresses it needs} (those outside ``deps`` are ignored);
+    ``seconds``: each stage's expected time (a stage absent from it counts 1). Starting the ready stage with the
+    highest bottom level first is list scheduling's critical-path rule: a long chain is not left waiting behind
+    many short independent stages (issue #50, item 4)."""
+    dependents: dict[str, list[str]] = {a: [] for a in deps}
+    for a, ds in deps.items():
+        for d in ds:
+            if d in dependents:
+                dependents[d].append(a)
+    level: dict[str, float] = {}
+    for a in reversed(_dependencies_first(deps)):
+        level[a] = seconds.get(a, 1.0) + max((level[b] for b in dependents[a]), default=0.0)
+    return level
+
+
+def _dependencies_first(deps: dict[str, list[str]]) -> list[str]:
+    """The addresses of ``deps``, each after those it needs (iterative: a chain of thousands of stages)."""
+    done: set[str] = set()
+    out: list[str] = []
+    for start in sorted(deps):
+        stack = [(start, iter(sorted(deps[start])))]
+        while stack:
+            a, needs = stack[-1]
+            d = next((d for d in needs if d in deps and d not in done), None)
+            if d is not None:
+                if any(d == s for s, _ in stack):
+                    raise RlsacError(f"the pipeline has a cycle through {d}")
+                stack.append((d, iter(sorted(deps[d]))))
+                continue
+            stack.pop()
+            if a not in done:
+                done.add(a)
+                out.append(a)
+    return out
+
+
+def expected_seconds(addresses: list[str], measured: dict[str, float]) -> dict[str, float]:
+    """Each stage's expected seconds: its measured time (an earlier run's, ``logged_stage_times``), else its
+    group's mean (a new seed of a group that ran before costs about what its siblings did), else 1."""
+    groups: dict[str, list[float]] = {}
+    for a, t in measured.items():
+        groups.setdefault(a.split("@", 1)[0], []).append(t)
+    mean = {g: sum(ts) / len(ts) for g, ts in groups.items()}
+    return {a: measured.get(a, mean.get(a.split("@", 1)[0], 1.0)) for a in addresses}
+
+
+def logged_stage_times(uri: str, addresses: list[str], repo: str | os.PathLike | None = None) -> dict[str, float]:
+    """{address: seconds} of the stages of ``addresses`` that a pipeline run of the MLflow store ``uri`` timed
+    (its metric ``stage_s/<address>``, logged as the stage ended); of several runs, the latest's; {} when the store
+    has no pipeline run. ``repo``: only the runs of that DVC repository (their param ``repo``; the quick profile's
+    stages have the same names)."""
+    from mlflow.tracking import MlflowClient
+
+    client = MlflowClient(uri)
+    exp = client.get_experiment_by_name("pipeline")
+    if exp is None:
+        return {}
+    names = {stage_metric(a): a for a in addresses}
+    out: dict[str, float] = {}
+    runs = client.search_runs([exp.experiment_id], order_by=["attributes.start_time ASC"], max_results=50000)
+    root = None if repo is None else str(Path(repo).resolve())
+    for run in runs:  # oldest first: a later run's time of a stage replaces an earlier one's
+        if root is not None and run.data.params.get("repo") != root:
+            continue
+        out.update({names[k]: float(v) for k, v in run.data.metrics.items() if k in names})
+    return out
+
+
 # ------------------------------------------------------------------------------------------- one stage (task)
 
 
@@ -312,7 +392,8 @@ def run_remote(conf: dict, tree: str, address: str, spec: dict, deps: list[dict]
                log: str) -> dict:
     """The direct runner on a node that shares no folder with the driver (``--remote``, rlsac.transfer.run_on_node:
     a Ray task's body). ``log``: its path from the repository root. -> run_direct's result with "outs" (what the
-    driver brings back), "log_text" and "ignore" as paths from the root."""
+    driver brings back), "log_text" and "ignore" as paths from the root, "out_bytes", "node_id" (Ray's), and
+    "downloads" and "cache_hits" (rlsac.transfer.NodeCache)."""
     from rlsac.dvc_stage import python_bin_env
     from rlsac.dvc_stage import run as run_direct_stage
     from rlsac.transfer import run_on_node
@@ -322,6 +403,10 @@ def run_remote(conf: dict, tree: str, address: str, spec: dict, deps: list[dict]
 
     r = run_on_node(conf, tree, spec, deps, env, log, run)
     r["stage"] = address
+    with contextlib.suppress(Exception):  # the node its dependents prefer (its cache holds the outputs): a Ray task
+        import ray
+
+        r["node_id"] = ray.get_runtime_context().get_node_id()
     if r["status"] == "failed":
         r["error"] = _error_text(r["rc"], r["log_text"])
     return r
@@ -348,6 +433,8 @@ def _check_options(o: dict) -> None:
                          "as many)")
     if o["address"]:
         _check_tracking_server()
+    if o["retries"] < 0:
+        raise RlsacError(f"--retries {o['retries']}: must be at least 0")
     if o["runner"] not in RUNNERS:
         raise RlsacError(f"--runner {o['runner']}: one of {', '.join(RUNNERS)}")
     if o["address"] and o["address"] != "auto":
@@ -489,66 +576,137 @@ def _record(plan: dict, address: str, r: dict) -> None:
         r.update(status="failed", error=f"dvc.lock not updated: {e.__class__.__name__}: {why}")
 
 
-def schedule(plan: dict, o: dict, ray, progress: Callable[[dict], None] | None = None,
-             results: dict[str, dict] | None = None, running: dict | None = None,
-             stop: Callable[[], int] | None = None) -> dict[str, dict]:
-    """Run ``plan["todo"]`` as Ray tasks, each once its dependencies are done, as many at once as the cluster
-    has room for. -> {address: result}; a stage that never ran: {"status": "not run", "after": <failed stage>}.
-    ``results`` and ``running`` (task -> address), when given, are filled as it goes: what an interrupted pipeline
-    reports; ``stop()`` true (a signal's number) ends the loop with ``Interrupted``."""
-    todo = plan["todo"]
+# Ray's errors for a task whose worker or node died, not for the stage's own failure (its command's non-zero exit is
+# a result, "failed"; an exception of the task's body is RayTaskError): a stage is idempotent (its outputs are removed
+# before its command runs), so such a stage is run again, up to --retries times
+SYSTEM_FAILURES = ("WorkerCrashedError", "NodeDiedError", "LocalRayletDiedError", "OutOfMemoryError",
+                   "ObjectLostError", "OwnerDiedError")
+
+
+def _system_failure(e: BaseException) -> bool:
+    return any(c.__name__ in SYSTEM_FAILURES for c in type(e).__mro__)
+
+
+def _fitting(ready: list[str], running: dict, o: dict, ray) -> list[str]:
+    """Of ``ready`` (highest bottom level first), those the cluster has room for now, in that order: each task
+    holds one CPU (and a training stage ``gpus_per_train`` GPUs). Submitting only these keeps the order ours: a
+    stage that became ready later with a longer path ahead is not queued in Ray behind short ones. The cluster's
+    size is read each time (a node lost or added counts); other jobs' use of it is not known, so this may still
+    queue in Ray. With nothing running, the first ready stage goes anyway (Ray waits for room)."""
+    total = ray.cluster_resources()
+
+    def gpus(a: str) -> float:
+        return o["gpus_per_train"] if o["gpus_per_train"] > 0 and _is_gpu_stage(a, o["gpu_stages"]) else 0.0
+
+    cpus, gpu = total.get("CPU", 0) - len(running), total.get("GPU", 0) - sum(gpus(a) for a in running.values())
+    out = []
+    for a in ready:
+        if cpus >= 1 and gpus(a) <= gpu:
+            out.append(a)
+            cpus, gpu = cpus - 1, gpu - gpus(a)
+    return out or ([ready[0]] if ready and not running else [])
+
+
+def _main_parent(a: str, plan: dict, placed: dict[str, tuple[str, int]]) -> str | None:
+    """--remote: the node that ran the stage's parent with the most output bytes (what the stage would otherwise
+    fetch from the bucket): its dependents prefer that node, whose cache holds those outputs."""
+    parents = [(placed[d][1], d) for d in plan["deps"][a] if d in placed]
+    return placed[max(parents)[1]][0] if parents else None
+
+
+def _submitter(plan: dict, o: dict, ray) -> Callable[[str, str | None], Any]:
+    """-> submit(address, preferred node id or None) -> the Ray task's reference."""
     root = str(plan["root"])
     env = {k: os.environ[k] for k in FORWARD_ENV if k in os.environ}
     env.setdefault("OMP_NUM_THREADS", "1")
     task, direct, remote = ray.remote(run_stage), ray.remote(run_direct), ray.remote(run_remote)
     ws = plan.get("remote")  # --remote: rlsac.transfer.Workspace
+
+    def submit(a: str, node: str | None):
+        opts: dict[str, Any] = {"num_cpus": 1, "max_retries": 0}  # retries are the driver's (schedule)
+        if o["gpus_per_train"] > 0 and _is_gpu_stage(a, o["gpu_stages"]):
+            opts["num_gpus"] = o["gpus_per_train"]
+        log = str(plan["root"] / LOG_DIR / (re.sub(r"[^\w.@-]", "_", a) + ".log"))
+        if ws is not None:  # its inputs into the bucket first: the task fetches them on its node
+            if node is not None:  # soft: any node, when that one is gone or full
+                from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
+                opts["scheduling_strategy"] = NodeAffinitySchedulingStrategy(node_id=node, soft=True)
+            deps = ws.send(plan["paths"][a])
+            rel = os.path.relpath(log, plan["root"])
+            return remote.options(**opts).remote(ws.conf, ws.tree, a, plan["specs"][a], deps, env, rel)
+        if a in plan.get("specs", {}):
+            return direct.options(**opts).remote(root, a, plan["specs"][a], env, log)
+        return task.options(**opts).remote(root, a, env, log)
+
+    return submit
+
+
+def schedule(plan: dict, o: dict, ray, progress: Callable[[dict], None] | None = None,
+             results: dict[str, dict] | None = None, running: dict | None = None,
+             stop: Callable[[], int] | None = None) -> dict[str, dict]:
+    """Run ``plan["todo"]`` as Ray tasks, each once its dependencies are done, as many at once as the cluster
+    has room for, the ready stage with the highest ``plan["priority"]`` (its bottom level) first. A stage whose
+    worker or node died is run again, up to ``o["retries"]`` times. -> {address: result}; a stage that never ran:
+    {"status": "not run", "after": <failed stage>}. ``results`` and ``running`` (task -> address), when given, are
+    filled as it goes: what an interrupted pipeline reports; ``stop()`` true (a signal's number) ends the loop with
+    ``Interrupted``."""
+    todo = plan["todo"]
+    submit = _submitter(plan, o, ray)
+    priority = plan.get("priority") or {}
     waiting = {a: {d for d in plan["deps"][a] if d in todo} for a in todo}
     dependents: dict[str, list[str]] = {a: [] for a in todo}
     for a, ds in waiting.items():
         for d in ds:
             dependents[d].append(a)
+    lost: dict[str, list[str]] = {a: [] for a in todo}  # each attempt's error, of a stage whose worker died
+    placed: dict[str, tuple[str, int]] = {}  # --remote: a finished stage's node and output bytes
     results = {} if results is None else results
     running = {} if running is None else running
     while waiting or running:
-        for a in [a for a in todo if a in waiting and not waiting[a]]:
+        ready = sorted((a for a in waiting if not waiting[a]), key=lambda a: (-priority.get(a, 0.0), a))
+        for a in _fitting(ready, running, o, ray) if ready else []:
             del waiting[a]
-            opts = {"num_cpus": 1, "max_retries": 0}
-            if o["gpus_per_train"] > 0 and _is_gpu_stage(a, o["gpu_stages"]):
-                opts["num_gpus"] = o["gpus_per_train"]
-            log = str(plan["root"] / LOG_DIR / (re.sub(r"[^\w.@-]", "_", a) + ".log"))
-            if ws is not None:  # its inputs into the bucket first: the task fetches them on its node
-                deps = ws.send(plan["paths"][a])
-                rel = os.path.relpath(log, plan["root"])
-                running[remote.options(**opts).remote(ws.conf, ws.tree, a, plan["specs"][a], deps, env, rel)] = a
-            elif a in plan.get("specs", {}):
-                running[direct.options(**opts).remote(root, a, plan["specs"][a], env, log)] = a
-            else:
-                running[task.options(**opts).remote(root, a, env, log)] = a
+            running[submit(a, _main_parent(a, plan, placed))] = a
         if not running:  # nothing runnable is left: the rest waits on a failed stage (already marked)
             break
-        ready, _ = ray.wait(list(running), num_returns=1, timeout=None if stop is None else 0.5)
+        done, _ = ray.wait(list(running), num_returns=1, timeout=None if stop is None else 0.5)
         if stop is not None and stop():
             raise Interrupted(f"interrupted by {signal_name(stop.signum)}", stop.signum)
-        for ref in ready:
+        for ref in done:
             a = running.pop(ref)
             try:
                 r = ray.get(ref)
-            except Exception as e:  # the worker died (killed, out of memory, node lost): the stage failed
+            except Exception as e:  # the worker died (killed, out of memory, node lost), or the task's body raised
+                error = f"{e.__class__.__name__}: {first_error_line(str(e))}"
+                if _system_failure(e) and len(lost[a]) < o["retries"]:
+                    lost[a].append(error)
+                    waiting[a] = set()  # ready again: its next turn as its bottom level says
+                    continue
                 r = {"stage": a, "status": "failed", "seconds": None, "rc": None, "log": None, "node": None,
-                     "error": f"{e.__class__.__name__}: {first_error_line(str(e))}"}
-            _record(plan, a, r)
+                     "error": error + (f" (tried {len(lost[a]) + 1} times)" if lost[a] else "")}
+            if lost[a]:
+                r["retried"] = lost[a]
+            _record(plan, a, r)  # once per stage, whatever its tries: one lock entry
             results[a] = r
-            if r["status"] == "failed":
-                for d in _descendants(a, dependents):
-                    if d in waiting:
-                        del waiting[d]
-                        results[d] = {"stage": d, "status": "not run", "after": a}
-            else:
-                for d in dependents[a]:
-                    waiting.get(d, set()).discard(a)
+            if r.get("node_id") and r["status"] == "done":
+                placed[a] = (r["node_id"], r.get("out_bytes", 0))
+            _settle(a, r, waiting, dependents, results)
             if progress is not None:
                 progress(r)
     return {a: results[a] for a in todo if a in results}
+
+
+def _settle(a: str, r: dict, waiting: dict, dependents: dict, results: dict) -> None:
+    """A finished stage: a failed one's descendants are not run; a done (or skipped) one frees its dependents."""
+    if r["status"] == "failed":
+        for d in _descendants(a, dependents):
+            if d in waiting:
+                del waiting[d]
+                results[d] = {"stage": d, "status": "not run", "after": a}
+    else:
+        for d in dependents[a]:
+            waiting.get(d, set()).discard(a)
 
 
 # --------------------------------------------------------------------------------------------------- command
@@ -569,7 +727,9 @@ def pipeline(options: dict[str, Any], track: bool = True) -> dict:
         return {**base, "dry_run": True, "results": {a: {"stage": a, "status": "skipped"} for a in skipped},
                 "counts": {"skipped": len(skipped)}, "wall_s": 0.0, "workers": None, "why": plan["why"]}
     check_store(track, "pipeline")
-    params = {k: o[k] for k in ("stages", "workers", "address", "gpus_per_train", "gpu_stages", "runner", "remote")}
+    plan["priority"] = _priorities(plan, track)
+    params = {k: o[k] for k in ("stages", "workers", "address", "gpus_per_train", "gpu_stages", "runner", "remote",
+                                "retries")}
     params.update(repo=str(plan["root"]), n_todo=len(plan["todo"]))
     t0 = time.time()
     if not o["address"] and plan["todo"]:  # a local cluster has this machine's GPUs: known before Ray starts
@@ -614,6 +774,23 @@ def pipeline(options: dict[str, Any], track: bool = True) -> dict:
         if plan.get("remote") is not None:
             plan["remote"].close()
     return summary
+
+
+def _priorities(plan: dict, track: bool) -> dict[str, float]:
+    """Each stage to run -> its bottom level, from the stage times earlier pipeline runs of this repository logged
+    to the tracking store (none with --no-tracking: then every stage counts 1, the longest chain of stages first)."""
+    from rlsac.tracking import DEFAULT_URI
+
+    measured = {}
+    if track and plan["todo"]:
+        try:  # an order, not a result: a store that cannot answer (busy, old schema) leaves every stage at 1
+            measured = logged_stage_times(os.environ.get("MLFLOW_TRACKING_URI", DEFAULT_URI), plan["todo"],
+                                          plan["root"])
+        except Exception as e:  # noqa: BLE001 (MLflow's and the HTTP client's errors alike)
+            print(f"pipeline: no stage times from the tracking store ({type(e).__name__}); every stage counts 1")
+    todo = set(plan["todo"])
+    deps = {a: [d for d in plan["deps"][a] if d in todo] for a in plan["todo"]}
+    return bottom_levels(deps, expected_seconds(plan["todo"], measured))
 
 
 def _run(plan: dict, o: dict, ray, run, results: dict, running: dict, stop: Callable[[], int]) -> None:
@@ -718,6 +895,9 @@ def format_summary(s: dict) -> str:
     for k in ("done", "skipped"):
         if by[k]:
             lines.append(f"{k:<8} {_names(by[k])}")
+    retried = [a for a, r in s["results"].items() if r.get("retried")]
+    if retried:  # their worker or node died, then a new run of the stage ended as its status says
+        lines.append(f"retried  {_names(retried)} (worker or node lost: {s['results'][retried[0]]['retried'][0]})")
     for a in by["failed"][:10]:
         r = s["results"][a]
         lines.append(f"failed   {a}: {r['error']}" + (f" (log {_shown(r['log'])})" if r.get("log") else ""))

@@ -11,9 +11,11 @@ S3 bucket, by DVC's own S3 filesystem (``dvc-s3``) and object layout (``dvc_data
   node then needs the bucket only, no access to the git server;
 - a stage's inputs: before it starts, the driver hashes each of its dependencies (parameters files come with the
   tree) with DVC's code and uploads what the bucket lacks;
-- the task (``run_on_node``), on whatever node Ray picks, unpacks the tree into a fresh folder of its own, fetches
-  the inputs, runs the stage as the direct runner does (rlsac.dvc_stage.run: its lock entry by DVC's code), uploads
-  its outputs, removes the folder, and returns the lock entry, its outputs' hashes and its log;
+- the task (``run_on_node``), on whatever node Ray picks (the node of the stage's main parent, where it can), unpacks
+  the tree into a fresh folder of its own, fetches the inputs (from the node's cache of objects, ``NodeCache``, where
+  an earlier task of the node fetched or made them), runs the stage as the direct runner does (rlsac.dvc_stage.run:
+  its lock entry by DVC's code), uploads its outputs, removes the folder, and returns the lock entry, its outputs'
+  hashes and its log;
 - the driver (``Workspace.bring_back``) downloads the outputs into its own workspace, each checked against its md5
   and moved into place by a rename, before it writes the lock entry and before any dependent starts.
 
@@ -103,6 +105,7 @@ class Store:
 
         cls, fs_conf, path = get_cloud_fs({}, **conf)
         self.url, self.fs = conf["url"], cls(**fs_conf)
+        self.downloads = 0  # objects read from the bucket (a node's cache saves these: NodeCache)
         if tries is not None:  # botocore's retries: an endpoint that refuses took 15 s to give up on
             self.fs.fs_args.setdefault("config_kwargs", {})["retries"] = {"max_attempts": tries, "mode": "standard"}
         self.odb = HashFileDB(self.fs, self.fs.join(path.rstrip("/"), "files", "md5"))
@@ -122,10 +125,12 @@ class Store:
             self.odb.add_bytes(oid, data)
 
     def read(self, oid: str) -> bytes:
+        self.downloads += 1
         return self.fs.cat_file(self.odb.oid_to_path(oid))
 
     def get_file(self, oid: str, dest: Path) -> None:
         """The object ``oid`` into ``dest`` (a new file), checked against its md5."""
+        self.downloads += 1
         self.fs.get_file(self.odb.oid_to_path(oid), str(dest))
         if _md5(dest) != oid:
             raise RlsacError(f"{self.url}: object {oid} does not hold what its md5 names (a corrupt store)")
@@ -167,24 +172,29 @@ def hash_path(repo, path: str) -> tuple[str, Any]:
     return obj.hash_info.value, (obj if obj.hash_info.isdir else None)
 
 
-def push(store: Store, repo, root: str, rel: str) -> dict:
-    """Upload ``root/rel`` (a file or directory) where the bucket lacks it. -> {"path": rel, "oid": its md5}."""
+def push(store: Store, repo, root: str, rel: str, cache: NodeCache | None = None) -> dict:
+    """Upload ``root/rel`` (a file or directory) where the bucket lacks it; with ``cache`` (a node's), also into
+    it. -> {"path": rel, "oid": its md5}."""
     path = os.path.join(root, rel)
     oid, tree = hash_path(repo, path)
+    files = [(path, oid)] if tree is None else [(os.path.join(path, *key), hi.value) for key, _, hi in tree]
     if tree is None:
         store.put_files([path], [oid])
-    else:
-        if not store.exists(oid):  # the listing last: a listing in the bucket means its files are there
-            files = [(os.path.join(path, *key), hi.value) for key, _, hi in tree]
-            store.put_files([p for p, _ in files], [o for _, o in files])
-            store.put_bytes(oid, tree.as_bytes())
+    elif not store.exists(oid):  # the listing last: a listing in the bucket means its files are there
+        store.put_files([p for p, _ in files], [o for _, o in files])
+        store.put_bytes(oid, tree.as_bytes())
+    if cache is not None:
+        for p, o in files:
+            cache.add(Path(p), o)
+        if tree is not None:
+            cache.add_bytes(oid, tree.as_bytes())
     return {"path": rel, "oid": oid}
 
 
-def fetch(store: Store, root: str | os.PathLike, item: dict) -> list[tuple[str, str]]:
-    """``item`` ({"path", "oid"}) from the bucket into ``root/path``, replacing what is there by a rename (a file)
-    or two (a directory: the old one moved aside, the new one in, the old one removed). -> [(file path, md5)]
-    of what it wrote."""
+def fetch(store: Store | NodeCache, root: str | os.PathLike, item: dict) -> list[tuple[str, str]]:
+    """``item`` ({"path", "oid"}) from the bucket (or a node's cache of it) into ``root/path``, replacing what is
+    there by a rename (a file) or two (a directory: the old one moved aside, the new one in, the old one removed).
+    -> [(file path, md5)] of what it wrote."""
     dest = Path(root) / item["path"]
     dest.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(dir=dest.parent, prefix=f".{dest.name}.", suffix=".tmp"))
@@ -319,6 +329,82 @@ def _node_dir() -> Path:
     return base
 
 
+class NodeCache:
+    """The objects a node fetched from the bucket or its stages made, by md5, under ``<node dir>/objects`` (issue
+    #50, item 4): a stage that runs on the node where its parent ran (the scheduler asks Ray for that node) reads the
+    parent's outputs from here, not from the bucket. An object appears by a rename, whole; a stage gets a copy (a
+    stage that wrote into an input in place would change the cache otherwise). Nothing is evicted: the folder can
+    be deleted between runs."""
+
+    def __init__(self, store: Store, base: Path | None = None):
+        self.store, self.base = store, base or _node_dir() / "objects"
+        self.hits = 0  # objects found here instead of downloaded
+
+    def _path(self, oid: str) -> Path:
+        return self.base / oid[:2] / oid[2:]
+
+    def get_file(self, oid: str, dest: Path) -> None:
+        """The object ``oid`` into ``dest`` (a new file): from the cache, else from the bucket into the cache."""
+        path = self._path(oid)
+        if path.exists():
+            self.hits += 1
+        else:
+            tmp = self._temporary(path)
+            try:
+                self.store.get_file(oid, tmp)
+                os.replace(tmp, path)
+            finally:
+                with contextlib.suppress(FileNotFoundError):
+                    os.unlink(tmp)
+        shutil.copyfile(path, dest)
+
+    def read(self, oid: str) -> bytes:
+        """A directory's listing."""
+        path = self._path(oid)
+        if path.exists():
+            self.hits += 1
+            return path.read_bytes()
+        data = self.store.read(oid)
+        self.add_bytes(oid, data)
+        return data
+
+    def add(self, src: Path, oid: str) -> None:
+        """A file the node made (a finished stage's output, never written again): linked in, else copied."""
+        path = self._path(oid)
+        if path.exists():
+            return
+        tmp = self._temporary(path)
+        try:
+            os.unlink(tmp)
+            try:
+                os.link(src, tmp)
+            except OSError:  # another file system, or links refused
+                shutil.copyfile(src, tmp)
+            os.replace(tmp, path)
+        finally:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(tmp)
+
+    def add_bytes(self, oid: str, data: bytes) -> None:
+        path = self._path(oid)
+        if path.exists():
+            return
+        tmp = self._temporary(path)
+        try:
+            tmp.write_bytes(data)
+            os.replace(tmp, path)
+        finally:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(tmp)
+
+    @staticmethod
+    def _temporary(path: Path) -> Path:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
+        os.close(fd)
+        return Path(tmp)
+
+
 def _tree_file(store: Store, oid: str) -> Path:
     """The code tree, fetched once per node (a rename makes it appear whole)."""
     path = _node_dir() / "trees" / f"{oid}.tar.gz"
@@ -340,8 +426,10 @@ def run_on_node(conf: dict, tree: str, spec: dict, deps: list[dict], env: dict[s
     """A Ray task's body on a node that shares no folder with the driver: a fresh folder with the code tree and the
     stage's inputs, ``run(folder, spec, env, log)`` (the direct runner), then the outputs into the bucket. -> run's
     result with "outs" [{"path", "oid", "cached"}], "ignore" as paths from the root, "log_text"; the folder is
-    removed. ``log``: the log's path from the root."""
+    removed. ``log``: the log's path from the root. "downloads" and "cache_hits": the objects it read from the
+    bucket and from the node's cache (NodeCache)."""
     store = Store(conf)
+    cache = NodeCache(store)
     work = Path(tempfile.mkdtemp(prefix="stage-", dir=_node_dir()))
     try:
         with tarfile.open(_tree_file(store, tree)) as tar:
@@ -349,21 +437,31 @@ def run_on_node(conf: dict, tree: str, spec: dict, deps: list[dict], env: dict[s
         # DVC's output checks ask git (an output git tracks is refused): an empty repository, nothing tracked
         subprocess.run(["git", "init", "-q"], cwd=work, check=True)
         for item in deps:
-            fetch(store, work, item)
+            fetch(cache, work, item)
         # the stage runs the driver's code (the tree's rlsac), not whatever version this node's environment holds
         env = {**env, "PYTHONPATH": os.pathsep.join(filter(None, [str(work), env.get("PYTHONPATH")]))}
         r = run(str(work), spec, env, str(work / log))
         r["log_text"] = (work / log).read_text(errors="replace") if (work / log).exists() else ""
         r["ignore"] = [os.path.relpath(p, work) for p in r.get("ignore") or []]
         if r["status"] == "done":
-            r["outs"] = _push_outs(store, work, spec, r["entry"])
+            r["outs"] = _push_outs(store, work, spec, r["entry"], cache)
+            r["out_bytes"] = sum(_size(work / o["path"]) for o in r["outs"])
+        r["downloads"], r["cache_hits"] = store.downloads, cache.hits
         return r
     finally:
         shutil.rmtree(work, ignore_errors=True)
 
 
-def _push_outs(store: Store, work: Path, spec: dict, entry: dict) -> list[dict]:
-    """Every output of the finished stage into the bucket; each md5 must be its lock entry's."""
+def _size(path: Path) -> int:
+    """Bytes of a file, or of the files under a directory."""
+    if path.is_file():
+        return path.stat().st_size
+    return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
+
+
+def _push_outs(store: Store, work: Path, spec: dict, entry: dict, cache: NodeCache | None = None) -> list[dict]:
+    """Every output of the finished stage into the bucket (and the node's cache); each md5 must be its lock
+    entry's."""
     from dvc.repo import Repo
 
     base = Path(os.path.dirname(spec["dvcfile"])) / spec["definition"].get("wdir", ".")
@@ -372,7 +470,7 @@ def _push_outs(store: Store, work: Path, spec: dict, entry: dict) -> list[dict]:
     with Repo(str(work)) as repo:
         for o in entry.get("outs", []):
             rel = os.path.normpath(base / o["path"])
-            item = push(store, repo, str(work), rel)
+            item = push(store, repo, str(work), rel, cache)
             if item["oid"] != o.get("md5"):
                 raise RlsacError(f"{rel}: md5 {item['oid']} on the node, {o.get('md5')} in its lock entry")
             outs.append({**item, "cached": cached.get(o["path"], True)})

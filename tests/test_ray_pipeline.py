@@ -136,6 +136,7 @@ def test_failed_stage_stops_dependents_only(tmp_path):
     assert "done     a, b, d" in lines
     assert any(ln.startswith("failed   c: error: c broke here (log ") for ln in lines), r.output
     assert "not run  e" in lines
+    assert not any(ln.startswith("retried") for ln in lines), r.output  # a command's failure is not a lost worker
     assert (repo / "b.txt").exists() and (repo / "d.txt").exists() and not (repo / "e.txt").exists()
 
 
@@ -176,7 +177,7 @@ def test_killed_worker_is_reported_and_a_second_run_completes(tmp_path):
     stages = {"k": {"cmd": f"{PY} {script} {flag} {pidfile}", "outs": ["k.txt"]}, "d": TOY["d"]}
     repo = make_repo(tmp_path / "repo", stages)
 
-    r = run_pipeline("--repo", str(repo), "--no-tracking")
+    r = run_pipeline("--repo", str(repo), "--no-tracking", "--retries", "0")
     assert r.exit_code == 1, r.output
     assert "1 done, 0 skipped, 1 failed" in summary(r.output)[0], r.output
     failed = [ln for ln in summary(r.output) if ln.startswith("failed   k: ")]
@@ -197,6 +198,168 @@ def test_killed_worker_is_reported_and_a_second_run_completes(tmp_path):
     assert json.loads(dvc(repo, "status", "--json").stdout) == {}
 
 
+def test_a_killed_workers_stage_is_run_again_and_recorded_once(tmp_path, monkeypatch):
+    """A stage whose Ray worker died is run again (--retries, default 2): the run completes, the summary says the
+    stage was retried, its lock entry is written once and the lock is a serial `dvc repro`'s, byte for byte."""
+    from rlsac.dvc_stage import LockWriter
+
+    script = tmp_path / "killer.py"
+    script.write_text(KILLER)
+    flag, pidfile = tmp_path / "killed.flag", tmp_path / "stage.pid"
+    stages = {"k": {"cmd": f"{PY} {script} {flag} {pidfile}", "outs": ["k.txt"]}, "d": TOY["d"]}
+    repo = make_repo(tmp_path / "repo", stages)
+    recorded = []
+    record = LockWriter.record
+    monkeypatch.setattr(LockWriter, "record", lambda self, spec, result, *a, **k: (
+        recorded.append(spec["name"]), record(self, spec, result, *a, **k))[1])
+
+    r = run_pipeline("--repo", str(repo), "--no-tracking")
+    assert r.exit_code == 0, r.output
+    lines = summary(r.output)
+    assert lines[0].startswith("pipeline: 2 done, 0 skipped, 0 failed, 0 not run of 2 stages"), r.output
+    assert any(ln.startswith("retried  k (worker or node lost: ") for ln in lines), r.output
+    assert sorted(recorded) == ["d", "k"]
+    assert (repo / "k.txt").read_text() == "k"
+    # the first attempt's orphaned command is ended by its guard, not left to write k.txt later
+    pids = [int(p) for p in pidfile.read_text().split()]
+    deadline = time.monotonic() + 60
+    while any(map(_exists, pids)) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not any(map(_exists, pids)) and (repo / "k.txt").read_text() == "k"
+    seq = make_repo(tmp_path / "seq", stages)  # the flag is there: the stage works at once
+    assert dvc(seq, "repro").returncode == 0
+    assert (repo / "dvc.lock").read_bytes() == (seq / "dvc.lock").read_bytes()
+    assert json.loads(dvc(repo, "status", "--json").stdout) == {}
+
+
+class FakeRay:
+    """Ray as ``schedule`` uses it, on ``cpus`` CPUs: tasks end in the order they started; ``get`` raises what
+    ``fail`` holds for a stage (one exception per attempt), else returns the stage done. ``started``: the stages in
+    the order their tasks were submitted; ``most``: the most tasks in flight at once."""
+
+    def __init__(self, cpus: int, fail: dict | None = None):
+        self.cpus, self.fail, self.started, self.flight, self.most = cpus, fail or {}, [], [], 0
+
+    def cluster_resources(self) -> dict:
+        return {"CPU": float(self.cpus)}
+
+    def remote(self, fn):
+        fake = self
+
+        class Task:
+            def options(self, **opts):
+                return self
+
+            def remote(self, root, address, *args):
+                ref = (address, len(fake.started))
+                fake.started.append(address)
+                fake.flight.append(ref)
+                fake.most = max(fake.most, len(fake.flight))
+                return ref
+
+        return Task()
+
+    def wait(self, refs, num_returns, timeout):
+        first = next(r for r in self.flight if r in refs)
+        self.flight.remove(first)
+        return [first], [r for r in refs if r != first]
+
+    def get(self, ref):
+        errors = self.fail.get(ref[0]) or []
+        if errors:
+            raise errors.pop(0)
+        return {"stage": ref[0], "status": "done", "seconds": 0.0}
+
+
+def _fake_plan(tmp_path, deps: dict[str, list[str]], seconds: dict[str, float] | None = None) -> dict:
+    from rlsac.pipeline import bottom_levels
+
+    return {"root": tmp_path, "todo": sorted(deps), "deps": deps, "priority": bottom_levels(deps, seconds or {})}
+
+
+OPTIONS = {"gpus_per_train": 0.0, "gpu_stages": "*train*", "retries": 2}
+
+
+def test_the_ready_stage_with_the_longest_path_ahead_starts_first(tmp_path):
+    from rlsac.pipeline import bottom_levels, schedule
+
+    # a chain z1 -> z2 -> z3 and five short stages on their own: their names come first, their paths are shorter
+    deps = {"z1": [], "z2": ["z1"], "z3": ["z2"], **{f"a{i}": [] for i in range(5)}}
+    assert bottom_levels(deps, {}) == {"z1": 3.0, "z2": 2.0, "z3": 1.0, **{f"a{i}": 1.0 for i in range(5)}}
+    # expected seconds where known: one long stage outweighs the chain of three
+    assert bottom_levels(deps, {"a3": 10.0})["a3"] == 10.0 and bottom_levels(deps, {"z2": 5.0})["z1"] == 7.0
+    ray1 = FakeRay(cpus=1)
+    schedule(_fake_plan(tmp_path, deps), OPTIONS, ray1)
+    # (z3's path is as short as the others': ties go by address)
+    assert ray1.started == ["z1", "z2", "a0", "a1", "a2", "a3", "a4", "z3"] and ray1.most == 1
+    # two CPUs: the chain's head and one short stage; the chain goes on as soon as its stage ends
+    ray2 = FakeRay(cpus=2)
+    schedule(_fake_plan(tmp_path, deps, {"a3": 10.0}), OPTIONS, ray2)
+    assert ray2.started[:2] == ["a3", "z1"] and ray2.most == 2
+
+
+def test_expected_seconds_are_measured_else_the_groups_mean_else_one():
+    from rlsac.pipeline import expected_seconds
+
+    measured = {"train@1": 100.0, "train@2": 300.0, "plot": 5.0}
+    assert expected_seconds(["train@1", "train@3", "plot", "tables"], measured) == {
+        "train@1": 100.0, "train@3": 200.0, "plot": 5.0, "tables": 1.0}
+
+
+def test_the_order_takes_the_stage_times_earlier_runs_of_the_repository_logged(tmp_path, monkeypatch):
+    """The bottom levels come from the `stage_s/<stage>` metrics of earlier pipeline runs of the same repository
+    (another repository's runs are left out); with tracking off every stage counts 1."""
+    import mlflow
+
+    from rlsac.pipeline import _priorities, stage_metric
+
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
+    client = mlflow.MlflowClient(uri)
+    exp = client.create_experiment("pipeline")
+    for repo, seconds in ((tmp_path / "repo", 50.0), (tmp_path / "other", 900.0)):
+        run = client.create_run(exp)
+        client.log_param(run.info.run_id, "repo", str(repo))
+        client.log_metric(run.info.run_id, stage_metric("short@1"), seconds)
+        client.set_terminated(run.info.run_id)
+    plan = {"root": tmp_path / "repo", "todo": ["chain_1", "chain_2", "short@1", "short@2"],
+            "deps": {"chain_1": [], "chain_2": ["chain_1"], "short@1": [], "short@2": []}}
+    # short@2: its group's mean
+    assert _priorities(plan, track=True) == {"chain_1": 2.0, "chain_2": 1.0, "short@1": 50.0, "short@2": 50.0}
+    assert _priorities(plan, track=False) == {"chain_1": 2.0, "chain_2": 1.0, "short@1": 1.0, "short@2": 1.0}
+
+
+def test_a_stage_prefers_the_node_of_its_parent_with_the_most_output_bytes():
+    from rlsac.pipeline import _main_parent
+
+    plan = {"deps": {"c": ["a", "b", "x"], "d": ["x"]}}
+    placed = {"a": ("node-1", 10), "b": ("node-2", 500)}  # x ran in an earlier run (or not on a node): no preference
+    assert _main_parent("c", plan, placed) == "node-2" and _main_parent("d", plan, placed) is None
+
+
+class WorkerCrashedError(Exception):  # as Ray names a dead worker's error
+    pass
+
+
+def test_only_a_lost_worker_is_retried_not_a_failed_task(tmp_path):
+    from rlsac.pipeline import schedule
+
+    deps = {"k": [], "f": [], "after_k": ["k"]}
+    fake = FakeRay(cpus=1, fail={"k": [WorkerCrashedError("died"), WorkerCrashedError("died")],
+                                 "f": [RuntimeError("the task's body raised")]})
+    results = schedule(_fake_plan(tmp_path, deps), OPTIONS, fake)
+    assert fake.started.count("k") == 3 and fake.started.count("f") == 1
+    assert results["k"]["status"] == "done" and len(results["k"]["retried"]) == 2
+    assert results["after_k"]["status"] == "done"
+    assert results["f"]["status"] == "failed" and "retried" not in results["f"]
+
+    fake = FakeRay(cpus=1, fail={"k": [WorkerCrashedError("died"), WorkerCrashedError("died")]})
+    results = schedule(_fake_plan(tmp_path, deps), {**OPTIONS, "retries": 1}, fake)
+    assert fake.started.count("k") == 2 and results["k"]["status"] == "failed"
+    assert results["k"]["error"] == "WorkerCrashedError: died (tried 2 times)"
+    assert results["after_k"]["status"] == "not run"
+
+
 def test_bad_input_is_one_error_line_before_any_work(tmp_path):
     repo = make_repo(tmp_path / "repo", TOY)
     (repo / "sub").mkdir()
@@ -204,6 +367,7 @@ def test_bad_input_is_one_error_line_before_any_work(tmp_path):
                           (["--repo", str(tmp_path)], "cannot read the DVC pipeline"),
                           (["--repo", str(repo / "sub")], "not a DVC repository's root"),
                           (["--gpus-per-train", "nan"], "must be a finite number >= 0"),
+                          (["--retries", "-1"], "--retries"),
                           (["--gpus-per-train", "1", "--gpu-stages", "b"], "the Ray cluster has 0 GPUs (b would")):
         r = CliRunner().invoke(cli, ["pipeline", "--repo", str(repo), *args, "--no-tracking"])
         assert r.exit_code == 2, (args, r.output)

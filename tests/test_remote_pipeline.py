@@ -18,7 +18,7 @@ import ray
 import yaml
 from click.testing import CliRunner
 from test_mlflow_server import _free_port
-from test_ray_pipeline import PARAMS, PIPE, TOOL, TOY, _tree, dvc, make_repo, run_pipeline, summary
+from test_ray_pipeline import PARAMS, PIPE, TOOL, TOY, _tree, _write, dvc, make_repo, run_pipeline, summary
 
 from rlsac.cli import cli
 
@@ -89,8 +89,8 @@ def test_nodes_without_a_shared_folder_end_as_a_single_host_run(tmp_path, s3, lo
     # a `cache: false` output travelled by its md5, in DVC's layout (a cache push would not have carried it)
     md5 = yaml.safe_load((par / "dvc.lock").read_text())["stages"]["grid@x-1"]["outs"][0]["md5"]
     assert _object(s3, f"store/files/md5/{md5[:2]}/{md5[2:]}") == (par / "reports" / "grid_x-1.txt").read_bytes()
-    # every stage's folder was its own and is gone; the node keeps only the code tree it fetched
-    assert [p.name for p in local_ray.iterdir()] == ["trees"]
+    # every stage's folder was its own and is gone; the node keeps the code tree and the objects it fetched or made
+    assert sorted(p.name for p in local_ray.iterdir()) == ["objects", "trees"]
 
     # a changed parameter: its stages and what follows re-run on the nodes, the driver's copy follows
     for repo in (seq, par):
@@ -139,3 +139,26 @@ def test_a_dvc_remote_by_name_carries_its_endpoint(tmp_path, s3, monkeypatch):
     assert (repo / "b.txt").read_text() == "ba"
     assert json.loads(dvc(repo, "status", "--json").stdout) == {}
     assert s3.list_objects_v2(Bucket=BUCKET, Prefix="named/files/md5/")["KeyCount"] > 0
+
+
+CHAIN = {"a": TOY["a"], "b": TOY["b"],
+         "c": {"cmd": _write("c.txt", "c", ("b.txt",)), "deps": ["b.txt"], "outs": ["c.txt"]}}
+
+
+def test_a_chain_on_one_node_reads_its_inputs_from_the_nodes_cache(tmp_path, s3, local_ray):
+    """a -> b -> c with --remote: b and c run where their parent ran (one node here; on a cluster Ray is asked for
+    the parent's node, softly) and find their inputs in the node's cache of objects, not in the bucket; the
+    results and the lock are a serial `dvc repro`'s."""
+    from rlsac.pipeline import pipeline
+
+    seq, par = make_repo(tmp_path / "seq", CHAIN), make_repo(tmp_path / "par", CHAIN)
+    assert dvc(seq, "repro").returncode == 0
+    s = pipeline({"repo": str(par), "workers": 2, "remote": f"s3://{BUCKET}/chain"}, track=False)
+    assert s["counts"]["done"] == 3, s["results"]
+    r = s["results"]
+    # each of b and c needs one object, its parent's output: without the cache, one download each
+    assert [(r[a]["downloads"], r[a]["cache_hits"]) for a in ("b", "c")] == [(0, 1), (0, 1)], r
+    assert r["a"]["node_id"] == r["b"]["node_id"] == r["c"]["node_id"]
+    assert (par / "dvc.lock").read_bytes() == (seq / "dvc.lock").read_bytes()
+    assert [(par / f).read_text() for f in ("a.txt", "b.txt", "c.txt")] == ["a", "ba", "cba"]
+    assert json.loads(dvc(par, "status", "--json").stdout) == {}
