@@ -32,7 +32,6 @@ Not carried: the run cache entries a node writes (``.dvc/cache/runs``) stay in i
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import io
 import json
@@ -46,6 +45,7 @@ from typing import Any, Callable
 from urllib.parse import urlsplit
 
 from rlsac.errors import RlsacError
+from rlsac.io import atomic_path
 
 NODE_DIR_ENV = "RLSAC_NODE_DIR"  # where a node keeps the code trees it fetched and its stages' folders
 CONNECT_TIMEOUT_S = 10  # an endpoint that does not answer: botocore waited 60 s an attempt
@@ -349,13 +349,8 @@ class NodeCache:
         if path.exists():
             self.hits += 1
         else:
-            tmp = self._temporary(path)
-            try:
+            with atomic_path(path) as tmp:
                 self.store.get_file(oid, tmp)
-                os.replace(tmp, path)
-            finally:
-                with contextlib.suppress(FileNotFoundError):
-                    os.unlink(tmp)
         shutil.copyfile(path, dest)
 
     def read(self, oid: str) -> bytes:
@@ -373,51 +368,27 @@ class NodeCache:
         path = self._path(oid)
         if path.exists():
             return
-        tmp = self._temporary(path)
-        try:
+        with atomic_path(path) as tmp:
             os.unlink(tmp)
             try:
                 os.link(src, tmp)
             except OSError:  # another file system, or links refused
                 shutil.copyfile(src, tmp)
-            os.replace(tmp, path)
-        finally:
-            with contextlib.suppress(FileNotFoundError):
-                os.unlink(tmp)
 
     def add_bytes(self, oid: str, data: bytes) -> None:
         path = self._path(oid)
         if path.exists():
             return
-        tmp = self._temporary(path)
-        try:
+        with atomic_path(path) as tmp:
             tmp.write_bytes(data)
-            os.replace(tmp, path)
-        finally:
-            with contextlib.suppress(FileNotFoundError):
-                os.unlink(tmp)
-
-    @staticmethod
-    def _temporary(path: Path) -> Path:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
-        os.close(fd)
-        return Path(tmp)
 
 
 def _tree_file(store: Store, oid: str) -> Path:
     """The code tree, fetched once per node (a rename makes it appear whole)."""
     path = _node_dir() / "trees" / f"{oid}.tar.gz"
     if not path.exists():
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
-        os.close(fd)
-        try:
-            store.get_file(oid, Path(tmp))
-            os.replace(tmp, path)
-        finally:
-            with contextlib.suppress(FileNotFoundError):
-                os.unlink(tmp)
+        with atomic_path(path) as tmp:
+            store.get_file(oid, tmp)
     return path
 
 
