@@ -71,16 +71,22 @@ def _object(client, key: str) -> bytes | None:
         return None
 
 
+def _remote_run_ends_as(par, seq, counts: str) -> None:
+    """``rlsac pipeline --remote`` on ``par``: ``counts`` in its summary, then the lock of ``seq``'s `dvc repro`
+    byte for byte and `dvc status` clean."""
+    r = run_pipeline("--repo", str(par), "--workers", "2", "--no-tracking", "--remote", f"s3://{BUCKET}/store")
+    assert r.exit_code == 0, r.output
+    assert summary(r.output)[0].startswith(f"pipeline: {counts} of 8 stages"), r.output
+    assert (par / "dvc.lock").read_bytes() == (seq / "dvc.lock").read_bytes()
+    assert json.loads(dvc(par, "status", "--json").stdout) == {}
+
+
 def test_nodes_without_a_shared_folder_end_as_a_single_host_run(tmp_path, s3, local_ray):
     files = {"tool.py": TOOL, "params.yaml": PARAMS}
     seq, par = make_repo(tmp_path / "seq", PIPE, files), make_repo(tmp_path / "par", PIPE, files)
     assert dvc(seq, "repro").returncode == 0
 
-    r = run_pipeline("--repo", str(par), "--workers", "2", "--no-tracking", "--remote", f"s3://{BUCKET}/store")
-    assert r.exit_code == 0, r.output
-    assert summary(r.output)[0].startswith("pipeline: 8 done, 0 skipped, 0 failed, 0 not run of 8 stages"), r.output
-    assert (par / "dvc.lock").read_bytes() == (seq / "dvc.lock").read_bytes()
-    assert json.loads(dvc(par, "status", "--json").stdout) == {}
+    _remote_run_ends_as(par, seq, "8 done, 0 skipped, 0 failed, 0 not run")
     # the same outputs, .gitignore entries and DVC cache objects; the nodes' run cache entries stay on the nodes
     runs = ".dvc/cache/runs/"
     assert {k: v for k, v in _tree(par).items() if not k.startswith(runs)} == \
@@ -96,11 +102,7 @@ def test_nodes_without_a_shared_folder_end_as_a_single_host_run(tmp_path, s3, lo
     for repo in (seq, par):
         (repo / "params.yaml").write_text(PARAMS.replace("scale: 2", "scale: 3"))
     assert dvc(seq, "repro").returncode == 0
-    r = run_pipeline("--repo", str(par), "--workers", "2", "--no-tracking", "--remote", f"s3://{BUCKET}/store")
-    assert r.exit_code == 0, r.output
-    assert summary(r.output)[0].startswith("pipeline: 5 done, 3 skipped, 0 failed, 0 not run of 8 stages"), r.output
-    assert (par / "dvc.lock").read_bytes() == (seq / "dvc.lock").read_bytes()
-    assert json.loads(dvc(par, "status", "--json").stdout) == {}
+    _remote_run_ends_as(par, seq, "5 done, 3 skipped, 0 failed, 0 not run")
 
 
 def test_bad_remote_is_one_error_line_before_any_work(tmp_path, s3, monkeypatch):
