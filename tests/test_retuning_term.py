@@ -81,3 +81,27 @@ def test_claims_and_paper_verdicts_read_the_widened_interval(tmp_path):
     assert pafter["pairs and seeds only"] == pbefore["pairs and seeds only"]
     assert "widened in quadrature by ±1.6" in (tmp_path / "claims.md").read_text()
     assert "The re-tuning term: ±1.6" in (tmp_path / "paper.md").read_text()
+
+
+def test_one_table_build_computes_the_term_once_for_every_builder(tmp_path, monkeypatch):
+    """`rlsac table --which all` reads the re-tuning records once (retuning.halfwidth) and hands the term to the
+    claims and the paper's claims, which both print it."""
+    from rlsac.reports import tables
+
+    for fold in ("a", "b"):
+        for it in (100, 1000):
+            _fold(tmp_path, fold, "rlsac", [0.5] * 8, it)
+            _fold(tmp_path, fold, "uniform", [0.5] * 4 + [90.0] * 4, it)
+    _retune(tmp_path, "uniform", "a", [1.0, 0.0], [0, 1, 0, 1])
+    calls = []
+    real = retuning.halfwidth
+
+    def counted(out_dir):
+        calls.append(out_dir)
+        return real(out_dir)
+
+    monkeypatch.setattr(retuning, "halfwidth", counted)
+    tables.build({"which": "all", "eval_root": tmp_path / "eval", "out_dir": tmp_path}, track=False)
+    assert calls == [tmp_path]
+    assert "widened in quadrature by ±1.6" in (tmp_path / "claims.md").read_text()
+    assert "The re-tuning term: ±1.6" in (tmp_path / "paper.md").read_text()

@@ -27,6 +27,7 @@ from typing import Any
 import pandas as pd
 
 from rlsac.io import atomic_path, write_text
+from rlsac.reports.retuning import COMPUTE, Compute
 
 # a tie: the whole interval within ±0.03 mAA (18 of the 606 fold test pairs; the paper's Table 3 steps are 0.02-0.06)
 TIE_MARGIN = 0.03
@@ -197,14 +198,15 @@ def check_lines(claim: Claim, root: Path) -> dict[str, Any] | None:
 
 
 def build(eval_root: str | Path = "reports/eval", out_dir: str | Path = "reports",
-          claims: tuple[Claim, ...] = CLAIMS) -> dict[str, Any]:
+          claims: tuple[Claim, ...] = CLAIMS, retuning: dict[str, Any] | None | Compute = COMPUTE) -> dict[str, Any]:
     """Write <out_dir>/claims.{md,csv} from the fold and line results; -> {"files", "missing"} (claims whose rows
-    are absent)."""
+    are absent). ``retuning``: the re-tuning term (rlsac.reports.retuning.halfwidth of ``out_dir``, None for none),
+    computed here by default."""
     from rlsac.protocol import N_BOOT, PAIRED_BOOT
-    from rlsac.reports.retuning import halfwidth
+    from rlsac.reports.retuning import resolve
     from rlsac.results import collect
 
-    retuning = halfwidth(out_dir)  # the fold claims' intervals carry it (reports/tuning_budget.md, part b)
+    retuning = resolve(retuning, out_dir)  # the fold claims' intervals carry it (reports/tuning_budget.md, part b)
     term = None if retuning is None else retuning["s"]
     line_root = Path(eval_root) / "lines"
     results = {sub: collect(eval_root, sub) for sub in sorted({c.sub for c in claims} - {"lines"})}

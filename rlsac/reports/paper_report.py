@@ -19,6 +19,7 @@ import pandas as pd
 from rlsac.io import atomic_path, write_text
 from rlsac.metrics import seed_bootstrap_maa, seed_bootstrap_median
 from rlsac.reports.paper_claims import CLAIMS, F_METRICS, HEADLINE, VERDICTS, PaperClaim
+from rlsac.reports.retuning import COMPUTE, Compute
 
 DASH = "–"
 
@@ -131,13 +132,16 @@ def _md_table(df: pd.DataFrame, cols: list[str]) -> str:
 
 
 def build(eval_root: str | Path = "reports/eval", out_dir: str | Path = "reports",
-          claims: tuple[PaperClaim, ...] = CLAIMS, headline=HEADLINE) -> dict[str, Any]:
-    """Write <out_dir>/paper.{md,csv}; -> {"files", "missing"} (claim / regime pairs whose rows are absent)."""
-    from rlsac.reports.retuning import halfwidth
+          claims: tuple[PaperClaim, ...] = CLAIMS, headline=HEADLINE,
+          retuning: dict[str, Any] | None | Compute = COMPUTE) -> dict[str, Any]:
+    """Write <out_dir>/paper.{md,csv}; -> {"files", "missing"} (claim / regime pairs whose rows are absent).
+    ``retuning``: the re-tuning term (rlsac.reports.retuning.halfwidth of ``out_dir``, None for none), computed here
+    by default."""
+    from rlsac.reports.retuning import resolve
     from rlsac.results import collect
 
     eval_root = Path(eval_root)
-    retuning = halfwidth(out_dir)
+    retuning = resolve(retuning, out_dir)
     term = None if retuning is None else retuning["s"]
     res = collect(eval_root, "folds") if any(c.sub == "folds" and not c.untestable for c in claims) else {}
     rows, missing = [], []

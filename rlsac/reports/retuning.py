@@ -8,13 +8,16 @@ rows against each other, each tuned on its own, so re-tuning both moves their di
 sd the spread of one row's test mAA over the draws. ``halfwidth`` takes the largest sd measured (over the rows,
 budgets and metrics re-tuned: conservative for the rows not re-tuned, among them the learned ones, whose grids run
 the network at every point), and ``widen`` adds it to an interval in quadrature. The claims (rlsac.reports.claims,
-rlsac.reports.paper_report) read it here; reports/tuning_budget.md shows where it comes from.
+rlsac.reports.paper_report) read it here; reports/tuning_budget.md shows where it comes from. ``rlsac table``
+computes it once per build and hands it to each of those builders (their ``retuning`` argument); a builder called on
+its own (default ``COMPUTE``) computes it itself (``resolve``).
 
 Reads result files only, never a runner.
 """
 
 from __future__ import annotations
 
+from enum import Enum
 from pathlib import Path
 from typing import Any
 
@@ -24,6 +27,15 @@ from rlsac.errors import RlsacError
 
 Z95 = 1.96  # a normal 95% half-width in sd; the re-tuning spread is near normal for rows with many settings chosen
 METRICS = (("err_R", "R"), ("err_t", "t"))
+
+
+class Compute(Enum):
+    """The type of ``COMPUTE``, a builder's default ``retuning``: read the re-tuning records itself."""
+
+    COMPUTE = "compute"
+
+
+COMPUTE = Compute.COMPUTE
 
 
 def load_retune(out_dir: Path, regime: str, row: str) -> list[dict[str, Any]]:
@@ -49,11 +61,13 @@ def load_retune(out_dir: Path, regime: str, row: str) -> list[dict[str, Any]]:
     return recs
 
 
-def spread(recs: list[dict[str, Any]], it: int, col: str, limit: float) -> dict[str, Any]:
+def spread(recs: list[dict[str, Any]], it: int, col: str, limit: float, *, bootstrap: bool = True
+           ) -> dict[str, Any]:
     """The test mAA (column ``col``) each draw's re-chosen settings give, the folds pooled (each fold its own choice
     in that draw; every fold must have made as many draws) -> {full, mean, sd, lo, hi, half} where ``full`` is the
     choice on all validation pairs (the tables' setting) and ``half`` the half-width of its own 95% bootstrap interval
-    over the test pairs, resampled within each test building as the tables do."""
+    over the test pairs, resampled within each test building as the tables do; ``bootstrap=False`` leaves ``half``
+    out (and its bootstrap undrawn: the other fields do not depend on it)."""
     from rlsac.metrics import accuracy_per_instance, stratified_draws
     from rlsac.protocol import N_BOOT
 
@@ -66,12 +80,15 @@ def spread(recs: list[dict[str, Any]], it: int, col: str, limit: float) -> dict[
     full = np.concatenate([a[r["full"]] for a, r in zip(acc, recs, strict=True)])
     per = np.array([np.concatenate([a[r["choices"][b]] for a, r in zip(acc, recs, strict=True)]).mean()
                     for b in range(draws.pop())])
-    strata = np.concatenate([[i] * len(r["test_scenes"]) for i, r in enumerate(recs)])
-    boot = full[stratified_draws(np.random.default_rng(0), strata, N_BOOT)].mean(axis=1)
-    lo, hi = np.percentile(boot, [2.5, 97.5])
     sd = float(per.std(ddof=1)) if per.size > 1 else 0.0
-    return {"full": float(full.mean()), "mean": float(per.mean()), "sd": sd,
-            "lo": float(np.percentile(per, 2.5)), "hi": float(np.percentile(per, 97.5)), "half": float((hi - lo) / 2)}
+    out = {"full": float(full.mean()), "mean": float(per.mean()), "sd": sd,
+           "lo": float(np.percentile(per, 2.5)), "hi": float(np.percentile(per, 97.5))}
+    if bootstrap:
+        strata = np.concatenate([[i] * len(r["test_scenes"]) for i, r in enumerate(recs)])
+        boot = full[stratified_draws(np.random.default_rng(0), strata, N_BOOT)].mean(axis=1)
+        lo, hi = np.percentile(boot, [2.5, 97.5])
+        out["half"] = float((hi - lo) / 2)
+    return out
 
 
 def halfwidth(out_dir: str | Path) -> dict[str, Any] | None:
@@ -90,12 +107,18 @@ def halfwidth(out_dir: str | Path) -> dict[str, Any] | None:
             budgets = sorted(set.intersection(*(set(r["test"]) for r in recs)), key=int)
             for it in budgets:
                 for col, name in METRICS:
-                    sd = spread(recs, int(it), col, LIMIT)["sd"]
+                    sd = spread(recs, int(it), col, LIMIT, bootstrap=False)["sd"]
                     if best is None or sd > best["sd"]:
                         best = {"sd": sd, "row": row, "regime": regime_dir.name, "iterations": int(it), "metric": name}
     if best is None:
         return None
     return {**best, "s": float(Z95 * np.sqrt(2) * best["sd"])}
+
+
+def resolve(retuning: dict[str, Any] | None | Compute, out_dir: str | Path) -> dict[str, Any] | None:
+    """A builder's ``retuning`` argument: ``halfwidth(out_dir)`` for ``COMPUTE`` (the builder called on its own),
+    else the term as given (computed once by ``rlsac table`` for every builder of the build; None for no record)."""
+    return halfwidth(out_dir) if retuning is COMPUTE else retuning
 
 
 def widen(stats: dict[str, float], s: float) -> dict[str, float]:

@@ -23,7 +23,7 @@ import numpy as np
 import pandas as pd
 
 from rlsac.io import atomic_path, write_text
-from rlsac.reports.retuning import Z95, halfwidth, load_retune, spread, widen
+from rlsac.reports.retuning import COMPUTE, Z95, Compute, load_retune, resolve, spread, widen
 
 
 def _cells(root: Path, regime: str, row: str, it: int) -> pd.DataFrame | None:
@@ -157,10 +157,9 @@ def widened(eval_root: Path, s: float) -> list[dict[str, str]]:
     return out
 
 
-def decision(rows: list[dict[str, Any]], margin: float, eval_root: Path, out_dir: Path) -> str:
-    """The generated verdict of part (b): what re-tuning adds to a difference of two rows, against the tie margin,
-    and which claims it moves."""
-    term = halfwidth(out_dir)
+def decision(rows: list[dict[str, Any]], margin: float, eval_root: Path, term: dict[str, Any] | None) -> str:
+    """The generated verdict of part (b): what re-tuning adds to a difference of two rows (``term``:
+    rlsac.reports.retuning.halfwidth, None for no record), against the tie margin, and which claims it moves."""
     if term is None or not rows:
         return "No re-tuning records: nothing to decide, and no interval carries the term.\n"
     sds = [r[f"_{n}"]["sd"] for r in rows for n in ("R", "t")]
@@ -184,9 +183,10 @@ def decision(rows: list[dict[str, Any]], margin: float, eval_root: Path, out_dir
         + (":\n" if moved else ".\n") + table)
 
 
-def build(params: dict[str, Any], eval_root: str | Path = "reports/eval",
-          out_dir: str | Path = "reports") -> dict[str, Any]:
-    """Write <out_dir>/tuning_budget.{md,csv}; -> {"files", "missing"}."""
+def build(params: dict[str, Any], eval_root: str | Path = "reports/eval", out_dir: str | Path = "reports",
+          retuning: dict[str, Any] | None | Compute = COMPUTE) -> dict[str, Any]:
+    """Write <out_dir>/tuning_budget.{md,csv}; -> {"files", "missing"}. ``retuning``: the re-tuning term
+    (rlsac.reports.retuning.halfwidth of ``out_dir``, None for none), computed here by default."""
     from rlsac import retune, tune
     from rlsac.protocol import N_BOOT
     from rlsac.reports.claims import TIE_MARGIN
@@ -232,7 +232,7 @@ def build(params: dict[str, Any], eval_root: str | Path = "reports/eval",
     df_b = pd.DataFrame([{k: v for k, v in r.items() if not k.startswith("_")} for r in b_rows])
     if b_rows:
         sec_b += df_b.to_markdown(index=False, disable_numparse=True) + "\n\n"
-    sec_b += decision(b_rows, TIE_MARGIN, eval_root, out_dir)
+    sec_b += decision(b_rows, TIE_MARGIN, eval_root, resolve(retuning, out_dir))
     missing = a_missing + b_missing
     tail = ("\nNot compared (results absent): " + "; ".join(missing) + ".\n") if missing else ""
     write_text(out_dir / "tuning_budget.md", head + sec_a + sec_b + tail)
