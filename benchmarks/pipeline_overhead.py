@@ -72,6 +72,34 @@ def run_once(template: Path, work: Path, runner: str, workers: int) -> tuple[flo
     return s["wall_s"], yaml.safe_load((repo / "dvc.lock").read_text())
 
 
+def measure(n_stages: int, pad: int, workers: int = 1, repeat: int = 2, runners=("dvc", "direct"),
+            report=print) -> dict:
+    """Each runner's wall time (best of ``repeat``) and seconds per stage on ``n_stages`` echo stages with ``pad``
+    extra lock entries, on a local Ray cluster of ``workers`` CPUs started once. -> {"best" {runner: s}, "per_stage"
+    {runner: s}, "lock_bytes", "same_entries" (both runners' locks hold the same entries; None with one runner)}."""
+    import ray
+
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    ray.init(address="local", num_cpus=workers, include_dashboard=False, log_to_driver=False)
+    try:
+        with tempfile.TemporaryDirectory() as tmp:
+            template = make_repo(Path(tmp) / "template", n_stages, pad)
+            size = (template / "dvc.lock").stat().st_size if pad else 0
+            best: dict[str, float] = {}
+            locks: dict[str, dict] = {}
+            for _ in range(repeat):
+                for runner in runners:
+                    t0 = time.perf_counter()
+                    wall, locks[runner] = run_once(template, Path(tmp), runner, workers)
+                    best[runner] = min(best.get(runner, float("inf")), wall)
+                    report(f"  {runner:<6} {wall:7.2f} s ({time.perf_counter() - t0:.2f} s with planning)")
+    finally:
+        ray.shutdown()
+    same = locks["dvc"] == locks["direct"] if len(locks) == 2 else None
+    return {"best": best, "per_stage": {k: v * workers / n_stages for k, v in best.items()}, "lock_bytes": size,
+            "same_entries": same}
+
+
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--stages", type=int, default=20)
@@ -79,31 +107,14 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--workers", type=int, default=1)
     p.add_argument("--repeat", type=int, default=2)
     a = p.parse_args(argv)
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
-    import ray
-
-    ray.init(address="local", num_cpus=a.workers, include_dashboard=False, log_to_driver=False)
-    try:
-        with tempfile.TemporaryDirectory() as tmp:
-            template = make_repo(Path(tmp) / "template", a.stages, a.pad)
-            size = (template / "dvc.lock").stat().st_size if a.pad else 0
-            best: dict[str, float] = {}
-            locks: dict[str, dict] = {}
-            for _ in range(a.repeat):
-                for runner in ("dvc", "direct"):
-                    t0 = time.perf_counter()
-                    wall, locks[runner] = run_once(template, Path(tmp), runner, a.workers)
-                    best[runner] = min(best.get(runner, float("inf")), wall)
-                    print(f"  {runner:<6} {wall:7.2f} s ({time.perf_counter() - t0:.2f} s with planning)", flush=True)
-    finally:
-        ray.shutdown()
-    same = locks["dvc"] == locks["direct"]
-    per = {k: v * a.workers / a.stages for k, v in best.items()}
-    print(f"{a.stages} stages, {a.workers} worker(s), dvc.lock padded with {a.pad} entries ({size / 1e6:.2f} MB); "
-          f"best of {a.repeat}")
+    m = measure(a.stages, a.pad, a.workers, a.repeat, report=lambda line: print(line, flush=True))
+    best, per = m["best"], m["per_stage"]
+    print(f"{a.stages} stages, {a.workers} worker(s), dvc.lock padded with {a.pad} entries "
+          f"({m['lock_bytes'] / 1e6:.2f} MB); best of {a.repeat}")
     for k in ("dvc", "direct"):
         print(f"{k:<6} runner: {best[k]:7.2f} s wall, {per[k]:.3f} s per stage")
-    print(f"ratio dvc / direct: {per['dvc'] / per['direct']:.1f}x; same dvc.lock entries: {'yes' if same else 'NO'}")
+    print(f"ratio dvc / direct: {per['dvc'] / per['direct']:.1f}x; same dvc.lock entries: "
+          f"{'yes' if m['same_entries'] else 'NO'}")
 
 
 if __name__ == "__main__":

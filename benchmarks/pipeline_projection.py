@@ -60,6 +60,10 @@ RECORDED = {
     "select_lines_seed@*": 340.3, "tables": 30.0, "train_lines@*": 405.6, "train_lines_ngransac@*": 53.6,
     "train_lines_ngransac_seed@*": 56.4, "train_lines_seed@*": 401.4,
 }
+# What `rlsac pipeline` (the direct runner) adds to each stage's own time on the paper profile: 10 echo stages with
+# the lock padded to its 1244 entries, one worker (benchmarks/pipeline_overhead.py --stages 10 --pad 1244; 2-core
+# machine, issue #50). --overhead measure measures it again.
+DIRECT_OVERHEAD_S = 0.25
 
 
 def load_dag(repo: str | os.PathLike) -> dict[str, list[str]]:
@@ -230,6 +234,38 @@ def group_table(deps: dict[str, list[str]], measured: dict[str, float]) -> str:
             + "\n".join(rows))
 
 
+def timed_only(deps: dict[str, list[str]], table: dict[str, float]) -> tuple[dict[str, list[str]], dict[str, int]]:
+    """``deps`` without the stages ``table`` has no time for (nor the edges to them). -> (deps, {group: n left out})."""
+    keep = {a for a in deps if a in table or any(fnmatch.fnmatchcase(a, pat) for pat in table)}
+    left: dict[str, int] = {}
+    for a in deps:
+        if a not in keep:
+            left[group_of(a)] = left.get(group_of(a), 0) + 1
+    return {a: [d for d in ds if d in keep] for a, ds in deps.items() if a in keep}, left
+
+
+def with_overhead(times: dict[str, float], overhead: float, less: float = 0.0) -> dict[str, float]:
+    """Each stage's time less the runner work it already holds (floored at 0), plus ``overhead``."""
+    return {a: max(t - less, 0.0) + overhead for a, t in times.items()}
+
+
+def measure_overhead() -> float:
+    """The direct runner's seconds per stage on the paper profile's lock size, measured now (one worker)."""
+    from pipeline_overhead import measure
+
+    return measure(10, 1244, workers=1, repeat=1, runners=("direct",), report=lambda line: None)["per_stage"]["direct"]
+
+
+def _seconds(flag: str, text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise SystemExit(f"error: {flag}: {text!r} is neither a number of seconds nor 'measure'") from None
+    if v < 0:
+        raise SystemExit(f"error: {flag}: must be at least 0")
+    return v
+
+
 def _hours(s: float) -> str:
     return f"{s:.0f} s ({s / 3600:.2f} h)"
 
@@ -247,8 +283,20 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--fallback-recorded", action="store_true", help="With --from-mlflow: a group with no measured "
                                                                      "stage takes RECORDED's times.")
     ap.add_argument("--workers", default="1,2,8,32", help="Comma-separated worker counts [default: 1,2,8,32].")
+    ap.add_argument("--overhead", default=str(DIRECT_OVERHEAD_S),
+                    help="Seconds added to every stage: the runner's own work per stage, or 'measure' (the direct "
+                         "runner on the paper profile's lock size, benchmarks/pipeline_overhead.py) "
+                         f"[default: {DIRECT_OVERHEAD_S}, measured].")
+    ap.add_argument("--less", type=float, default=0.0,
+                    help="Seconds taken off every stage's time first (floored at 0): the runner work the times "
+                         "already hold, e.g. `dvc repro -s`'s for times taken with --runner dvc [default: 0].")
+    ap.add_argument("--only-timed", action="store_true",
+                    help="Leave out the stages that have no time (named, per group) instead of stopping.")
     ap.add_argument("--json", action="store_true", help="Print the result as JSON.")
     args = ap.parse_args(argv)
+    overhead = measure_overhead() if args.overhead == "measure" else _seconds("--overhead", args.overhead)
+    if args.less < 0:
+        raise SystemExit("error: --less: must be at least 0")
     workers = [int(n) for n in args.workers.split(",")]
     if any(n < 1 for n in workers):
         raise SystemExit("error: --workers: every count must be at least 1")
@@ -274,7 +322,11 @@ def main(argv: list[str] | None = None) -> None:
             table = data
     if deps is None:
         deps = load_dag(args.repo)
-    p = projection(deps, stage_times(deps, table), workers)
+    left_out = {}
+    if args.only_timed:
+        deps, left_out = timed_only(deps, table)
+    p = projection(deps, with_overhead(stage_times(deps, table), overhead, args.less), workers)
+    p.update(overhead_s=overhead, less_s=args.less, left_out=left_out)
     if measured is not None:
         p["measured"] = len(measured)
     if args.json:
@@ -283,6 +335,11 @@ def main(argv: list[str] | None = None) -> None:
         return
     print(f"{p['n_stages']} stages; total stage time {_hours(p['total_s'])}; "
           f"critical path {_hours(p['critical_path_s'])}: {' -> '.join(p['critical_path'])}")
+    if left_out:
+        print(f"left out (no time): {sum(left_out.values())} stages: "
+              + ", ".join(f"{g} {n}" for g, n in sorted(left_out.items())))
+    print(f"each stage: its time{f' less {args.less:g} s (floored at 0)' if args.less else ''} plus {overhead:.2f} s "
+          f"of runner overhead ({'measured now' if args.overhead == 'measure' else 'given'})")
     if measured is not None:
         fell_back = sorted({group_of(a) for a in deps} - {group_of(a) for a in measured})
         print(f"measured {len(measured)} of {p['n_stages']} stages; the others at their group's mean"
