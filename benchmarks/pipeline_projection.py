@@ -61,9 +61,10 @@ RECORDED = {
     "train_lines_ngransac_seed@*": 56.4, "train_lines_seed@*": 401.4,
 }
 # What `rlsac pipeline` (the direct runner) adds to each stage's own time on the paper profile: 10 echo stages with
-# the lock padded to its 1244 entries, one worker (benchmarks/pipeline_overhead.py --stages 10 --pad 1244; 2-core
-# machine, issue #50). --overhead measure measures it again.
-DIRECT_OVERHEAD_S = 0.25
+# the lock padded to its 1244 entries (1.39 MB), one worker: 0.063 s a stage, against 11.5 s through `dvc repro -s`
+# (benchmarks/pipeline_overhead.py --stages 10 --pad 1244 --repeat 1; the 2-core machine, otherwise idle, issue #50).
+# --overhead measure measures it again.
+DIRECT_OVERHEAD_S = 0.063
 
 
 def load_dag(repo: str | os.PathLike) -> dict[str, list[str]]:

@@ -162,15 +162,17 @@ def _direct(repo, root: Path, stages: list) -> tuple[dict, Any]:
 
 
 def _travelling(root: Path, stages: list, specs: dict) -> dict[str, list[str]]:
-    """--remote's part of the plan: each stage's dependencies that go through the bucket."""
-    from rlsac.transfer import stage_paths
+    """--remote's part of the plan: each stage's dependencies that go through the bucket (paths from the top of the
+    git working tree: a nested DVC project's stages read files of the repository around it)."""
+    from rlsac.transfer import stage_paths, tree_root
 
+    top, _ = tree_root(root)
     out = {}
     for s in stages:
         a = _address(s, root)
         if a not in specs:
             raise RlsacError(f"--remote: {a} is a .dvc file's stage (`dvc repro -s` runs it, in a shared folder only)")
-        out[a] = stage_paths(s, root)
+        out[a] = stage_paths(s, top)
     return out
 
 
@@ -389,7 +391,7 @@ def run_direct(root: str, address: str, spec: dict, env: dict[str, str], log: st
 
 
 def run_remote(conf: dict, tree: str, address: str, spec: dict, deps: list[dict], env: dict[str, str],
-               log: str) -> dict:
+               log: str, sub: str = ".") -> dict:
     """The direct runner on a node that shares no folder with the driver (``--remote``, rlsac.transfer.run_on_node:
     a Ray task's body). ``log``: its path from the repository root. -> run_direct's result with "outs" (what the
     driver brings back), "log_text" and "ignore" as paths from the root, "out_bytes", "node_id" (Ray's), and
@@ -401,7 +403,7 @@ def run_remote(conf: dict, tree: str, address: str, spec: dict, deps: list[dict]
     def run(root: str, spec: dict, env: dict[str, str], log: str) -> dict:
         return run_direct_stage(root, spec, python_bin_env(env), log, start=start_guarded)
 
-    r = run_on_node(conf, tree, spec, deps, env, log, run)
+    r = run_on_node(conf, tree, spec, deps, env, log, run, sub)
     r["stage"] = address
     with contextlib.suppress(Exception):  # the node its dependents prefer (its cache holds the outputs): a Ray task
         import ray
@@ -634,7 +636,7 @@ def _submitter(plan: dict, o: dict, ray) -> Callable[[str, str | None], Any]:
                 opts["scheduling_strategy"] = NodeAffinitySchedulingStrategy(node_id=node, soft=True)
             deps = ws.send(plan["paths"][a])
             rel = os.path.relpath(log, plan["root"])
-            return remote.options(**opts).remote(ws.conf, ws.tree, a, plan["specs"][a], deps, env, rel)
+            return remote.options(**opts).remote(ws.conf, ws.tree, a, plan["specs"][a], deps, env, rel, ws.sub)
         if a in plan.get("specs", {}):
             return direct.options(**opts).remote(root, a, plan["specs"][a], env, log)
         return task.options(**opts).remote(root, a, env, log)

@@ -221,6 +221,16 @@ def fetch(store: Store | NodeCache, root: str | os.PathLike, item: dict) -> list
         shutil.rmtree(tmp, ignore_errors=True)
 
 
+def tree_root(root: str | os.PathLike) -> tuple[str, str]:
+    """-> (the top of the git working tree that holds the DVC repository ``root``, ``root`` from there as a POSIX
+    path, "." when they are one). A DVC project nested in a git repository (the quick profile,
+    ``experiments/quick``) depends on files of the repository outside it (``../../data/strecha``): the packed tree and
+    the paths that travel start at the top. Outside any git repository: the root itself."""
+    r = subprocess.run(["git", "rev-parse", "--show-toplevel"], cwd=root, capture_output=True, text=True)
+    top = os.path.realpath(r.stdout.strip()) if r.returncode == 0 and r.stdout.strip() else os.path.realpath(root)
+    return top, Path(os.path.relpath(os.path.realpath(root), top)).as_posix()
+
+
 def pack_tree(root: str | os.PathLike) -> bytes:
     """The working tree as git sees it (tracked files and new ones not ignored; ``.dvc/config`` included, not the
     DVC cache or git-ignored data) as a gzip'd tar whose bytes depend on the files only (names sorted, times and
@@ -247,12 +257,14 @@ def pack_tree(root: str | os.PathLike) -> bytes:
 
 
 class Workspace:
-    """The driver's side: the store, the packed code tree's md5, the dependencies already in the bucket."""
+    """The driver's side: the store, the packed code tree's md5 (the git working tree that holds the DVC repository:
+    ``top``, with the repository at ``sub`` in it), the dependencies already in the bucket."""
 
     def __init__(self, value: str, root: str | os.PathLike):
         self.root = str(root)
+        self.top, self.sub = tree_root(root)
         self.store, self.conf = open_store(value, root)
-        tree = pack_tree(root)
+        tree = pack_tree(self.top)
         self.tree = hashlib.md5(tree).hexdigest()
         self.store.put_bytes(self.tree, tree)
         self.sent: dict[str, tuple[tuple, dict]] = {}  # path -> (its stat, {"path", "oid"}) this run uploaded
@@ -266,17 +278,17 @@ class Workspace:
         return self._repo
 
     def send(self, paths: list[str]) -> list[dict]:
-        """A stage's dependencies (paths from the root) into the bucket. -> their {"path", "oid"}; a missing one is
-        left out (the stage then fails on it, as DVC reports a missing dependency)."""
+        """A stage's dependencies (paths from the top of the tree, stage_paths) into the bucket. -> their {"path",
+        "oid"}; a missing one is left out (the stage then fails on it, as DVC reports a missing dependency)."""
         out = []
         for rel in paths:
-            path = os.path.join(self.root, rel)
+            path = os.path.join(self.top, rel)
             if not os.path.exists(path):
                 continue
             st = os.stat(path)
             key = (st.st_ino, st.st_size, st.st_mtime_ns)
             if rel not in self.sent or self.sent[rel][0] != key or os.path.isdir(path):
-                self.sent[rel] = (key, push(self.store, self._open(), self.root, rel))
+                self.sent[rel] = (key, push(self.store, self._open(), self.top, rel))
             out.append(self.sent[rel][1])
         return out
 
@@ -293,10 +305,10 @@ class Workspace:
                 if item["oid"].endswith(".dir"):
                     cache.add_bytes(item["oid"], self.store.read(item["oid"]))
             path = os.path.join(self.root, item["path"])
-            if os.path.isfile(path):
+            if os.path.isfile(path):  # a dependent's send need not hash it again (its key: the path from the top)
                 st = os.stat(path)
-                self.sent[item["path"]] = ((st.st_ino, st.st_size, st.st_mtime_ns),
-                                           {"path": item["path"], "oid": item["oid"]})
+                rel = os.path.normpath(os.path.join(self.sub, item["path"]))
+                self.sent[rel] = ((st.st_ino, st.st_size, st.st_mtime_ns), {"path": rel, "oid": item["oid"]})
 
     def close(self) -> None:
         if self._repo is not None:
@@ -304,18 +316,20 @@ class Workspace:
             self._repo = None
 
 
-def stage_paths(stage, root: str | os.PathLike) -> list[str]:
+def stage_paths(stage, top: str | os.PathLike) -> list[str]:
     """The stage's dependencies that travel (every one but parameters files, which come with the code tree), as
-    paths from the root. RlsacError for one outside the repository (no node could fetch it by that path)."""
+    paths from ``top``, the top of the git working tree (tree_root). RlsacError for one outside it (no node could
+    fetch it by that path)."""
     from dvc.dependency import ParamsDependency
 
     out = []
     for d in stage.deps:
         if isinstance(d, ParamsDependency):
             continue
-        rel = os.path.relpath(d.fs_path, root)
+        rel = os.path.relpath(os.path.realpath(d.fs_path), top)
         if rel.startswith(".."):
-            raise RlsacError(f"--remote: {stage.addressing} depends on {d.fs_path}, outside the repository")
+            raise RlsacError(f"--remote: {stage.addressing} depends on {d.fs_path}, outside the repository's git "
+                             f"working tree ({top})")
         out.append(Path(rel).as_posix())
     return out
 
@@ -393,12 +407,13 @@ def _tree_file(store: Store, oid: str) -> Path:
 
 
 def run_on_node(conf: dict, tree: str, spec: dict, deps: list[dict], env: dict[str, str], log: str,
-                run: Callable[..., dict]) -> dict:
+                run: Callable[..., dict], sub: str = ".") -> dict:
     """A Ray task's body on a node that shares no folder with the driver: a fresh folder with the code tree and the
     stage's inputs, ``run(folder, spec, env, log)`` (the direct runner), then the outputs into the bucket. -> run's
     result with "outs" [{"path", "oid", "cached"}], "ignore" as paths from the root, "log_text"; the folder is
-    removed. ``log``: the log's path from the root. "downloads" and "cache_hits": the objects it read from the
-    bucket and from the node's cache (NodeCache)."""
+    removed. ``log``: the log's path from the root; ``sub``: the DVC repository in the tree (Workspace.sub); ``deps``'
+    paths are from the tree's top, the outputs' from the repository. "downloads" and "cache_hits": the objects it read
+    from the bucket and from the node's cache (NodeCache)."""
     store = Store(conf)
     cache = NodeCache(store)
     work = Path(tempfile.mkdtemp(prefix="stage-", dir=_node_dir()))
@@ -411,12 +426,13 @@ def run_on_node(conf: dict, tree: str, spec: dict, deps: list[dict], env: dict[s
             fetch(cache, work, item)
         # the stage runs the driver's code (the tree's rlsac), not whatever version this node's environment holds
         env = {**env, "PYTHONPATH": os.pathsep.join(filter(None, [str(work), env.get("PYTHONPATH")]))}
-        r = run(str(work), spec, env, str(work / log))
-        r["log_text"] = (work / log).read_text(errors="replace") if (work / log).exists() else ""
-        r["ignore"] = [os.path.relpath(p, work) for p in r.get("ignore") or []]
+        root = work / sub
+        r = run(str(root), spec, env, str(root / log))
+        r["log_text"] = (root / log).read_text(errors="replace") if (root / log).exists() else ""
+        r["ignore"] = [os.path.relpath(p, root) for p in r.get("ignore") or []]
         if r["status"] == "done":
-            r["outs"] = _push_outs(store, work, spec, r["entry"], cache)
-            r["out_bytes"] = sum(_size(work / o["path"]) for o in r["outs"])
+            r["outs"] = _push_outs(store, root, spec, r["entry"], cache)
+            r["out_bytes"] = sum(_size(root / o["path"]) for o in r["outs"])
         r["downloads"], r["cache_hits"] = store.downloads, cache.hits
         return r
     finally:

@@ -36,9 +36,40 @@ def test_times_by_pattern_and_from_a_pipeline_artifact(tmp_path, capsys):
     artifact.write_text(json.dumps({"deps": DEPS, "results": {
         **{a: {"status": "done", "seconds": t} for a, t in TIMES.items()}, "f": {"status": "skipped",
                                                                              "seconds": None}}}))
-    proj.main(["--times", str(artifact), "--workers", "2", "--json"])
+    proj.main(["--times", str(artifact), "--workers", "2", "--json", "--overhead", "0"])
     out = json.loads(capsys.readouterr().out)
     assert out["n_stages"] == 5 and out["wall_s"] == {"2": 7.0} and out["critical_path_s"] == 6.0
+
+
+def test_per_stage_overhead_and_runner_work_taken_off(tmp_path, capsys):
+    """--overhead adds the runner's own seconds to every stage (by default the measured DIRECT_OVERHEAD_S); --less
+    takes off the runner work the times already hold, floored at 0."""
+    times = tmp_path / "times.json"
+    times.write_text(json.dumps(TIMES))
+
+    def walls(*flags):
+        proj.main(["--repo", str(tmp_path), "--times", str(times), "--workers", "1,2", "--json", *flags])
+        return json.loads(capsys.readouterr().out)
+
+    import unittest.mock as mock
+
+    with mock.patch.object(proj, "load_dag", return_value=DEPS):
+        # +1 s a stage: a 4, b 3, c 2, d 6, e 2; 2 workers: a, d at 0; b at 4; c at 6; e at 8 -> 10
+        assert walls("--overhead", "1")["wall_s"] == {"1": 17.0, "2": 10.0}
+        # -1 s a stage: a 2, b 1, c 0, d 4, e 0; 2 workers: a, d at 0; b at 2, c and e at 3; d ends at 4
+        assert walls("--overhead", "0", "--less", "1")["wall_s"] == {"1": 7.0, "2": 4.0}
+        default = walls()
+        assert default["overhead_s"] == proj.DIRECT_OVERHEAD_S
+        assert default["wall_s"]["1"] == pytest.approx(12.0 + 5 * proj.DIRECT_OVERHEAD_S)
+        for bad, why in ((["--overhead", "x"], "neither a number"), (["--overhead", "-1"], "at least 0"),
+                         (["--less", "-1"], "at least 0")):
+            with pytest.raises(SystemExit, match=why):
+                walls(*bad)
+
+
+def test_only_timed_leaves_out_stages_without_a_time():
+    deps, left = proj.timed_only({"x@1": [], "x@2": ["x@1", "new@1"], "new@1": [], "new@2": ["x@1"]}, {"x@*": 2})
+    assert deps == {"x@1": [], "x@2": ["x@1"]} and left == {"new": 2}
 
 
 def test_longest_path_first():

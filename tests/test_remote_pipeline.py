@@ -105,6 +105,42 @@ def test_nodes_without_a_shared_folder_end_as_a_single_host_run(tmp_path, s3, lo
     _remote_run_ends_as(par, seq, "5 done, 3 skipped, 0 failed, 0 not run")
 
 
+NESTED = {  # a DVC project in a subfolder of a git repository, reading a file of the repository outside it (as the
+    # quick profile, experiments/quick, reads ../../data/strecha)
+    "a": {"cmd": _write("a.txt", "a", ("../shared/in.txt",)), "deps": ["../shared/in.txt"], "outs": ["a.txt"]},
+    "b": {"cmd": _write("b.txt", "b", ("a.txt",)), "deps": ["a.txt"], "outs": [{"b.txt": {"cache": False}}]},
+}
+
+
+def _nested(path):
+    """A git repository with ``shared/in.txt`` and a DVC project at ``proj`` (``dvc init --subdir``). -> proj."""
+    import subprocess
+    import sys
+
+    from test_ray_pipeline import _env
+
+    (path / "shared").mkdir(parents=True)
+    (path / "shared" / "in.txt").write_text("in")
+    subprocess.run(["git", "init", "-q"], cwd=path, check=True)
+    (path / "proj").mkdir()
+    subprocess.run([sys.executable, "-m", "dvc", "init", "-q", "--subdir"], cwd=path / "proj", check=True, env=_env())
+    (path / "proj" / "dvc.yaml").write_text(yaml.safe_dump({"stages": NESTED}, sort_keys=False))
+    return path / "proj"
+
+
+def test_a_dvc_project_nested_in_a_git_repository_takes_its_outside_inputs_along(tmp_path, s3, local_ray):
+    """The quick profile's case: the code tree and the inputs' paths start at the git repository's top, the stage
+    runs in the project's folder inside it; the lock is a serial `dvc repro`'s."""
+    seq, par = _nested(tmp_path / "seq"), _nested(tmp_path / "par")
+    assert dvc(seq, "repro").returncode == 0
+    r = run_pipeline("--repo", str(par), "--workers", "2", "--no-tracking", "--remote", f"s3://{BUCKET}/nested")
+    assert r.exit_code == 0, r.output
+    assert summary(r.output)[0].startswith("pipeline: 2 done"), r.output
+    assert (par / "dvc.lock").read_bytes() == (seq / "dvc.lock").read_bytes()
+    assert (par / "b.txt").read_text() == "bain"
+    assert json.loads(dvc(par, "status", "--json").stdout) == {}
+
+
 def test_bad_remote_is_one_error_line_before_any_work(tmp_path, s3, monkeypatch):
     repo = make_repo(tmp_path / "repo", {"a": TOY["a"]})
     closed = f"http://127.0.0.1:{_free_port()}"
