@@ -32,6 +32,7 @@ Not carried: the run cache entries a node writes (``.dvc/cache/runs``) stay in i
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import io
 import json
@@ -397,13 +398,37 @@ class NodeCache:
             tmp.write_bytes(data)
 
 
-def _tree_file(store: Store, oid: str) -> Path:
-    """The code tree, fetched once per node (a rename makes it appear whole)."""
-    path = _node_dir() / "trees" / f"{oid}.tar.gz"
-    if not path.exists():
-        with atomic_path(path) as tmp:
-            store.get_file(oid, tmp)
+def _tree_dir(store: Store, oid: str) -> Path:
+    """The code tree, fetched and unpacked once per node (a rename makes it appear whole): each stage's folder is a
+    copy of it by hard links (the quick profile's tree is 9,300 files, 85 MB packed; unpacking it for every stage
+    cost seconds a stage). Safe because a stage never writes into a file of the tree in place: its outputs are
+    removed before its command runs (rlsac.dvc_stage.run), so what it writes are new files, and DVC's .gitignore edits
+    are recorded, not made (rlsac.dvc_stage)."""
+    path = _node_dir() / "trees" / oid
+    if not path.is_dir():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{oid}.", suffix=".tmp"))
+        try:
+            store.get_file(oid, tmp / "tree.tar.gz")
+            with tarfile.open(tmp / "tree.tar.gz") as tar:
+                tar.extractall(tmp / "tree", filter="tar")
+            with contextlib.suppress(OSError):  # another task of the node made it first: theirs is the same
+                os.rename(tmp / "tree", path)
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
     return path
+
+
+def _link_copy(src: Path, dest: Path) -> None:
+    """``src``'s files into the folder ``dest`` by hard links (symbolic links as links), copies where a link is
+    refused (another file system)."""
+    def link(a: str, b: str) -> None:
+        try:
+            os.link(a, b)
+        except OSError:
+            shutil.copy2(a, b)
+
+    shutil.copytree(src, dest, symlinks=True, copy_function=link, dirs_exist_ok=True)
 
 
 def run_on_node(conf: dict, tree: str, spec: dict, deps: list[dict], env: dict[str, str], log: str,
@@ -418,8 +443,7 @@ def run_on_node(conf: dict, tree: str, spec: dict, deps: list[dict], env: dict[s
     cache = NodeCache(store)
     work = Path(tempfile.mkdtemp(prefix="stage-", dir=_node_dir()))
     try:
-        with tarfile.open(_tree_file(store, tree)) as tar:
-            tar.extractall(work, filter="tar")
+        _link_copy(_tree_dir(store, tree), work)
         # DVC's output checks ask git (an output git tracks is refused): an empty repository, nothing tracked
         subprocess.run(["git", "init", "-q"], cwd=work, check=True)
         for item in deps:

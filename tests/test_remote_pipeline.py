@@ -102,7 +102,13 @@ def test_nodes_without_a_shared_folder_end_as_a_single_host_run(tmp_path, s3, lo
     for repo in (seq, par):
         (repo / "params.yaml").write_text(PARAMS.replace("scale: 2", "scale: 3"))
     assert dvc(seq, "repro").returncode == 0
+    before = (par / "reports" / "grid_x-1.txt").read_bytes()  # an output git would add: it travels in the tree
     _remote_run_ends_as(par, seq, "5 done, 3 skipped, 0 failed, 0 not run")
+    assert (par / "reports" / "grid_x-1.txt").read_bytes() != before
+    # a stage's folder is the node's unpacked tree by hard links: re-making that output in its folder left the
+    # node's tree as packed (the output is removed before the command writes it, never written in place)
+    trees = [t for t in (local_ray / "trees").iterdir() if (t / "reports" / "grid_x-1.txt").exists()]
+    assert [(t / "reports" / "grid_x-1.txt").read_bytes() for t in trees] == [before]
 
 
 NESTED = {  # a DVC project in a subfolder of a git repository, reading a file of the repository outside it (as the
