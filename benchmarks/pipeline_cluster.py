@@ -253,8 +253,10 @@ def summarise(results: dict, head: str, bytewise: bool = True) -> dict:
              "Per-stage overhead (wall time against list scheduling on the stage times, which the pipeline arms log as"
              " stage_s/<stage>):"]
     # each pipeline arm against its own stage times; dvc repro against the one-worker arm's (the same commands, one at
-    # a time): the difference is what each runner adds per stage (planning, Ray's start, hashing, dvc.lock)
-    serial = next((results[k]["times"] for k in ("workers1", "workers2") if results.get(k, {}).get("times")), None)
+    # a time), else the two-worker arm's: the difference is what each runner adds per stage (planning, Ray's start,
+    # hashing, dvc.lock; with --remote the transfers)
+    serial_arm = next((k for k in ("workers1", "workers2") if results.get(k, {}).get("times")), None)
+    serial = results[serial_arm]["times"] if serial_arm else None
     for arm, workers in (("dvc", 1), ("workers1", 1), ("workers2", 2), ("two-nodes", 2)):
         r = results.get(arm)
         times = serial if arm == "dvc" else (r or {}).get("times")
@@ -266,7 +268,7 @@ def summarise(results: dict, head: str, bytewise: bool = True) -> dict:
         over = (r["wall_s"] - bare) * workers / max(r["n_stages"], 1)
         out["arms"][arm].update(stage_time_total_s=round(sum(times.values()), 1),
                                 projection_without_overhead_s=round(bare, 1), overhead_per_stage_s=round(over, 2))
-        whose = "the one-worker arm's" if arm == "dvc" else "its own"
+        whose = f"the {serial_arm} arm's" if arm == "dvc" else "its own"
         lines.append(f"- {arm}: stage times {sum(times.values()):.1f} s in all ({whose}); "
                      f"list scheduling on {workers} worker(s) {bare:.1f} s; measured {r['wall_s']:.1f} s: "
                      f"{over:.2f} s per stage beyond the stages' own time")
