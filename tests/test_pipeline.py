@@ -7,6 +7,7 @@ from __future__ import annotations
 import os
 import re
 import shlex
+import sys
 from pathlib import Path
 
 import pytest
@@ -49,6 +50,18 @@ def _stage_bodies(pipeline: dict):
 def test_quick_dvc_yaml_is_the_same_pipeline():
     link = PROFILES["quick"] / "dvc.yaml"
     assert link.is_symlink() and link.resolve() == (ROOT / "dvc.yaml").resolve()
+
+
+def test_quick_profile_ignores_what_the_root_ignores():
+    """The quick profile's lock hashes the outputs the paper profile's does: without the root's .dvcignore it hashed
+    each evaluation's timing.json, so no two runs' locks were alike (issue #50)."""
+    import subprocess
+
+    link = PROFILES["quick"] / ".dvcignore"
+    assert link.is_symlink() and link.resolve() == (ROOT / ".dvcignore").resolve()
+    timing = "reports/eval/lines/ransac/o0.5/timing.json"
+    r = subprocess.run([sys.executable, "-m", "dvc", "check-ignore", "-q", timing], cwd=PROFILES["quick"])
+    assert r.returncode == 0
 
 
 def test_quick_profile_is_its_own_dvc_project():
