@@ -84,18 +84,24 @@ def load_dag(repo: str | os.PathLike) -> dict[str, list[str]]:
         r.close()
 
 
+def time_of(address: str, table: dict[str, float]) -> float | None:
+    """A stage's seconds from ``table``: its exact address, else the first matching fnmatch pattern; None for
+    neither."""
+    if address in table:
+        return float(table[address])
+    hit = next((p for p in table if fnmatch.fnmatchcase(address, p)), None)
+    return None if hit is None else float(table[hit])
+
+
 def stage_times(deps: dict[str, list[str]], table: dict[str, float]) -> dict[str, float]:
     """Each stage's seconds from ``table`` (exact address, else the first matching fnmatch pattern)."""
     out, missing = {}, []
     for a in deps:
-        if a in table:
-            out[a] = float(table[a])
-            continue
-        hit = next((p for p in table if fnmatch.fnmatchcase(a, p)), None)
-        if hit is None:
+        t = time_of(a, table)
+        if t is None:
             missing.append(a)
         else:
-            out[a] = float(table[hit])
+            out[a] = t
     if missing:
         raise SystemExit(f"error: no time for {len(missing)} stage(s), e.g. {missing[0]}")
     return out
@@ -237,7 +243,7 @@ def group_table(deps: dict[str, list[str]], measured: dict[str, float]) -> str:
 
 def timed_only(deps: dict[str, list[str]], table: dict[str, float]) -> tuple[dict[str, list[str]], dict[str, int]]:
     """``deps`` without the stages ``table`` has no time for (nor the edges to them). -> (deps, {group: n left out})."""
-    keep = {a for a in deps if a in table or any(fnmatch.fnmatchcase(a, pat) for pat in table)}
+    keep = {a for a in deps if time_of(a, table) is not None}
     left: dict[str, int] = {}
     for a in deps:
         if a not in keep:
@@ -295,7 +301,7 @@ def main(argv: list[str] | None = None) -> None:
                     help="Leave out the stages that have no time (named, per group) instead of stopping.")
     ap.add_argument("--json", action="store_true", help="Print the result as JSON.")
     args = ap.parse_args(argv)
-    overhead = measure_overhead() if args.overhead == "measure" else _seconds("--overhead", args.overhead)
+    given = None if args.overhead == "measure" else _seconds("--overhead", args.overhead)
     if args.less < 0:
         raise SystemExit("error: --less: must be at least 0")
     workers = [int(n) for n in args.workers.split(",")]
@@ -326,7 +332,9 @@ def main(argv: list[str] | None = None) -> None:
     left_out = {}
     if args.only_timed:
         deps, left_out = timed_only(deps, table)
-    p = projection(deps, with_overhead(stage_times(deps, table), overhead, args.less), workers)
+    times = stage_times(deps, table)
+    overhead = measure_overhead() if given is None else given  # after every check: measuring starts Ray
+    p = projection(deps, with_overhead(times, overhead, args.less), workers)
     p.update(overhead_s=overhead, less_s=args.less, left_out=left_out)
     if measured is not None:
         p["measured"] = len(measured)

@@ -385,10 +385,7 @@ class NodeCache:
             return
         with atomic_path(path) as tmp:
             os.unlink(tmp)
-            try:
-                os.link(src, tmp)
-            except OSError:  # another file system, or links refused
-                shutil.copyfile(src, tmp)
+            _link_or_copy(src, tmp)
 
     def add_bytes(self, oid: str, data: bytes) -> None:
         path = self._path(oid)
@@ -419,16 +416,18 @@ def _tree_dir(store: Store, oid: str) -> Path:
     return path
 
 
+def _link_or_copy(src: str | os.PathLike, dest: str | os.PathLike) -> None:
+    """``dest`` (absent) as a hard link to ``src``, a copy where a link is refused (another file system)."""
+    try:
+        os.link(src, dest)
+    except OSError:
+        shutil.copy2(src, dest)
+
+
 def _link_copy(src: Path, dest: Path) -> None:
     """``src``'s files into the folder ``dest`` by hard links (symbolic links as links), copies where a link is
-    refused (another file system)."""
-    def link(a: str, b: str) -> None:
-        try:
-            os.link(a, b)
-        except OSError:
-            shutil.copy2(a, b)
-
-    shutil.copytree(src, dest, symlinks=True, copy_function=link, dirs_exist_ok=True)
+    refused."""
+    shutil.copytree(src, dest, symlinks=True, copy_function=_link_or_copy, dirs_exist_ok=True)
 
 
 def run_on_node(conf: dict, tree: str, spec: dict, deps: list[dict], env: dict[str, str], log: str,
