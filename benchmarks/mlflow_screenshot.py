@@ -15,19 +15,12 @@ from __future__ import annotations
 import argparse
 import os
 import shutil
-import socket
 import subprocess
 import sys
 import tempfile
-import time
-import urllib.request
 from pathlib import Path
 
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from rlsac.tracking import mlflow_server
 
 
 def main() -> int:
@@ -46,18 +39,7 @@ def main() -> int:
     run("synth-lines", "--outlier", "0.5", "--n-instances", "20", "--out", "l.h5")
     for method in ("uniform", "ransac"):
         run("evaluate", "--task", "line", "--method", method, "--data", "l.h5", "--iterations", "50")
-    port = free_port()
-    server = subprocess.Popen([str(bin_dir / "mlflow"), "server", "--backend-store-uri", env["MLFLOW_TRACKING_URI"],
-                               "--host", "127.0.0.1", "--port", str(port)], cwd=work, env=env,
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:
-        base = f"http://127.0.0.1:{port}"
-        for _ in range(120):
-            try:
-                urllib.request.urlopen(base + "/health", timeout=1)
-                break
-            except OSError:
-                time.sleep(0.5)
+    with mlflow_server(env["MLFLOW_TRACKING_URI"], work) as base:
         import mlflow
 
         mlflow.set_tracking_uri(base)
@@ -70,10 +52,7 @@ def main() -> int:
                        check=True, capture_output=True, timeout=120)
         dom = subprocess.run([browser, "--headless", "--no-sandbox", "--disable-gpu", "--virtual-time-budget=15000",
                               "--dump-dom", url], check=True, capture_output=True, timeout=120, text=True).stdout
-    finally:
-        server.terminate()
-        server.wait(timeout=30)
-        shutil.rmtree(work, ignore_errors=True)
+    shutil.rmtree(work, ignore_errors=True)
     print(f"screenshot: {a.out} ({url})")
     print(f"runs table shown: {'Run Name' in dom or 'Run name' in dom}; GenAI overview: {'Token Usage' in dom}; "
           f"sorted by mAA: {'Sort: mAA' in dom}; metric columns: {'>Metrics<' in dom and '>mAA<' in dom}")

@@ -30,14 +30,13 @@ import contextlib
 import json
 import os
 import shutil
-import signal
-import socket
 import subprocess
 import sys
 import tempfile
 import time
-import urllib.request
 from pathlib import Path
+
+from rlsac.tracking import free_port, mlflow_server
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
@@ -46,12 +45,6 @@ sys.path.insert(0, str(HERE))
 ARMS = ("dvc", "workers1", "workers2", "two-nodes")
 QUICK = "experiments/quick"
 BUCKET = "rlsac-bench"
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _env(clone: Path, tracking: str, extra: dict[str, str] | None = None) -> dict[str, str]:
@@ -86,7 +79,7 @@ def _s3_server():
 
     logging.getLogger("werkzeug").setLevel(logging.ERROR)  # not a line per request
 
-    port = _free_port()
+    port = free_port()
     server = ThreadedMotoServer(ip_address="127.0.0.1", port=port, verbose=False)
     server.start()
     env = {"AWS_ENDPOINT_URL": f"http://127.0.0.1:{port}", "AWS_ACCESS_KEY_ID": "bench",
@@ -97,35 +90,6 @@ def _s3_server():
         yield env
     finally:
         server.stop()
-
-
-@contextlib.contextmanager
-def _mlflow_server(work: Path):
-    """``mlflow server`` on a sqlite store in ``work``; yields its http URI."""
-    port = _free_port()
-    base = f"http://127.0.0.1:{port}"
-    log = work / "mlflow-server.log"
-    with open(log, "w") as out:
-        proc = subprocess.Popen([str(Path(sys.executable).parent / "mlflow"), "server", "--backend-store-uri",
-                                 f"sqlite:///{work / 'server.db'}", "--artifacts-destination", str(work / "art"),
-                                 "--host", "127.0.0.1", "--port", str(port), "--workers", "1"],
-                                stdout=out, stderr=subprocess.STDOUT, cwd=work, start_new_session=True)
-    try:
-        deadline = time.monotonic() + 120
-        while True:
-            if proc.poll() is not None or time.monotonic() > deadline:
-                raise SystemExit(f"mlflow server did not start: {log.read_text()[-2000:]}")
-            with contextlib.suppress(OSError):
-                with urllib.request.urlopen(base + "/health", timeout=2) as r:
-                    if r.status == 200:
-                        break
-            time.sleep(0.5)
-        yield base
-    finally:
-        with contextlib.suppress(ProcessLookupError):
-            os.killpg(proc.pid, signal.SIGTERM)
-        with contextlib.suppress(subprocess.TimeoutExpired):
-            proc.wait(timeout=20)
 
 
 @contextlib.contextmanager
@@ -161,14 +125,14 @@ def run_arm(arm: str, src: Path, work: Path, targets: list[str]) -> dict:
             env = _env(clone, store)
         else:
             aws = stack.enter_context(_s3_server())
-            store = stack.enter_context(_mlflow_server(work / arm))
+            store = stack.enter_context(mlflow_server(f"sqlite:///{work / arm / 'server.db'}", work / arm))
             address = stack.enter_context(_two_nodes(work / arm))
             cmd = ["rlsac", "pipeline", *targets, "--repo", QUICK, "--address", address, "--remote",
                    f"s3://{BUCKET}/quick"]
             env = _env(clone, store, {**aws, "RAY_AUTH_MODE": "token"})
         rc, wall = _timed(cmd, clone, env, log)
         # the stage times a pipeline arm logged, read while its tracking server is still up
-        times = stage_seconds(clone, store) if arm != "dvc" and rc == 0 else None
+        deps, times = stage_seconds(clone, store) if arm != "dvc" and rc == 0 else (None, None)
     lock = clone / QUICK / "dvc.lock"
     status = subprocess.run([sys.executable, "-m", "dvc", "--cd", QUICK, "status", "--json", *targets], cwd=clone,
                             env=_env(clone, store), capture_output=True, text=True)
@@ -176,15 +140,18 @@ def run_arm(arm: str, src: Path, work: Path, targets: list[str]) -> dict:
 
     n = len((yaml.safe_load(lock.read_text()) or {}).get("stages", {})) if lock.is_file() else 0
     return {"arm": arm, "rc": rc, "wall_s": wall, "n_stages": n, "lock": lock.read_bytes() if lock.is_file() else b"",
-            "status": status.stdout.strip(), "clone": str(clone), "log": str(log), "times": times}
+            "status": status.stdout.strip(), "clone": str(clone), "log": str(log), "times": times,
+            "deps": deps}
 
 
-def stage_seconds(clone: Path, store: str) -> dict[str, float]:
-    """The stage times an ``rlsac pipeline`` run logged to its MLflow store (``stage_s/<stage>``)."""
+def stage_seconds(clone: Path, store: str) -> tuple[dict, dict[str, float]]:
+    """-> the quick profile's DAG (pipeline_projection.load_dag) and the stage times an ``rlsac pipeline`` run logged
+    to its MLflow store (``stage_s/<stage>``)."""
     from pipeline_projection import load_dag, mlflow_times
 
     repo = clone / QUICK
-    return mlflow_times(store, load_dag(repo), repo)
+    deps = load_dag(repo)
+    return deps, mlflow_times(store, deps, repo)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -231,7 +198,7 @@ def summarise(results: dict, head: str, bytewise: bool = True) -> dict:
     byte for byte (a whole pipeline); else their entries (`dvc repro <stages>` orders new entries as a Python set
     iterates)."""
     import yaml
-    from pipeline_projection import list_schedule, load_dag
+    from pipeline_projection import list_schedule
 
     def same_lock(x: bytes, y: bytes) -> bool:
         return x == y if bytewise else yaml.safe_load(x) == yaml.safe_load(y)
@@ -257,12 +224,13 @@ def summarise(results: dict, head: str, bytewise: bool = True) -> dict:
     # hashing, dvc.lock; with --remote the transfers)
     serial_arm = next((k for k in ("workers1", "workers2") if results.get(k, {}).get("times")), None)
     serial = results[serial_arm]["times"] if serial_arm else None
+    dag = results[serial_arm]["deps"] if serial_arm else None  # every arm's clone is of one commit: one DAG
     for arm, workers in (("dvc", 1), ("workers1", 1), ("workers2", 2), ("two-nodes", 2)):
         r = results.get(arm)
         times = serial if arm == "dvc" else (r or {}).get("times")
         if r is None or r["rc"] or not times:
             continue
-        deps = load_dag(Path(r["clone"]) / QUICK)
+        deps = r["deps"] or dag
         times = {a: times.get(a, 0.0) for a in deps}
         bare = list_schedule(deps, times, workers)
         over = (r["wall_s"] - bare) * workers / max(r["n_stages"], 1)

@@ -33,7 +33,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from rlsac.kernels import linear_for
+from rlsac.kernels import linear_for, neighbour_max_for
 
 MEMORY_CHANNELS = 3  # the environment's memory channels, appended after the data channels (rlsac.env.MEMORY_DIM)
 # Row x point pairs per chunk of the rollout path: per-step tensors stay at ~4096 x 128 floats (2 MB) and
@@ -118,38 +118,6 @@ def _edge_max(a: torch.Tensor, b: torch.Tensor, nbr: torch.Tensor,
     return F.leaky_relu_(a, 0.2)
 
 
-class _NeighbourMax(torch.autograd.Function):
-    """b (P, C), nbr (k P) neighbour rows, neighbour-major (nbr[j P + p]) -> (P, C) max over each
-    point's k neighbours.
-
-    Forward: one gather into (k, P, C) and a max over its outer dimension (vectorised, unlike a max
-    over the middle dimension of (P, k, C), and far unlike max-with-indices there: 55% of a SAC update).
-    Backward (the gather kept from the forward): each output gradient goes to the first neighbour that
-    reaches the max, one (P, C) scatter, instead of amax's backward over the whole gather (an equality
-    mask, a count and a product there, then a (P k, C) index_add). SAC update at batch 64, CPU time:
-    1.4x (lines) and 1.55x (fundamental) faster than the reference forward. Ties (equal features) give
-    the gradient to the first winner where amax splits it: the same total into the tied rows."""
-
-    @staticmethod
-    def forward(ctx, b: torch.Tensor, nbr: torch.Tensor, k: int) -> torch.Tensor:
-        g = b.index_select(0, nbr).view(k, -1, b.shape[1])
-        values = g.amax(dim=0)
-        if ctx.needs_input_grad[0]:
-            ctx.save_for_backward(g, nbr, values)
-            ctx.rows = b.shape[0]
-        return values
-
-    @staticmethod
-    def backward(ctx, grad: torch.Tensor):
-        g, nbr, values = ctx.saved_tensors
-        k = g.shape[0]
-        rows = nbr.view(k, -1, 1)
-        winner = rows[k - 1].expand_as(values)
-        for j in range(k - 2, -1, -1):  # the first neighbour reaching the max wins
-            winner = torch.where(g[j] == values, rows[j], winner)
-        return grad.new_zeros(ctx.rows, grad.shape[1]).scatter_add_(0, winner, grad), None, None
-
-
 @dataclass
 class Prepared:
     """What ``PointNet.precompute`` keeps per rollout: the data channels through the first layer, the
@@ -191,10 +159,13 @@ class PointNet(nn.Module):
             nn.Linear(conf.head_width // 2, 1),
         )
         self.linear = F.linear  # the training path's dense products (set_kernels); the rollout path keeps ATen's
+        self.neighbour_max = neighbour_max_for("eager")  # the training path's EdgeConv max (set_kernels)
 
-    def set_kernels(self, name: str) -> PointNet:
-        """The training path's products from kernels ``name`` (rlsac.kernels.KERNELS); not saved with the weights."""
+    def set_kernels(self, name: str, neighbour_max: str = "eager") -> PointNet:
+        """The training path's products from kernels ``name`` (rlsac.kernels.KERNELS) and its neighbour max from
+        ``neighbour_max`` (rlsac.kernels.NEIGHBOUR_MAX); not saved with the weights."""
         self.linear = linear_for(name)
+        self.neighbour_max = neighbour_max_for(neighbour_max)
         return self
 
     def graph(self, state: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
@@ -226,7 +197,7 @@ class PointNet(nn.Module):
         idx = self.graph(state, mask) if graph is None else graph
         R, N, k = idx.shape
         rows = torch.arange(R, device=idx.device).view(R, 1, 1) * N
-        flat = (idx + rows).view(R * N, k).t().reshape(-1)  # neighbour-major, as _NeighbourMax takes it
+        flat = (idx + rows).view(R * N, k).t().reshape(-1)  # neighbour-major, as neighbour_max takes it
         feats, x = [], state
         for i, conv in enumerate(self.convs):
             if i > 0 and self.conf.dynamic:
@@ -234,7 +205,7 @@ class PointNet(nn.Module):
                 flat = (idx + rows).view(R * N, k).t().reshape(-1)
             w2, wd, bias = conv.split()
             b = self.linear(x, w2).reshape(R * N, -1)
-            nb = _NeighbourMax.apply(b, flat, k).view(R, N, -1)
+            nb = self.neighbour_max(b, flat, k).view(R, N, -1)
             x = _leaky(self.linear(x, wd, bias) + nb)
             feats.append(x)
         local = torch.cat(feats, dim=-1) if len(feats) > 1 else feats[0]

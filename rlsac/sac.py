@@ -145,11 +145,12 @@ class SACAgent(torch.nn.Module):
         self.alpha_opt = torch.optim.Adam([self.log_alpha], lr=conf.alpha_lr)
         self.register_buffer("n_updates", torch.zeros((), dtype=torch.long))  # saved with the state: resume-safe
 
-    def set_kernels(self, name: str) -> SACAgent:
+    def set_kernels(self, name: str, neighbour_max: str = "eager") -> SACAgent:
         """Every network's training-path products from kernels ``name`` (rlsac.kernels): ATen's, the record's, or
-        oneDNN's (the same function, faster under the portable pins, other last bits)."""
+        oneDNN's (the same function, faster under the portable pins, other last bits); and its neighbour max, eager
+        (the record's) or compiled (the same bytes, faster)."""
         for net in (self.actor, self.qf1, self.qf2, self.qf1_target, self.qf2_target):
-            net.set_kernels(name)
+            net.set_kernels(name, neighbour_max)
         return self
 
     def update(self, s, s2, mask, graph, action, reward, done, labels=None) -> dict[str, float]:

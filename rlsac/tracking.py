@@ -303,3 +303,59 @@ def start_run(experiment: str, run_name: str, params: dict[str, Any] | None = No
         raise
     finally:
         mlflow.end_run(status=status)
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that nothing listens on now."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@contextlib.contextmanager
+def mlflow_server(store_uri: str, work: str | os.PathLike, extra: tuple[str, ...] = (), port: int | None = None,
+                  timeout_s: float = 120.0) -> Iterator[str]:
+    """``mlflow server`` (this interpreter's) on ``store_uri``, artifacts and its log in ``work``, on 127.0.0.1;
+    yields its http URI once /health answers, and stops it and the workers it spawned on exit. RuntimeError with
+    the end of its log where it exits or does not answer within ``timeout_s``. For the tests and benchmarks that
+    need a tracking server (docs/reproducing.md starts one by hand for a cluster)."""
+    import shutil
+    import signal
+    import subprocess
+    import sys
+    import time
+    import urllib.request
+
+    exe = Path(sys.executable).parent / "mlflow"
+    exe = str(exe) if exe.is_file() else shutil.which("mlflow")
+    if exe is None:
+        raise RuntimeError("no mlflow executable beside this interpreter or on PATH")
+    work = Path(work)
+    port = port or free_port()
+    base, log = f"http://127.0.0.1:{port}", work / "mlflow-server.log"
+    with open(log, "w") as out:
+        proc = subprocess.Popen([exe, "server", "--backend-store-uri", store_uri, "--artifacts-destination",
+                                 str(work / "mlflow-artifacts"), "--host", "127.0.0.1", "--port", str(port),
+                                 "--workers", "1", *extra],
+                                stdout=out, stderr=subprocess.STDOUT, cwd=work, start_new_session=True)
+    try:
+        deadline = time.monotonic() + timeout_s
+        while True:
+            if proc.poll() is not None or time.monotonic() > deadline:
+                why = f"exited with {proc.returncode}" if proc.returncode is not None else f"no answer in {timeout_s} s"
+                raise RuntimeError(f"mlflow server {why}:\n{log.read_text()[-3000:]}")
+            with contextlib.suppress(OSError):
+                with urllib.request.urlopen(base + "/health", timeout=2) as r:
+                    if r.status == 200:
+                        break
+            time.sleep(0.3)
+        yield base
+    finally:
+        for sig in (signal.SIGTERM, signal.SIGKILL):  # the server and the workers it spawned (its own session)
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(proc.pid, sig)
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                proc.wait(timeout=10)
+                break

@@ -32,7 +32,6 @@ Not carried: the run cache entries a node writes (``.dvc/cache/runs``) stay in i
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import io
 import json
@@ -409,8 +408,11 @@ def _tree_dir(store: Store, oid: str) -> Path:
             store.get_file(oid, tmp / "tree.tar.gz")
             with tarfile.open(tmp / "tree.tar.gz") as tar:
                 tar.extractall(tmp / "tree", filter="tar")
-            with contextlib.suppress(OSError):  # another task of the node made it first: theirs is the same
+            try:
                 os.rename(tmp / "tree", path)
+            except OSError:
+                if not path.is_dir():  # a real failure, not another task of the node making it first (theirs is ours)
+                    raise
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
     return path

@@ -66,3 +66,53 @@ def test_the_option_is_stored_only_off_its_default_and_checked(tmp_path):
     assert stored_conf(TrainConf(kernels="onednn"))["kernels"] == "onednn"
     with pytest.raises(RlsacError, match="kernels"):
         check({**base, "kernels": "mkl"}, track=False)
+
+
+def test_the_compiled_neighbour_max_has_the_eager_ones_bytes_forward_and_backward():
+    """The same values and the same gradient bytes, a tied maximum's gradient to its first neighbour included."""
+    from rlsac.kernels import neighbour_max_for
+
+    eager, compiled = neighbour_max_for("eager"), neighbour_max_for("compiled")
+    g = torch.Generator().manual_seed(0)
+    P, C, k = 40, 6, 5
+    b = torch.randn(P, C, generator=g)
+    b[:8] = 0.5  # ties between neighbours
+    nbr = torch.randint(P, (k * P,), generator=g)
+    w = torch.randn(P, C, generator=g)
+    out = []
+    for fn in (eager, compiled):
+        x = b.clone().requires_grad_(True)
+        y = fn(x, nbr, k)
+        (y * w).sum().backward()
+        out.append((y.detach(), x.grad))
+    assert torch.equal(out[0][0], out[1][0]) and torch.equal(out[0][1], out[1][1])
+    t = torch.tensor([[1.0], [1.0], [0.0]], requires_grad=True)
+    order = torch.tensor([[2, 1, 0, 1], [2, 2, 2, 2], [2, 2, 2, 2]]).T.reshape(-1)  # point 0's neighbours 2, 1, 0, 1
+    compiled(t, order, 4)[0].sum().backward()
+    assert t.grad[:, 0].tolist() == [0.0, 1.0, 0.0]  # the first neighbour reaching the max: row 1
+    with pytest.raises(ValueError, match="eager, compiled"):
+        neighbour_max_for("fused")
+
+
+def test_updates_with_the_compiled_neighbour_max_leave_the_same_weights():
+    torch.manual_seed(0)
+    ref = SACAgent(9, PolicyConf(k=5, widths=[8, 8], global_width=8, head_width=8), SACConf(batch_size=6))
+    fast = copy.deepcopy(ref).set_kernels("aten", "compiled")
+    gen = torch.Generator().manual_seed(1)
+    for _ in range(3):
+        batch = _batch(gen)
+        assert fast.update(*batch) == ref.update(*batch)
+    for p, q in zip(ref.parameters(), fast.parameters(), strict=True):
+        assert torch.equal(p, q)
+
+
+def test_the_neighbour_max_is_a_speed_setting_never_stored_and_checked(tmp_path, monkeypatch):
+    import shutil
+
+    base = {"task": "line", "data": str(tmp_path / "x.h5"), "out": str(tmp_path / "m.pt")}
+    assert stored_conf(TrainConf(neighbour_max="compiled")) == stored_conf(TrainConf())  # the same checkpoint bytes
+    with pytest.raises(RlsacError, match="neighbour_max"):
+        check({**base, "neighbour_max": "fused"}, track=False)
+    monkeypatch.setattr(shutil, "which", lambda name: None)
+    with pytest.raises(RlsacError, match="C\\+\\+ compiler"):
+        check({**base, "neighbour_max": "compiled"}, track=False)

@@ -388,7 +388,7 @@ def test_rollout_forward_one_neighbour_at_a_time_is_the_same_network(monkeypatch
 def test_neighbour_max_gradient_goes_to_the_winning_neighbour():
     """_NeighbourMax's backward equals autograd through gather + amax when there are no ties, and gives a
     tied maximum's whole gradient to the first neighbour (in neighbour order) that reaches it."""
-    from rlsac.policy import _NeighbourMax
+    from rlsac.kernels import NeighbourMax as _NeighbourMax
 
     g = torch.Generator().manual_seed(0)
     P, C, k = 7, 3, 4

@@ -393,21 +393,13 @@ def _host_status(base: str, host: str) -> int:
 
 
 def test_stages_log_to_one_mlflow_server(tmp_path, monkeypatch):
-    from test_mlflow_server import _free_port, _mlflow_exe, _post, _stop, _wait_up
+    from test_mlflow_server import _post
 
-    exe = _mlflow_exe()
-    assert exe is not None
-    port = _free_port()
-    base = f"http://127.0.0.1:{port}"
-    log = tmp_path / "server.log"
-    with open(log, "w") as out:
-        proc = subprocess.Popen(
-            [exe, "server", "--backend-store-uri", f"sqlite:///{tmp_path / 'server.db'}",
-             "--artifacts-destination", str(tmp_path / "art"), "--host", "127.0.0.1", "--port", str(port),
-             "--workers", "1", "--allowed-hosts", f"head-node:{port},127.0.0.1:*"],  # docs/reproducing.md's
-            stdout=out, stderr=subprocess.STDOUT, cwd=tmp_path, start_new_session=True)
-    try:
-        _wait_up(base, proc, log)
+    from rlsac.tracking import free_port, mlflow_server
+
+    port = free_port()
+    allowed = ("--allowed-hosts", f"head-node:{port},127.0.0.1:*")  # docs/reproducing.md's
+    with mlflow_server(f"sqlite:///{tmp_path / 'server.db'}", tmp_path, allowed, port=port) as base:
         # MLflow 3 answers only the Host headers it allows: the cluster's name for the server, not another one
         assert [_host_status(base, f"{name}:{port}") for name in ("head-node", "other-node")] == [200, 403]
         seeds = range(4)
@@ -433,9 +425,7 @@ def test_stages_log_to_one_mlflow_server(tmp_path, monkeypatch):
         metrics = {m["key"]: m["value"] for m in pipe[0]["data"]["metrics"]}
         assert metrics["n_done"] == len(seeds) and metrics["n_failed"] == 0
         assert {f"stage_s/s{i}" for i in seeds} <= set(metrics)
-    finally:
-        _stop(proc)
-    shutil.rmtree(tmp_path / "art", ignore_errors=True)
+    shutil.rmtree(tmp_path / "mlflow-artifacts", ignore_errors=True)
 
 
 def test_help_does_not_import_ray():
@@ -464,7 +454,7 @@ def _wait_for_port(port: int, proc, timeout: float = 180.0) -> None:
 def test_joins_a_ray_cluster_by_address(tmp_path):
     """`--address HOST:PORT` joins a cluster started with `ray start --head` (token authentication on: the
     module's local cluster made ~/.ray/auth_token) and runs the stages there."""
-    from test_mlflow_server import _free_port
+    from rlsac.tracking import free_port as _free_port
 
     port = _free_port()
     ray_exe = str(Path(sys.executable).parent / "ray")

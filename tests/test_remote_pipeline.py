@@ -17,10 +17,10 @@ import pytest
 import ray
 import yaml
 from click.testing import CliRunner
-from test_mlflow_server import _free_port
 from test_ray_pipeline import PARAMS, PIPE, TOOL, TOY, _tree, _write, dvc, make_repo, run_pipeline, summary
 
 from rlsac.cli import cli
+from rlsac.tracking import free_port
 
 BUCKET = "rlsac-test"
 
@@ -47,7 +47,7 @@ def s3(tmp_path, monkeypatch):
     import boto3
     from moto.server import ThreadedMotoServer
 
-    port = _free_port()
+    port = free_port()
     server = ThreadedMotoServer(ip_address="127.0.0.1", port=port, verbose=False)
     server.start()
     env = {"AWS_ENDPOINT_URL": f"http://127.0.0.1:{port}", "AWS_ACCESS_KEY_ID": "testing",
@@ -149,7 +149,7 @@ def test_a_dvc_project_nested_in_a_git_repository_takes_its_outside_inputs_along
 
 def test_bad_remote_is_one_error_line_before_any_work(tmp_path, s3, monkeypatch):
     repo = make_repo(tmp_path / "repo", {"a": TOY["a"]})
-    closed = f"http://127.0.0.1:{_free_port()}"
+    closed = f"http://127.0.0.1:{free_port()}"
     for args, env, message in (
             (["--remote", "http://host/bucket"], {}, "not s3://bucket/prefix"),
             (["--remote", "s3://"], {}, "not s3://bucket/prefix"),

@@ -23,7 +23,7 @@ from rlsac.env import EnvConf
 from rlsac.episodes import EpisodeConf
 from rlsac.errors import RlsacError
 from rlsac.io import check_writable
-from rlsac.kernels import KERNELS
+from rlsac.kernels import KERNELS, NEIGHBOUR_MAX, neighbour_max_for
 from rlsac.ngransac import NGRansacConf
 from rlsac.policy import PolicyConf
 from rlsac.sac import SACConf
@@ -86,6 +86,10 @@ class TrainConf:
     # the SAC update's dense products (rlsac.kernels): "aten", the record's; "onednn", the same function about 1.5x
     # faster on CPU under the portable pins, other last bits (not in the paper: an implementation choice)
     kernels: str = "aten"
+    # the SAC update's EdgeConv neighbour max (rlsac.kernels): "eager", the record's; "compiled", torch.compile's fused
+    # kernels (a C++ compiler at run time), the same bytes, 1.37x faster per update (reports/speed_training.json); a
+    # speed setting, so a state trained with one resumes with the other
+    neighbour_max: str = "eager"
     # not in the paper (issue #46, the pretraining arm): a training state (<out>.state.pt of another run) whose networks
     # (actor, critics, targets, temperature) start this run; its optimisers, replay buffer and step are not carried
     # (they belong to the other run's data): step 0, an empty buffer, fresh Adam moments. "" = random initialisation
@@ -95,12 +99,15 @@ class TrainConf:
     ranges = {"task": TASKS, "method": LEARNERS, "device": ("auto", "cpu", "cuda"), "seed": "[0, 4294967295]",
               "threads": "[0, inf)", "val_instances": "[1, inf)", "val_iterations": "[1, inf)",
               "val_every": "[1, inf)", "ckpt_every": "[1, inf)", "selection": SELECTIONS, "snapshot_steps": "[1, inf)",
-              "kernels": KERNELS}
+              "kernels": KERNELS, "neighbour_max": NEIGHBOUR_MAX}
 
 
 # options added after the record, left out of a stored configuration while at their default: the record's
 # checkpoints (and so their bytes) are what they were (rlsac verify --include-train)
 LATER_DEFAULTS = {"episodes": to_dict(EpisodeConf()), "snapshot_steps": [], "kernels": "aten", "init": ""}
+# speed settings that leave every byte of a run as it is: never stored (a checkpoint is the same file either way, and a
+# state resumes under either), logged with the run's parameters
+SPEED_ONLY = ("neighbour_max",)
 # keys added to a section after runs that stored it, left out while at their default (the scale study's states resume
 # only a state whose stored configuration is their own: saved_step below)
 LATER_SECTION_DEFAULTS = {"episodes": {"prefilter": []}}
@@ -108,10 +115,10 @@ LATER_SECTION_DEFAULTS = {"episodes": {"prefilter": []}}
 
 def stored_conf(conf: TrainConf) -> dict:
     """The configuration a checkpoint and its MLflow run keep: every field but the other methods' sections (and, for
-    RLSAC, the ``method`` key: its default; ``LATER_DEFAULTS`` at their defaults)."""
+    RLSAC, the ``method`` key: its default; ``LATER_DEFAULTS`` at their defaults; ``SPEED_ONLY``)."""
     other = {s for m, secs in OWN_SECTIONS.items() if m != conf.method for s in secs}
     out = {k: v for k, v in to_dict(conf).items() if k not in other and not (k == "method" and conf.method == "rlsac")
-           and not (k in LATER_DEFAULTS and v == LATER_DEFAULTS[k])}
+           and not (k in LATER_DEFAULTS and v == LATER_DEFAULTS[k]) and k not in SPEED_ONLY}
     for sec, later in LATER_SECTION_DEFAULTS.items():
         if sec in out:
             out[sec] = {k: v for k, v in out[sec].items() if not (k in later and v == later[k])}
@@ -142,6 +149,7 @@ def check(options: dict, track: bool = True) -> TrainConf:
         raise RlsacError(f"{conf.init}: no such training state to start from (train --set init=...)")
     out = check_writable(conf.out, "checkpoint")
     check_writable(out.with_suffix(".state.pt"), "training state")
+    neighbour_max_for(conf.neighbour_max)  # a missing C++ compiler is named here, before any work
     check_store(track, task_experiment(conf.task))
     return conf
 

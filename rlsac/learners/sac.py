@@ -26,6 +26,7 @@ from rlsac.episodes import RedrawnPairs, pool_tensors
 from rlsac.errors import Interrupted, RlsacError
 from rlsac.io import atomic_path, clean_stale_temps, load_torch
 from rlsac.learners.harness import (
+    SPEED_ONLY,
     TrainConf,
     load_data,
     logged_conf,
@@ -57,7 +58,7 @@ def train(conf: TrainConf, track: bool = True, snapshots: list | None = None) ->
     gen = seed_everything(conf.seed)
     if device.type != "cpu":
         gen = torch.Generator(device=device).manual_seed(conf.seed)
-    agent = SACAgent(in_channels(task), conf.policy, conf.sac).to(device).set_kernels(conf.kernels)
+    agent = SACAgent(in_channels(task), conf.policy, conf.sac).to(device).set_kernels(conf.kernels, conf.neighbour_max)
     episodes = None
     if conf.episodes.pool:  # issue #46: a fresh draw of each pair's pool per episode
         pool, _ = read_batch(conf.task, conf.episodes.pool, device)
@@ -121,7 +122,7 @@ class _TrainingRun:
         return name + (f" resumed at {self.start}" if conf.resume else "")
 
     def logged_conf(self) -> dict:
-        return logged_conf(self.conf_dict)
+        return {**logged_conf(self.conf_dict), **{k: getattr(self.conf, k) for k in SPEED_ONLY}}
 
     def tags(self) -> dict:
         tags = {"command": "train", **self.conf.tags, "out": str(self.out)}
