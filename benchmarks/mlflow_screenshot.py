@@ -39,20 +39,24 @@ def main() -> int:
     run("synth-lines", "--outlier", "0.5", "--n-instances", "20", "--out", "l.h5")
     for method in ("uniform", "ransac"):
         run("evaluate", "--task", "line", "--method", method, "--data", "l.h5", "--iterations", "50")
-    with mlflow_server(env["MLFLOW_TRACKING_URI"], work) as base:
-        import mlflow
+    try:
+        with mlflow_server(env["MLFLOW_TRACKING_URI"], work) as base:
+            import mlflow
 
-        mlflow.set_tracking_uri(base)
-        exp = mlflow.get_experiment_by_name("lines")
-        # MLflow 3 opens on its GenAI pages unless asked for the model-training workflow (a URL parameter, then
-        # remembered by the browser): the link the docs give
-        url = f"{base}/#/experiments/{exp.experiment_id}/runs?workflowType=machine_learning&viewStateShareKey=rlsac"
-        subprocess.run([browser, "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars",
-                        "--window-size=2800,900", "--virtual-time-budget=15000", f"--screenshot={a.out}", url],
-                       check=True, capture_output=True, timeout=120)
-        dom = subprocess.run([browser, "--headless", "--no-sandbox", "--disable-gpu", "--virtual-time-budget=15000",
-                              "--dump-dom", url], check=True, capture_output=True, timeout=120, text=True).stdout
-    shutil.rmtree(work, ignore_errors=True)
+            mlflow.set_tracking_uri(base)
+            exp = mlflow.get_experiment_by_name("lines")
+            # MLflow 3 opens on its GenAI pages unless asked for the model-training workflow (a URL parameter, then
+            # remembered by the browser): the link the docs give
+            url = (f"{base}/#/experiments/{exp.experiment_id}/runs"
+                   "?workflowType=machine_learning&viewStateShareKey=rlsac")
+            subprocess.run([browser, "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars",
+                            "--window-size=2800,900", "--virtual-time-budget=15000", f"--screenshot={a.out}", url],
+                           check=True, capture_output=True, timeout=120)
+            dom = subprocess.run([browser, "--headless", "--no-sandbox", "--disable-gpu",
+                                  "--virtual-time-budget=15000", "--dump-dom", url],
+                                 check=True, capture_output=True, timeout=120, text=True).stdout
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
     print(f"screenshot: {a.out} ({url})")
     print(f"runs table shown: {'Run Name' in dom or 'Run name' in dom}; GenAI overview: {'Token Usage' in dom}; "
           f"sorted by mAA: {'Sort: mAA' in dom}; metric columns: {'>Metrics<' in dom and '>mAA<' in dom}")

@@ -20,6 +20,7 @@ tests/test_kernels.py and benchmarks/sac_update.py), and faster: reports/speed_t
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 
 import torch
@@ -118,15 +119,11 @@ def _scatter_to_winner(grad: torch.Tensor, winner: torch.Tensor, nbr: torch.Tens
     return grad.new_zeros(rows, grad.shape[1]).scatter_add_(0, to, grad)
 
 
-_COMPILED: dict = {}
-
-
+@functools.cache
 def _compiled(fn):
     """fn through torch.compile, once per process; one thread, so the scatter adds in point order (inductor's
     parallel scatter adds atomically, in any order: other last bits)."""
-    if fn not in _COMPILED:
-        _COMPILED[fn] = torch.compile(fn, options={"cpp.threads": 1})
-    return _COMPILED[fn]
+    return torch.compile(fn, options={"cpp.threads": 1})
 
 
 class CompiledNeighbourMax(torch.autograd.Function):

@@ -386,21 +386,21 @@ def test_rollout_forward_one_neighbour_at_a_time_is_the_same_network(monkeypatch
 
 
 def test_neighbour_max_gradient_goes_to_the_winning_neighbour():
-    """_NeighbourMax's backward equals autograd through gather + amax when there are no ties, and gives a
+    """NeighbourMax's backward equals autograd through gather + amax when there are no ties, and gives a
     tied maximum's whole gradient to the first neighbour (in neighbour order) that reaches it."""
-    from rlsac.kernels import NeighbourMax as _NeighbourMax
+    from rlsac.kernels import NeighbourMax
 
     g = torch.Generator().manual_seed(0)
     P, C, k = 7, 3, 4
     b = torch.randn(P, C, generator=g, requires_grad=True)
     nbr = torch.randint(P, (k * P,), generator=g)
     w = torch.randn(P, C, generator=g)
-    (_NeighbourMax.apply(b, nbr, k) * w).sum().backward()
+    (NeighbourMax.apply(b, nbr, k) * w).sum().backward()
     b2 = b.detach().clone().requires_grad_(True)
     (b2.index_select(0, nbr).view(k, P, C).amax(0) * w).sum().backward()
     assert torch.allclose(b.grad, b2.grad)
     # ties: rows 0 and 1 are equal; point 0's neighbours are [2, 1, 0, 1]: the gradient goes to row 1
     t = torch.tensor([[1.0], [1.0], [0.0]], requires_grad=True)
     order = torch.tensor([[2, 1, 0, 1], [2, 2, 2, 2], [2, 2, 2, 2]]).T.reshape(-1)  # neighbour-major
-    _NeighbourMax.apply(t, order, 4)[0].sum().backward()
+    NeighbourMax.apply(t, order, 4)[0].sum().backward()
     assert t.grad[:, 0].tolist() == [0.0, 1.0, 0.0]
