@@ -487,6 +487,13 @@ def folds(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
     return result
 
 
+def _kept(train: dict[str, Any]) -> str:
+    """Which actor a training kept: the last one (selection: last, no score to report), or the best by its rule."""
+    if train["selection"] == "last":
+        return f"the last actor, step {train['steps']}"
+    return f"best {train['selection']} {train['best_score']:.3f} at step {train['best_step']}"
+
+
 def format_summary(s: dict[str, Any]) -> str:
     from rlsac import tune
 
@@ -497,8 +504,7 @@ def format_summary(s: dict[str, Any]) -> str:
     if s["stage"] == "pool":
         return head + f"{s['pool']['pairs']} training pairs, {s['pool']['points']} points each -> {s['pool']['pool']}"
     if s["stage"] == "train":
-        return head + "; ".join(f"{m} -> {v['checkpoint']} (best {v['selection']} {v['best_score']:.3f} at step "
-                                f"{v['best_step']})" for m, v in s["models"].items())
+        return head + "; ".join(f"{m} -> {v['checkpoint']} ({_kept(v)})" for m, v in s["models"].items())
     if s["stage"] == "tune":
         return head + "; ".join(f"{t['row']}: {t['chosen']} (val mAA {t['mAA']:.3f})" for t in s["tuned"]) + (
             f" -> {tune.record_path(s['regime'], s['fold'], '-', s['task'], s.get('tuned_at')).parent}")

@@ -888,3 +888,15 @@ def test_a_pool_recipe_may_wait_outside_the_lists_until_its_runs_are_recorded():
     assert p["pool_models"] == [] and p["file_models"] == ["rlsac"]
     with pytest.raises(RlsacError, match="only a model of folds.pool_models"):
         folds.protocol({"folds": {**staged, "models": ["rlsac", "rlsac-scale"]}})
+
+
+def test_the_train_summary_says_which_actor_was_kept():
+    """A run kept by a rule names its score and step; a run that keeps the last actor (RLSAC at scale) has no score
+    to report and says so, instead of a sentinel score at step None."""
+    s = {"stage": "train", "regime": "hard", "fold": "castle", "seconds": 1.0, "models": {
+        "rlsac": {"checkpoint": "a.pt", "selection": "inlier_ratio", "best_score": 0.4251, "best_step": 200,
+                  "steps": 300},
+        "rlsac-scale": {"checkpoint": "b.pt", "selection": "last", "best_score": -1.0, "best_step": None,
+                        "steps": 10000}}}
+    assert folds.format_summary(s) == ("folds train hard/castle (1.0 s): rlsac -> a.pt (best inlier_ratio 0.425 at "
+                                       "step 200); rlsac-scale -> b.pt (the last actor, step 10000)")
