@@ -128,15 +128,9 @@ def test_pool_models_train_on_their_folds_pool_with_every_seed():
 
 @pytest.mark.parametrize("params", ["params.yaml", "experiments/quick/params.yaml"])
 def test_profiles_train_rlsac_at_scale_on_the_folds_pool(params):
-    """Both profiles: rlsac-scale is a pool model with every seed (the paper profile's waits outside the lists until
-    its runs, trained across sessions, are recorded), outside the lists whose stages re-train with the fold's files
-    only, and the paper profile's recipe is the scale study's."""
+    """Both profiles: rlsac-scale is a pool model with every seed, outside the lists whose stages re-train with the
+    fold's files only, and the paper profile's recipe is the scale study's (with oneDNN's kernels, issue #46)."""
     p = folds.protocol(load_params(ROOT / params))
-    if params == "params.yaml":  # staged: its recipe defined, no stage yet
-        p = folds.protocol({"folds": {**load_params(ROOT / params)["folds"], "pool_models": ["rlsac-scale"],
-                                      "models": p["models"] + ["rlsac-scale"],
-                                      "seed_models": p["seed_models"] + ["rlsac-scale"],
-                                      "file_models": None, "file_seed_models": None}})
     assert p["pool_models"] == ["rlsac-scale"] and "rlsac-scale" in p["models"] and "rlsac-scale" in p["seed_models"]
     for key in ("select_models", "lo_models", "fast", "ablation_models", "prob_models", "points_models"):
         assert "rlsac-scale" not in p[key], key
@@ -145,6 +139,7 @@ def test_profiles_train_rlsac_at_scale_on_the_folds_pool(params):
     assert recipe["selection"] == "last"
     if params == "params.yaml":
         assert recipe["sac"]["total_steps"] == 10000  # the scale study's choice on validation (reports/scale.md)
+        assert recipe["kernels"] == "onednn"  # what its 20 runs were trained with (Table 2's legend says so)
         assert p["pool"][p["model_regime"]] == 1000
 
 
@@ -649,7 +644,8 @@ def test_fold_table_shows_rlsac_at_scale_absent_then_with_its_seeds(tmp_path):
     md = (tmp_path / "out" / "table2_folds.md").read_text()
     assert ("RLSAC at scale (`rlsac-scale`, not in the paper; five training seeds like RLSAC): the scale study's "
             "recipe: 10000 steps (33x), episodes redrawn from each pair's 1000 lowest-SNN matches with the images "
-            "swapped, last actor; reports/scale.md.") in md
+            "swapped, last actor, oneDNN kernels (`kernels: onednn`: the same losses as the study's, other last "
+            "bits); reports/scale.md.") in md
     line = next(x for x in md.split("### 100 iterations", 1)[1].splitlines() if x.startswith(f"| {label} "))
     assert set(c.strip() for c in line.split("|")[2:-1]) == {"no LO", "–"}
     assert "rlsac-scale" not in set(pd.read_csv(tmp_path / "out" / "table2_folds.csv")["method"])

@@ -61,7 +61,8 @@ EXPECTED = ("rlsac-scale",)
 # the rows whose recipe the table's head states in a line of its own (rows not in the paper, named briefly)
 LEGEND = ("RLSAC at scale (`rlsac-scale`, not in the paper; five training seeds like RLSAC): the scale study's recipe: "
           "10000 steps (33x), episodes redrawn from each pair's 1000 lowest-SNN matches with the images swapped, last "
-          "actor; reports/scale.md.\n")
+          "actor, oneDNN kernels (`kernels: onednn`: the same losses as the study's, other last bits); "
+          "reports/scale.md.\n")
 CONTROLS = ("uniform", "guided")  # the learned sampler against uniform sets, and against a hand-made SNN-guided one
 
 
