@@ -6,11 +6,14 @@
 - the driver plans once and hands a worker each stage's ``spec`` (its dvc.yaml, name, resolved definition and
   lock entry: ``stage_spec``), so the worker rebuilds the stage with DVC's loader without parsing either file;
 - the worker (``run``) does what ``Stage.reproduce`` / ``Stage.run`` do, minus the locks: it skips a stage that
-  DVC would find unchanged, removes its outputs (persistent ones are kept), runs each line of its ``cmd`` as DVC
-  does (DVC's shell, working directory and environment), hashes deps and outs (``Stage.save``, which also fills
-  the run cache), commits cached outputs to the DVC cache (``Output.commit``) and returns the stage's lock entry
-  as ``dvc.stage.serialize.to_lockfile`` makes it; the .gitignore entries DVC would add are returned, not
-  written (several workers would append to one file at once);
+  DVC would find unchanged, sets its outputs aside (``set_aside``; persistent ones are kept), runs each line of its
+  ``cmd`` as DVC does (DVC's shell, working directory and environment), hashes deps and outs (``Stage.save``,
+  which also fills the run cache), commits cached outputs to the DVC cache (``Output.commit``) and returns the
+  stage's lock entry as ``dvc.stage.serialize.to_lockfile`` makes it; the .gitignore entries DVC would add are
+  returned, not written (several workers would append to one file at once). The outputs set aside are deleted once
+  the entry is made and put back when the command fails (``restore``; the driver does it for a stage it
+  interrupts): `dvc repro` deletes a stage's outputs before its command, so a failed or interrupted stage would
+  leave committed files deleted, and a failed command must not change tracked files;
 - the driver (``LockWriter``) adds the .gitignore entries and merges the entries into dvc.lock: each entry is
   rendered by DVC's YAML dumper and spliced into the file's text in the place DVC puts it (an existing entry where
   it was, a new one at the end in ``dvc repro``'s order), and the file is written to a temporary file beside it
@@ -26,8 +29,11 @@ What ``dvc repro`` does that this does not: restore a stage's outputs from the r
 from __future__ import annotations
 
 import contextlib
+import hashlib
+import json
 import os
 import re
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -287,15 +293,84 @@ def commands(stage, env: dict[str, str]) -> tuple[list[list[str]], dict]:
     return [_make_cmd(executable, cmd) for cmd in _enforce_cmd_list(stage.cmd)], kwargs
 
 
-def prepare(stage) -> None:
+def prepare(stage, root: str | os.PathLike, spec: dict) -> Path:
     """Before the command, as ``Stage.run``: its deps must exist (hashed, as DVC does when the run cache misses),
-    its outputs go (persistent ones stay)."""
+    its outputs go (persistent ones stay), here into ``set_aside``'s folder. -> that folder."""
     stage.save_deps()
+    aside = set_aside(stage, root, spec)
     for out in stage.outs:
         if out.persist:
             out.unprotect()
         else:
             out.remove(ignore_remove=False)
+    return aside
+
+
+ASIDE = Path(".dvc") / "tmp" / "rlsac-aside"  # under the repository's root; DVC's own .gitignore ignores .dvc/tmp
+
+
+def aside_dir(root: str | os.PathLike, spec: dict) -> Path:
+    """Where ``spec``'s stage keeps its outputs while its command runs: .dvc/tmp/rlsac-aside/<hash of file:name>."""
+    key = f"{spec['dvcfile']}:{spec['name']}".encode()
+    return Path(root) / ASIDE / hashlib.sha256(key).hexdigest()[:16]
+
+
+def _remove(path: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path)
+    elif path.exists() or path.is_symlink():
+        path.unlink()
+
+
+def set_aside(stage, root: str | os.PathLike, spec: dict) -> Path:
+    """Move the stage's outputs that exist (persistent ones stay) into ``aside_dir`` (a rename: no copy), with a
+    manifest of where each came from. A folder left by a run that was never restored (its driver killed) is
+    restored first: it holds the last good outputs. -> the folder."""
+    d = aside_dir(root, spec)
+    if d.exists():  # a lost worker's attempt: its guard ends its command within seconds
+        restore(root, spec, wait_s=15.0)
+    d.mkdir(parents=True)
+    moved = []  # [path, the name it has here, or None: it did not exist, and what the command writes there goes]
+    for i, out in enumerate(o for o in stage.outs if not o.persist):
+        path = Path(out.fs_path)
+        if path.exists() or path.is_symlink():
+            os.replace(path, d / str(i))
+            moved.append([str(path), str(i)])
+        else:
+            moved.append([str(path), None])
+    (d / "manifest.json").write_text(json.dumps(moved))
+    return d
+
+
+def _note_pid(d: Path, pid: int | None) -> None:
+    """The running command's process (its group's leader) in the aside folder: ``restore`` waits for it to end."""
+    (d / "pid").write_text("" if pid is None else str(pid))
+
+
+def restore(root: str | os.PathLike, spec: dict, wait_s: float = 0.0) -> bool:
+    """Put the stage's outputs back as they were before its command (the ones ``set_aside`` moved return, what the
+    command wrote is deleted) and remove the folder. ``wait_s``: wait up to this long for the command's process
+    group to end first (an interrupted stage is being stopped by its guard). -> whether there was anything to
+    restore."""
+    d = aside_dir(root, spec)
+    if not (d / "manifest.json").is_file():
+        if d.exists():
+            shutil.rmtree(d)
+        return False
+    pid = (d / "pid").read_text().strip() if (d / "pid").is_file() else ""
+    end = time.monotonic() + wait_s
+    while pid and time.monotonic() < end:
+        try:
+            os.killpg(int(pid), 0)
+        except (ProcessLookupError, PermissionError):
+            break
+        time.sleep(0.2)
+    for path, key in json.loads((d / "manifest.json").read_text()):
+        _remove(Path(path))  # a part-written output goes
+        if key is not None:
+            os.replace(d / key, path)
+    shutil.rmtree(d)
+    return True
 
 
 def record(stage) -> dict[str, Any]:
@@ -326,27 +401,32 @@ def run(root: str, spec: dict, env: dict[str, str], log: str,
     # DVC's paths are relative to the working directory (DVC_STAGE, .gitignore entries, hashing): `dvc repro` runs in
     # the repository's root, so the task does too, and gives the worker its directory back
     with open(log, "wb") as f, contextlib.chdir(root):
-        repo = None
+        repo, aside = None, None
         try:
             repo, stage = open_stage(root, spec)
             if not changed(stage):
                 f.write(f"Stage '{stage.addressing}' didn't change, skipping\n".encode())
                 out["status"] = "skipped"
             else:
-                prepare(stage)
+                aside = prepare(stage, root, spec)
                 argvs, kwargs = commands(stage, env)
                 f.write(f"Running stage '{stage.addressing}':\n".encode())
                 for argv, line in zip(argvs, _lines(stage.cmd), strict=True):
                     f.write(f"> {line}\n".encode())
                     f.flush()
                     proc = start(argv, **kwargs, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+                    _note_pid(aside, proc.pid)
                     out["rc"] = proc.wait()
+                    _note_pid(aside, None)
                     if out["rc"]:
                         raise _Failed(line, out["rc"])
                 out.update(record(stage), status="done")
+                shutil.rmtree(aside)
         except Exception as e:  # DVC's errors (a missing dependency or output) and a failed command: one line
             out["error"] = e.message if isinstance(e, _Failed) else f"ERROR: {' '.join(str(e).split())[:500]}"
             f.write(f"\n{out['error']}\n".encode())
+            if aside is not None:  # the outputs as they were: a failed stage changes no file
+                restore(root, spec)
         finally:
             if repo is not None:
                 repo.close()

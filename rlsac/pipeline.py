@@ -767,6 +767,7 @@ def pipeline(options: dict[str, Any], track: bool = True) -> dict:
                     results[a] = {"stage": a, "status": "interrupted", "seconds": None}
                     with contextlib.suppress(Exception):  # kills the worker: its guard SIGTERMs the stage, whose
                         ray.cancel(ref, force=True)  # rlsac command ends its own run KILLED
+                _restore_interrupted(plan, running.values())
                 e.summary = _summary(plan, base, skipped, results, time.time() - t0, workers, run, track)
                 raise
             summary = _summary(plan, base, skipped, results, time.time() - t0, workers, run, track)
@@ -776,6 +777,19 @@ def pipeline(options: dict[str, Any], track: bool = True) -> dict:
         if plan.get("remote") is not None:
             plan["remote"].close()
     return summary
+
+
+def _restore_interrupted(plan: dict, addresses) -> None:
+    """The outputs of the stages an interruption stopped, as they were before them (rlsac.dvc_stage.restore, once
+    each stage's guard has ended its command): a cancelled worker cannot do it, and DVC's way (outputs deleted
+    before the command) would leave committed files deleted. A --remote stage's outputs are on its node."""
+    if plan.get("remote") is not None:
+        return
+    from rlsac.dvc_stage import restore
+
+    for a in addresses:
+        if a in plan.get("specs", {}):
+            restore(plan["root"], plan["specs"][a], wait_s=KILL_GRACE_S + 5.0)
 
 
 def _priorities(plan: dict, track: bool) -> dict[str, float]:
