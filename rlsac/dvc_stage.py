@@ -323,7 +323,7 @@ def _remove(path: Path) -> None:
 
 
 def set_aside(stage, root: str | os.PathLike, spec: dict) -> Path:
-    """Move the stage's outputs that exist (persistent ones stay) into ``aside_dir`` (a rename: no copy), with a
+    """Move the stage's outputs that exist (persistent ones stay) into ``aside_dir`` (a rename where it can), with a
     manifest of where each came from. A folder left by a run that was never restored (its driver killed) is
     restored first: it holds the last good outputs. -> the folder."""
     d = aside_dir(root, spec)
@@ -334,7 +334,7 @@ def set_aside(stage, root: str | os.PathLike, spec: dict) -> Path:
     for i, out in enumerate(o for o in stage.outs if not o.persist):
         path = Path(out.fs_path)
         if path.exists() or path.is_symlink():
-            os.replace(path, d / str(i))
+            shutil.move(path, d / str(i))  # a rename; a copy when data/ is linked to another disk
             moved.append([str(path), str(i)])
         else:
             moved.append([str(path), None])
@@ -368,7 +368,8 @@ def restore(root: str | os.PathLike, spec: dict, wait_s: float = 0.0) -> bool:
     for path, key in json.loads((d / "manifest.json").read_text()):
         _remove(Path(path))  # a part-written output goes
         if key is not None:
-            os.replace(d / key, path)
+            Path(path).parent.mkdir(parents=True, exist_ok=True)
+            shutil.move(d / key, path)
     shutil.rmtree(d)
     return True
 
