@@ -295,14 +295,12 @@ def commands(stage, env: dict[str, str]) -> tuple[list[list[str]], dict]:
 
 def prepare(stage, root: str | os.PathLike, spec: dict) -> Path:
     """Before the command, as ``Stage.run``: its deps must exist (hashed, as DVC does when the run cache misses),
-    its outputs go (persistent ones stay), here into ``set_aside``'s folder. -> that folder."""
+    its outputs go (persistent ones stay, unprotected), here into ``set_aside``'s folder. -> that folder."""
     stage.save_deps()
-    aside = set_aside(stage, root, spec)
+    aside = set_aside(stage, root, spec)  # every other output that exists, moved: nothing is left to remove
     for out in stage.outs:
         if out.persist:
             out.unprotect()
-        else:
-            out.remove(ignore_remove=False)
     return aside
 
 

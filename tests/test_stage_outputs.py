@@ -5,28 +5,22 @@ files (seen: an interrupted `fold_data_points` stage took two tracked reports/fo
 from __future__ import annotations
 
 import contextlib
-import os
 import subprocess
 import sys
 from pathlib import Path
 
 import yaml
+from test_ray_pipeline import _env, make_repo  # tests/ is on sys.path (pytest prepend mode)
 
 from rlsac import dvc_stage
 from rlsac.pipeline import _restore_interrupted, load_plan
 
 
-def _env() -> dict:
-    bindir = str(Path(sys.executable).parent)
-    return {**os.environ, "PATH": bindir + os.pathsep + os.environ.get("PATH", ""), "OMP_NUM_THREADS": "1"}
-
-
 def _repo(path: Path, cmd: str) -> Path:
-    path.mkdir(parents=True, exist_ok=True)
-    if not (path / ".dvc").exists():
-        subprocess.run(["git", "init", "-q"], cwd=path, check=True)
-        subprocess.run([sys.executable, "-m", "dvc", "init", "-q"], cwd=path, check=True, env=_env())
+    """A DVC repository (made on first use) whose one stage ``a`` runs ``cmd`` and outputs a.txt and the folder out."""
     stages = {"a": {"cmd": cmd, "outs": ["a.txt", "out"]}}
+    if not (path / ".dvc").exists():
+        return make_repo(path, stages)
     (path / "dvc.yaml").write_text(yaml.safe_dump({"stages": stages}, sort_keys=False))
     return path
 
