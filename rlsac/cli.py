@@ -356,7 +356,9 @@ def folds(tracking: bool, **options) -> None:
                    "the recipe); control: the learner's positive control on synthetic pairs; fit: the "
                    "synthetic generator's statistics fitted to the fold's training pairs, beside its own "
                    "(reports/synthetic_fit.json); synthetic: the pretrain arm's synthetic pairs "
-                   "(data/scale/<fold>/synthetic.h5).")
+                   "(data/scale/<fold>/synthetic.h5); ladder: one run of the learner's ladder (issue #61, "
+                   "rlsac.ladder: --arm the rung, --seed a seed of params ladder.seeds; without --seed the rung's "
+                   "uniform, guided and oracle samplers).")
 @click.option("--arm", help="With train / evaluate: fixed (the training file's points), redraw (a fresh draw of the "
                             "pool per episode, images swapped at random), pretrain (synthetic pairs first, then "
                             "redraw's episodes) or prefilter (redraw's episodes pre-filtered as at test).")
@@ -401,14 +403,15 @@ def select(tracking: bool, params_path: str, **options) -> None:
 
 @cli.command()
 @click.option("--which", type=click.Choice(["1", "2", "3", "iterations", "folds", "essential", "claims", "paper",
-                                           "selection", "scale", "tuning-budget", "all"]),
+                                           "selection", "scale", "tuning-budget", "learner", "all"]),
               default="all", show_default=True,
               help="Table 1 (lines), 2 (fundamental), 3 (ablations), the iterations CSV, Table 2 over the "
                    "leave-one-building-out folds, Table E (essential matrix, not in the paper), reports/claims.md "
                    "(every claim against its seed-aware interval), reports/paper.md (the paper's claims beside ours, "
                    "one verdict each), reports/selection.md (kept vs last checkpoint), reports/scale.md (the "
                    "training-scale study, issue #46; not in all), reports/tuning_budget.md (tuning at the test "
-                   "budget and re-tuning variance, issue #47; not in all), or all.")
+                   "budget and re-tuning variance, issue #47; not in all), reports/learner.md (where the learner "
+                   "stops: the ladder, issue #61; not in all), or all.")
 @click.option("--eval-root", default="reports/eval", show_default=True, type=click.Path(file_okay=False),
               help="Root of the evaluation summaries (lines/, fundamental/, ablation/).")
 @click.option("--out-dir", default="reports", show_default=True, type=click.Path(file_okay=False))

@@ -272,6 +272,7 @@ PARAM_SECTIONS = {
     "tuning_budget": "rlsac.retune:conf",
     "scale": "rlsac.scale_layout:protocol",
     "positive_control": "rlsac.positive_control:conf",
+    "ladder": "rlsac.ladder_layout:conf",
 }
 
 

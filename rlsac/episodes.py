@@ -43,6 +43,12 @@ class FixedPairs:
         self.feats, self.mask, self.coords = data["features"], data["mask"], data["coords"]
         self.graph = actor.graph(self.feats, self.mask)  # data features never change: one graph per instance
         self.n_instances, self.n_points = self.mask.shape
+        self._labels = data.get("labels")  # (I, N) ground-truth inliers: the supervised warm start only
+        self.has_labels = self._labels is not None
+
+    def labels(self, inst: torch.Tensor, extra: torch.Tensor | None) -> torch.Tensor:
+        """Ground-truth inliers (b, N) of stored transitions (instances ``inst``)."""
+        return self._labels[inst]
 
     def draw(self, inst: torch.Tensor, generator: torch.Generator):
         """-> batch (coords, mask), data features, kNN graph of the episodes of instances ``inst``, and None."""
@@ -56,8 +62,11 @@ class FixedPairs:
 class RedrawnPairs:
     """N points drawn per episode from each pair's pool, the images swapped with probability 1/2 (``swap``)."""
 
-    def __init__(self, task, pool: dict, actor, points: int, swap: bool, prefilter=()) -> None:
+    def __init__(self, task, pool: dict, actor, points: int, swap: bool, prefilter=(),
+                 labels: torch.Tensor | None = None) -> None:
+        """labels (P, pool N) bool: the pool's ground-truth inliers, for the supervised warm start only."""
         self.task, self.pool, self.actor, self.swap = task, pool, actor, bool(swap)
+        self._labels, self.has_labels = labels, labels is not None
         self.n_instances, pool_n = pool["mask"].shape
         self.n_points = int(points)
         if self.n_points > pool_n:
@@ -84,6 +93,11 @@ class RedrawnPairs:
     def lookup(self, inst: torch.Tensor, extra: torch.Tensor):
         batch, feats, graph = self._build(inst, extra)
         return feats, batch["mask"], graph
+
+    def labels(self, inst: torch.Tensor, extra: torch.Tensor) -> torch.Tensor:
+        """Ground-truth inliers (b, N) of stored transitions: the pool's labels of the drawn points (a swap of the
+        two images keeps a correspondence's label)."""
+        return self._labels[inst].gather(1, extra[:, : self.n_points]) & self.lookup(inst, extra)[1]
 
     def _build(self, inst: torch.Tensor, extra: torch.Tensor):
         n = self.n_points

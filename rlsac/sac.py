@@ -221,7 +221,6 @@ def train_loop(agent: SACAgent, task, data: dict, env_conf: EnvConf, start_step:
 
     c = agent.conf
     source = episodes if episodes is not None else FixedPairs(task, data, agent.actor)
-    labels_all = data.get("labels")  # ground-truth inliers, only for the supervised warm start (fixed pairs)
     I, N = source.n_instances, source.n_points
     device = data["mask"].device
     if buffer is None:
@@ -259,9 +258,10 @@ def train_loop(agent: SACAgent, task, data: dict, env_conf: EnvConf, start_step:
             for _ in range(c.updates_per_step):
                 b_inst, b_mem, b_mem2, b_a, b_r, b_d, b_extra = buffer.sample(c.batch_size, generator)
                 x, m, b_graph = source.lookup(b_inst, b_extra)
-                warm = labels_all is not None and int(agent.n_updates) < c.warm_start_updates
+                # ground-truth inliers, only for the supervised warm start (the source's labels, if it has any)
+                warm = source.has_labels and int(agent.n_updates) < c.warm_start_updates
                 metrics = agent.update(torch.cat([x, b_mem], -1), torch.cat([x, b_mem2], -1), m,
-                                       b_graph, b_a, b_r, b_d, labels_all[b_inst] if warm else None)
+                                       b_graph, b_a, b_r, b_d, source.labels(b_inst, b_extra) if warm else None)
                 metrics["charts/warm_start"] = float(warm)
                 n_upd += 1
             if step % 50 == 0:

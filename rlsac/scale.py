@@ -30,7 +30,7 @@ from typing import Any
 from rlsac import scale_layout as lay
 from rlsac.errors import RlsacError
 
-STAGES = ("pool", "train", "evaluate", "evaluate-final", "validate", "control", "fit", "synthetic")
+STAGES = ("pool", "train", "evaluate", "evaluate-final", "validate", "control", "fit", "synthetic", "ladder")
 
 
 def scale(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
@@ -42,6 +42,12 @@ def scale(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
     if stage not in STAGES:
         raise RlsacError(f"scale --stage must be one of {', '.join(STAGES)}, got {stage!r}")
     params = read_params(options.get("params") or "params.yaml")
+    if stage == "ladder":  # issue #61: where the learner stops (rlsac.ladder); --arm names the rung
+        from rlsac.ladder import run as ladder
+
+        seed = options.get("seed")
+        return ladder(params, options.get("arm") or "", None if seed is None else int(seed),
+                      int(options.get("threads") or 1), options.get("device") or "cpu", track)
     if stage == "control":
         from rlsac.positive_control import run as control
 
@@ -271,6 +277,9 @@ def format_summary(s: dict[str, Any]) -> str:
         return (f"positive control ({s['seconds']} s): mean π(inliers) after training "
                 + ", ".join(f"{v:.3f} at inlier ratio {k}" for k, v in s["final"].items())
                 + f" -> {', '.join(s['files'])}")
+    if s["stage"] == "ladder":
+        return (f"ladder ({s['seconds']} s): " + ", ".join(f"{k} {v:.3f}" for k, v in s["summary"].items())
+                + f" -> {s['file']}")
     if s["stage"] == "pool":
         return f"scale pool ({s['seconds']} s): {s['pairs']} pairs -> {s['pool']}"
     if s["stage"] == "synthetic":

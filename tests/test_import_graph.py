@@ -27,6 +27,7 @@ RUNNERS = (
     "rlsac.learners",
     "rlsac.ablate",
     "rlsac.scale",
+    "rlsac.ladder",
     "rlsac.pipeline",
 )
 
@@ -38,7 +39,7 @@ LAYERS = (
      "rlsac.signals", "rlsac.tracking", "rlsac.geometry", "rlsac.metrics", "rlsac.sampling", "rlsac.policy",
      "rlsac.kernels"),
     # the protocol's vocabulary (names, paths, budgets) and the data files
-    ("rlsac.protocol", "rlsac.scale_layout", "rlsac.data*"),
+    ("rlsac.protocol", "rlsac.scale_layout", "rlsac.ladder_layout", "rlsac.data*"),
     # the estimation problems
     ("rlsac.tasks*",),
     # sampling, scoring, the environment (in its parts), SAC and its episodes (they pre-filter as the task does), the
@@ -52,6 +53,7 @@ LAYERS = (
     ("rlsac.reports*",),
     # the runners: a protocol's stages, the studies, the pipeline
     ("rlsac.folds", "rlsac.folds_retune", "rlsac.selection", "rlsac.ablate", "rlsac.scale", "rlsac.positive_control",
+     "rlsac.ladder",
      "rlsac.commands", "rlsac.line_calibration", "rlsac.verify", "rlsac.dvc_stage", "rlsac.transfer", "rlsac.pipeline"),
     # the command line
     ("rlsac.cli",),

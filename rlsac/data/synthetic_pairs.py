@@ -22,6 +22,11 @@ from rlsac.data.fundamental import N_FEATURES
 from rlsac.errors import RlsacError
 
 SNN_MODES = ("separable", "uninformative", "fitted")
+# where each pair's inlier ratio and the outliers' image positions come from; "auto": from ``statistics`` exactly when
+# snn="fitted" (the generator as the scale study fitted it), else the fixed ``inlier_ratio`` and uniform positions.
+# The learner's ladder (rlsac.ladder) sets them apart, one change per rung.
+SOURCES = ("auto", "fixed", "fitted")
+POSITIONS = ("auto", "uniform", "fitted")
 
 
 @dataclass
@@ -36,6 +41,14 @@ class SyntheticPairsConf:
     focal: float = 800.0
     seed: int = 0
     statistics: dict[str, Any] = field(default_factory=dict)  # snn="fitted": match_statistics.fit of real pairs
+    ratios: str = "auto"  # SOURCES: "fitted" draws each pair's inlier ratio from statistics["inlier_ratio"]
+    positions: str = "auto"  # POSITIONS: "fitted" draws the outliers' positions from the statistics' histograms
+
+    def fitted_ratios(self) -> bool:
+        return self.ratios == "fitted" or (self.ratios == "auto" and self.snn == "fitted")
+
+    def fitted_positions(self) -> bool:
+        return self.positions == "fitted" or (self.positions == "auto" and self.snn == "fitted")
 
     def check(self) -> None:
         if self.n_pairs < 1 or self.n_points < 8:
@@ -44,9 +57,15 @@ class SyntheticPairsConf:
             raise RlsacError(f"inlier_ratio must be in (0, 1], got {self.inlier_ratio}")
         if self.snn not in SNN_MODES:
             raise RlsacError(f"snn must be one of {SNN_MODES}, got {self.snn!r}")
-        need = ("inlier_ratio", "snn_inliers", "snn_outliers", "position1_outliers", "position2_outliers")
-        if self.snn == "fitted" and any(not self.statistics.get(k) for k in need):
-            raise RlsacError(f"snn='fitted' needs statistics with {', '.join(need)} (rlsac.data.match_statistics.fit)")
+        if self.ratios not in SOURCES or self.positions not in POSITIONS:
+            raise RlsacError(f"ratios must be one of {SOURCES} and positions one of {POSITIONS}, got "
+                             f"{self.ratios!r}, {self.positions!r}")
+        need = [*(("snn_inliers", "snn_outliers") if self.snn == "fitted" else ()),
+                *(("inlier_ratio",) if self.fitted_ratios() else ()),
+                *(("position1_outliers", "position2_outliers") if self.fitted_positions() else ())]
+        if any(not self.statistics.get(k) for k in need):
+            raise RlsacError(f"snn={self.snn!r}, ratios={self.ratios!r}, positions={self.positions!r} need statistics "
+                             f"with {', '.join(need)} (rlsac.data.match_statistics.fit)")
 
 
 def _rotation(axis: np.ndarray, deg: float) -> np.ndarray:
@@ -69,7 +88,7 @@ def generate(conf: SyntheticPairsConf) -> dict[str, np.ndarray]:
     Rs, ts = np.zeros((P, 3, 3)), np.zeros((P, 3))
     st = conf.statistics
     for p in range(P):
-        ratio = rng.choice(st["inlier_ratio"]) if conf.snn == "fitted" else conf.inlier_ratio
+        ratio = rng.choice(st["inlier_ratio"]) if conf.fitted_ratios() else conf.inlier_ratio
         n_in = min(N, max(8, int(round(N * ratio))))
         R = _rotation(rng.normal(size=3), rng.uniform(5, 25))
         t = np.array([1.0, rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3)])
@@ -83,7 +102,7 @@ def generate(conf: SyntheticPairsConf) -> dict[str, np.ndarray]:
             ok = (X2[:, 2] > 0) & (x1 >= 0).all(1) & (x1 < [W, H]).all(1) & (x2 >= 0).all(1) & (x2 < [W, H]).all(1)
             pts = np.concatenate([pts, np.concatenate([x1, x2], 1)[ok]])
         pts = pts[:n_in] + rng.normal(scale=conf.noise_px, size=(n_in, 4))
-        if conf.snn == "fitted":  # where real outliers lie in each image
+        if conf.fitted_positions():  # where real outliers lie in each image
             outl = np.concatenate([ms.sample_positions(rng, st["position1_outliers"], N - n_in) * [W, H],
                                    ms.sample_positions(rng, st["position2_outliers"], N - n_in) * [W, H]], 1)
         else:

@@ -458,7 +458,7 @@ def metrics(eval_root: str | Path = "reports/eval", out_dir: str | Path = "repor
 # ------------------------------------------------------------------------------------------- command
 
 WHICH = ("1", "2", "3", "iterations", "folds", "essential", "claims", "paper", "selection", "scale", "tuning-budget",
-         "all")
+         "learner", "all")
 ALL = ("1", "folds", "essential", "claims", "paper", "selection")
 
 
@@ -475,7 +475,8 @@ def build(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
         raise RlsacError(f"--which must be one of {', '.join(WHICH)}, got {which!r}")
     eval_root = Path(options.get("eval_root") or "reports/eval")
     out_dir = Path(options.get("out_dir") or "reports")
-    if which != "selection" and not eval_root.is_dir():  # else every cell would be written as missing, over the record
+    # else every cell would be written as missing, over the record
+    if which not in ("selection", "learner") and not eval_root.is_dir():
         raise RlsacError(f"--eval-root {eval_root}: no such folder (the evaluation summaries of the tables)")
     in_the_way = sorted(p for p in out_dir.glob("*") if p.is_dir() and p.suffix in (".md", ".csv", ".tex", ".json"))
     if in_the_way:  # a folder named like a table file, refused before any work (all_or_nothing also refuses it, late)
@@ -508,6 +509,14 @@ def build(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
         from rlsac.reports import scale
 
         scale.check_inputs(read_params(options.get("params") or "params.yaml"), out_dir)
+    if which == "learner":  # issue #61: the ladder's records, read and checked before the run
+        from rlsac.config import read_params
+        from rlsac.ladder_layout import conf as ladder_conf
+        from rlsac.ladder_layout import rungs
+        from rlsac.reports import ladder
+
+        lc = ladder_conf(read_params(options.get("params") or "params.yaml"))
+        ladder.load(lc, list(rungs(lc)))
     if which == "tuning-budget":  # its params (rows, budgets) before the run, as the scale study's records
         from rlsac.config import read_params
         from rlsac.retune import conf
@@ -523,7 +532,7 @@ def build(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
                    tags={"command": "table"}, enabled=track) as run:
         with all_or_nothing():  # a failure half-way (a bad record, a folder in the way) leaves every table as it was
             for key in ("1", "2", "3", "iterations", "folds", "essential", "claims", "paper", "selection", "scale",
-                        "tuning-budget"):
+                        "tuning-budget", "learner"):
                 # "all" = the pipeline's tables; 2, 3 and iterations (the retired 87-pair split) by name only
                 if which != key and not (which == "all" and key in ALL):
                     continue
@@ -556,6 +565,14 @@ def build(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
                     files += got["files"]
                     missing += got["missing"]
                     continue
+                if key == "learner":  # issue #61: where the learner stops (stage learner_report)
+                    from rlsac.config import read_params
+                    from rlsac.reports import ladder
+
+                    got = ladder.build(read_params(options.get("params") or "params.yaml"), Path(out_dir))
+                    files += got["files"]
+                    missing += got["missing"]
+                    continue
                 if key == "tuning-budget":  # issue #47 item 7: tuning at the test budget, re-tuning variance
                     from rlsac.config import read_params
                     from rlsac.reports import tuning_budget
@@ -585,7 +602,7 @@ def build(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
                     files += list(df.attrs["files"].values())
                 missing += df.attrs["missing"]
             # metrics.json is the tables stage's output; these two reports are stages of their own
-            if which not in ("scale", "tuning-budget"):
+            if which not in ("scale", "tuning-budget", "learner"):
                 metrics(eval_root, out_dir)
                 files.append(str(out_dir / "metrics.json"))
         for f in files:

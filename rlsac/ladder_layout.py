@@ -1,0 +1,94 @@
+"""The learner's ladder's vocabulary (issue #61): its params (``ladder``), its rungs and their files, shared by its
+runner (rlsac.ladder) and its report (rlsac.reports.ladder)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from rlsac.errors import RlsacError
+
+ROOT = Path("experiments/ladder")
+CKPT_ROOT = Path("checkpoints/ladder")
+
+@dataclass(frozen=True)
+class Rung:
+    """One environment of the ladder: where its pairs come from and what its learner optimises."""
+
+    name: str
+    data: str  # "synthetic" or "real"
+    snn: str = "separable"  # synthetic: rlsac.data.synthetic_pairs SNN_MODES; real: "real" or "redrawn"
+    ratios: str = "fixed"  # synthetic: "fixed" (inlier_ratio) or "fitted"
+    positions: str = "uniform"  # synthetic: "uniform" or "fitted"
+    inlier_ratio: float = 0.3
+    learner: str = "sac"  # "sac", "supervised", or "scale" (the scale study's redraw actors, measured only)
+    reward: str = "inlier_ratio"  # EnvConf.reward
+    reward_threshold: str = "train"  # "train" (the task's, 2 px) or "eval" (the rung's evaluation threshold)
+    prefilter: bool = False  # measured with the settings_from row's tuned SNN pre-filter (Table 2's environment)
+
+    @property
+    def why(self) -> str:
+        return WHY[self.name.split("-")[0]]
+
+WHY = {"control": "separable SNN at a fixed inlier ratio (the positive control)",
+       "rung0": "separable SNN, the real pairs' inlier ratios",
+       "rung1": "+ the real pairs' SNN overlap of inliers and outliers",
+       "rung2": "+ the real outliers' image positions (the fitted generator)",
+       "rung3a": "real pairs, SNN redrawn per label as in rung 2",
+       "rung3": "real pairs as they are (the scale study's redraw arm)",
+       "supervised": "rung 3's inputs, trained on ground-truth labels",
+       "reward": "rung 3, reward threshold = the evaluation's",
+       "improvement": "rung 3, improvement reward",
+       "rung4": "rung 3's actors in Table 2's environment (+ the tuned SNN pre-filter)"}
+
+def rungs(c: dict[str, Any]) -> dict[str, Rung]:
+    """The ladder's rungs in order (``c``: params ladder)."""
+    out = {f"control-{r}": Rung(f"control-{r}", "synthetic", inlier_ratio=float(r)) for r in c["control_ratios"]}
+    out.update({
+        "rung0": Rung("rung0", "synthetic", ratios="fitted"),
+        "rung1": Rung("rung1", "synthetic", snn="fitted", ratios="fitted"),
+        "rung2": Rung("rung2", "synthetic", snn="fitted", ratios="fitted", positions="fitted"),
+        "rung3a": Rung("rung3a", "real", snn="redrawn"),
+        "rung3": Rung("rung3", "real", snn="real", learner="scale"),
+        "supervised": Rung("supervised", "real", snn="real", learner="supervised"),
+        "reward": Rung("reward", "real", snn="real", reward_threshold="eval"),
+        "improvement": Rung("improvement", "real", snn="real", reward="improvement"),
+        "rung4": Rung("rung4", "real", snn="real", learner="scale", prefilter=True),
+    })
+    return out
+
+KEYS = {"steps": int, "every": int, "seeds": list, "iterations": list, "curve_iterations": int, "train_pairs": int,
+        "test_pairs": int, "control_ratios": list, "fold": str, "regime": str, "settings_from": str}
+
+def conf(params: dict[str, Any]) -> dict[str, Any]:
+    """params.yaml ``ladder``, checked: every key, its type (a bool is not an int) and range."""
+    from rlsac.config import section
+
+    c = section(params, "ladder")
+    unknown, missing = sorted(set(c) - set(KEYS)), sorted(set(KEYS) - set(c))
+    if unknown or missing:
+        raise RlsacError(f"params.yaml ladder: unknown keys {unknown}, missing keys {missing}")
+    for k, t in KEYS.items():
+        if not isinstance(c[k], t) or isinstance(c[k], bool):
+            raise RlsacError(f"params.yaml ladder.{k}: a {t.__name__}, got {c[k]!r}")
+    for k in ("steps", "every", "curve_iterations", "train_pairs", "test_pairs"):
+        if c[k] < 1:
+            raise RlsacError(f"params.yaml ladder.{k}: at least 1, got {c[k]}")
+    if c["every"] > c["steps"]:
+        raise RlsacError(f"params.yaml ladder.every ({c['every']}) is more than ladder.steps ({c['steps']})")
+    for k, ok in (("seeds", lambda v: isinstance(v, int) and not isinstance(v, bool) and 0 <= v < 2 ** 32),
+                  ("iterations", lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 1),
+                  ("control_ratios", lambda v: isinstance(v, float) and 0 < v <= 1)):
+        if not c[k] or not all(ok(v) for v in c[k]):
+            raise RlsacError(f"params.yaml ladder.{k}: a non-empty list of valid values, got {c[k]!r}")
+    return c
+
+def run_file(rung: str, seed: int) -> Path:
+    return ROOT / rung / f"s{seed}.json"
+
+def controls_file(rung: str) -> Path:
+    return ROOT / rung / "controls.json"
+
+def actor_file(rung: str, seed: int) -> Path:
+    return CKPT_ROOT / rung / f"s{seed}.pt"
