@@ -3,14 +3,13 @@ pairs moves a row's test mAA, read from the records of ``rlsac folds --stage ret
 <regime>/<fold>/<row>.json: each of the draws re-chose the row's settings on a resample of its fold's validation
 pairs, and every chosen setting was tested).
 
-The tables' intervals resample test pairs (and training seeds) with each row's settings fixed. A claim sets two
-rows against each other, each tuned on its own, so re-tuning both moves their difference by about Z95·√2·sd (95%),
-sd the spread of one row's test mAA over the draws. ``halfwidth`` takes the largest sd measured (over the rows,
-budgets and metrics re-tuned: conservative for the rows not re-tuned, among them the learned ones, whose grids run
-the network at every point), and ``widen`` adds it to an interval in quadrature. The claims (rlsac.reports.claims,
-rlsac.reports.paper_report) read it here; reports/tuning_budget.md shows where it comes from. ``rlsac table``
-computes it once per build and hands it to each of those builders (their ``retuning`` argument); a builder called on
-its own (default ``COMPUTE``) computes it itself (``resolve``).
+The claims (rlsac.reports.claims, rlsac.reports.paper_report) carry it per comparison (issue #62): ``Selection``
+reads every record once and gives, for a claim's rows (``contrast``), each re-tuned row's test errors under every
+draw's re-chosen setting; rlsac.metrics.contrast_bootstrap draws the nested, paired bootstrap from them. ``rlsac
+table`` reads the records once per build and hands them to each builder (their ``retuning`` argument); a builder
+called on its own (default ``COMPUTE``) reads them itself (``resolve``). ``halfwidth`` / ``widen`` are the one global
+term the claims used before (Z95·√2·the largest sd, added in quadrature): reports/tuning_budget.md reports it, and
+paper.md's `before (issue #62)` column re-derives the old verdicts with it.
 
 Reads result files only, never a runner.
 """
