@@ -257,7 +257,7 @@ def test_readme_starts_with_the_two_fresh_clone_commands():
     then the tests; the install is the one CI makes."""
     text = (ROOT / "README.md").read_text()
     blocks = [body.strip() for lang, body in FENCE.findall(text) if lang == "bash"]
-    assert text.index("```bash") < 1500, "the two commands come first"
+    assert text[:text.index("```bash")].count("\n") < 30, "the two commands come first, after the verdict"
     first, second = blocks[0], blocks[1]
     assert "\n" not in first and "\n" not in second
     cmds = _commands(first)
@@ -413,6 +413,18 @@ def test_point_value_check_finds_a_stale_number(tmp_path):
     (tmp_path / "x.csv").write_text("a,b\n0.73649,-0.500\n")
     assert generated_values(tmp_path) == {0.735, 0.019, -0.013, -0.034, 0.009, -0.5}
     assert point_values("RLSAC 0.736 (−0.013), 0.735, 0.500") - generated_values(tmp_path) == {0.736, 0.5}
+
+
+def test_the_readme_opens_with_paper_mds_verdict():
+    """The README's first 25 lines hold paper.md's "In short" word for word, before the install command (issue #62):
+    its sentences and every number in them are the generated page's, so the prose cannot drift from the table."""
+    text = (ROOT / "README.md").read_text()
+    short = (ROOT / "reports" / "paper.md").read_text().split("## In short\n\n", 1)[1].split("\n\n", 1)[0]
+    first = "\n".join(text.splitlines()[:25])
+    assert " ".join(short.split()) in " ".join(first.split()), "README's verdict is not paper.md's In short"
+    assert first.index("mAA R") < text.index("```bash") and 3 <= short.count(". ") + 1 <= 5
+    for term in ("mAA R / t:", "regime *hard*:", "regime *easy*", "selection term, what"):  # defined where first used
+        assert term in first
 
 
 def test_the_readme_is_short_and_its_results_table_is_paper_md():
