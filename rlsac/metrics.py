@@ -7,6 +7,8 @@ estimates carry an infinite (or maximal) error and so count as misses at every t
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 
@@ -168,3 +170,67 @@ def _as_vec3(t) -> np.ndarray:
     """(..., 3) or column vectors (..., 3, 1) -> (..., 3) float64."""
     t = np.asarray(t, dtype=np.float64)
     return t[..., 0] if t.ndim >= 2 and t.shape[-2:] == (3, 1) else t
+
+
+def _per_seed_draws(values: np.ndarray, idx: np.ndarray, kind: str) -> np.ndarray:
+    """(n_boot, S) statistic of each seed on each draw's instances: values (1 or n_boot, S, M) per-instance accuracy
+    (kind "maa": the mean) or error (kind "median"), idx (n_boot, M) the draws' instances."""
+    got = np.take_along_axis(values, idx[:, None, :], axis=2)
+    return got.mean(axis=2) if kind == "maa" else np.median(got, axis=2)
+
+
+def contrast_bootstrap(rows: list[tuple[float, np.ndarray, np.ndarray | None]], kind: str, limit: float | None = None,
+                       strata=None, n_boot: int = 2000, seed: int = 0, level: float = 0.95) -> dict[str, Any]:
+    """Σ_k w_k·stat(row_k), stat the seed mean of mAA (kind "maa", at ``limit``) or of the median error (kind
+    "median"), with two 95% intervals (issue #62):
+
+    rows: (w_k, full_k, draws_k): full_k (S_k, M) errors of the row's S_k training seeds at its tables' settings;
+    draws_k (V, S_k, M) or None: the row's errors with the setting re-chosen on validation resample v (None: the
+    row's settings do not move, e.g. fixed settings or a learned row whose per-seed tuning the seed spread holds).
+    Every row with draws has the same V, and draw v is the same validation resample for all of them (the pairing).
+
+    Each bootstrap draw resamples the instances within their stratum (the same for every row), then each row's seeds
+    (as ``seed_bootstrap_maa``, with the same random stream: with two rows "lo"/"hi" are its interval), and, for the
+    interval with selection ("sel_lo"/"sel_hi"), one validation resample from a second stream, on which every row
+    with draws takes its re-chosen setting. -> {"diff", "lo", "hi", "sel_lo", "sel_hi", "means", "selection"}
+    (sel_* equal lo/hi when no row has draws; "selection": whether one had)."""
+    if kind not in ("maa", "median") or (kind == "maa" and limit is None):
+        raise ValueError(f"contrast kind must be maa (with a limit) or median, got {kind!r}")
+    fulls = [np.atleast_2d(np.asarray(f, dtype=np.float64)) for _, f, _ in rows]
+    m = fulls[0].shape[1]
+    if m == 0 or any(f.shape[1] != m or not f.shape[0] for f in fulls):
+        raise ValueError(f"contrast needs (S, M) errors of one M > 0, got {[f.shape for f in fulls]}")
+    vs = {np.shape(d)[0] for _, _, d in rows if d is not None}
+    if len(vs) > 1:
+        raise ValueError(f"re-selected rows with different numbers of validation draws {sorted(vs)}")
+
+    def values(e):  # what the statistic averages (mAA) or takes the median of, per instance
+        e = np.asarray(e, dtype=np.float64)
+        if kind == "median":
+            return np.where(np.isnan(e), np.inf, e)
+        return np.reshape([accuracy_per_instance(r, limit) for r in e.reshape(-1, m)], e.shape)
+
+    strata = _strata(strata, m)
+    rng = np.random.default_rng(seed)
+    idx = stratified_draws(rng, strata, n_boot)
+    picks = [rng.integers(0, len(f), size=(n_boot, len(f))) for f in fulls]
+    v = np.random.default_rng([seed, 1]).integers(0, vs.pop(), n_boot) if vs else None
+    cols = np.arange(n_boot)[:, None]
+    boot, sel, means = np.zeros(n_boot), np.zeros(n_boot), []
+    for (w, _, d), f, pick in zip(rows, fulls, picks, strict=True):
+        fixed = _per_seed_draws(values(f)[None], idx, kind)[cols, pick].mean(axis=1)
+        boot += w * fixed
+        if d is None:
+            sel += w * fixed
+        else:
+            dv = np.asarray(d, dtype=np.float64)
+            if dv.shape[1:] != f.shape:
+                raise ValueError(f"a row's draws {dv.shape} do not match its errors {f.shape}")
+            sel += w * _per_seed_draws(values(dv)[v], idx, kind)[cols, pick].mean(axis=1)
+        per = values(f).mean(axis=1) if kind == "maa" else np.median(values(f), axis=1)
+        means.append(float(per.mean()))
+    tail = 100 * (1 - level) / 2
+    lo, hi = np.percentile(boot, [tail, 100 - tail])
+    s_lo, s_hi = np.percentile(sel, [tail, 100 - tail])
+    return {"diff": float(sum(w * mu for (w, _, _), mu in zip(rows, means, strict=True))), "lo": float(lo),
+            "hi": float(hi), "sel_lo": float(s_lo), "sel_hi": float(s_hi), "means": means, "selection": v is not None}

@@ -18,16 +18,26 @@ PAPER_TEX = Path("/work/shared/paper/rlsac-iccv2023.tex")
 
 
 @pytest.mark.parametrize("p, lo, hi, sign, expected", [
-    (0.10, 0.12, 0.20, 1, "reproduced"), (0.10, 0.05, 0.10, 1, "reproduced"),  # reaches the paper's size
-    (0.10, 0.02, 0.05, 1, "same direction, smaller"), (0.10, -0.01, 0.05, 1, "no difference"),
+    (0.10, 0.12, 0.20, 1, "reproduced"), (0.10, 0.05, 0.10, 1, "reproduced"),  # reaches the paper's value
+    (0.10, 0.02, 0.05, 1, "same direction, smaller"), (0.10, -0.03, 0.05, 1, "no difference detected"),
+    (0.10, -0.01, 0.015, 1, "equivalent within ±m"),  # the whole interval inside ±0.02
     (0.10, -0.05, -0.01, 1, "reversed"),
     (-1.0, -1.5, -0.9, 1, "reproduced"), (-1.0, -0.5, -0.2, 1, "same direction, smaller"),  # a median: lower wins
     (-1.0, 0.1, 0.3, 1, "reversed"),
-    (None, 0.01, 0.02, 1, "reproduced"), (None, -0.02, -0.01, 1, "reversed"), (None, -0.02, 0.01, 1, "no difference"),
-    (0.0, 0.01, 0.02, -1, "reversed"),  # a paper difference of 0 has no side: the claim's sign decides
+    (None, 0.01, 0.02, 1, "reproduced"), (None, -0.02, -0.01, 1, "reversed"),
+    (None, -0.03, 0.01, 1, "no difference detected"),
+    (0.007, -0.01, 0.01, 1, "equivalent within ±m"),  # a tie claim (|paper| <= m), reproduced as a tie
+    (0.007, -0.07, -0.02, 1, "not a tie (model behind)"), (0.007, 0.03, 0.05, 1, "not a tie (model ahead)"),
+    (0.007, -0.05, 0.01, 1, "no difference detected"),
 ])
 def test_verdict_from_the_interval_and_the_papers_difference(p, lo, hi, sign, expected):
-    assert paper_report.verdict(p, lo, hi, sign) == expected
+    assert paper_report.verdict(p, lo, hi, sign, margin=0.02) == expected
+
+
+def test_a_median_tie_claim_reads_the_lower_is_better_side():
+    """The paper's +0.002° against MAGSAC++ is a tie (inside ±0.1°); RLSAC worse by 0.137° is not a tie, behind."""
+    assert paper_report.verdict(0.002, 0.068, 0.186, 1, margin=0.1, better=-1) == "not a tie (model behind)"
+    assert paper_report.verdict(0.002, -0.05, 0.08, 1, margin=0.1, better=-1) == "equivalent within ±m"
 
 
 def test_the_papers_numbers_are_the_latex_sources():
@@ -86,20 +96,23 @@ def test_a_tiny_results_tree_gives_known_verdicts(tmp_path):
     got = paper_report.build(ev, tmp_path / "out", (T2, T2_MEDIAN, T1, NOT_HERE), headline=(("c-t2", "hard"),))
     assert got["missing"] == ["c-t2 (easy)"]
     df = pd.read_csv(tmp_path / "out" / "paper.csv", dtype=str).set_index("key")
-    assert df.loc["c-t2", "ours"].startswith("+0.500") and df.loc["c-t2", "verdict"] == "reproduced"
+    # the paper's +0.007 is inside ±0.02: a tie claim, and +0.5 is no tie
+    assert df.loc["c-t2", "ours"].startswith("+0.500") and df.loc["c-t2", "verdict"] == "not a tie (model ahead)"
     assert df.loc["c-t2", "seeds"] == "2 vs 1" and df.loc["c-t2", "pairs"] == "16"
     assert df.loc["c-t2m", "ours"].startswith("-19.000 [-19.000, -19.000]")
     assert df.loc["c-t2m", "verdict"] == "reproduced"
     assert df.loc["c-t1", "ours"].startswith("+0.050") and df.loc["c-t1", "verdict"] == "same direction, smaller"
     assert df.loc["c-x", "verdict"] == "not testable here (no per-step record)"
     md = (tmp_path / "out" / "paper.md").read_text()
-    assert "4 rows: reproduced 2; same direction, smaller 1; no difference 0; reversed 0; not testable here 1." in md
+    assert ("4 rows: reproduced 1; equivalent within ±m 0; same direction, smaller 1; no difference detected 0; "
+            "reversed 0; not a tie 1; not testable here 1.") in md
     assert "| Table 2: RLSAC vs MAGSAC++, mAA R (hard) | +0.007  | +0.500" in md  # the README's rows
     assert "Not checked (their rows are not in reports/eval): c-t2 (easy)." in md
 
 
 def test_a_reversed_claim_and_one_with_no_difference(tmp_path):
-    """The same tree the other way round: MAGSAC++ solves every pair (reversed); equal errors (no difference)."""
+    """The same tree the other way round: MAGSAC++ solves every pair (the paper's tie claim is no tie: RLSAC behind);
+    equal errors (equivalent within ±m)."""
     ev = tmp_path / "eval"
     for fold in ("a", "b"):
         _fold(ev, "hard", fold, "rlsac", [0.5, 20.0] * 4, [1.0] * 8)
@@ -108,8 +121,8 @@ def test_a_reversed_claim_and_one_with_no_difference(tmp_path):
     paper_report.build(ev, tmp_path, (PaperClaim("c-r", "Table 2", "§4.3", "RLSAC vs MAGSAC++", "mAA R", 0.007,
                                                  control="magsac"), claim_t), headline=())
     df = pd.read_csv(tmp_path / "paper.csv", dtype=str).set_index("key")
-    assert df.loc["c-r", "ours"].startswith("-0.500") and df.loc["c-r", "verdict"] == "reversed"
-    assert df.loc["c-t", "ours"] == "+0.000 [+0.000, +0.000]" and df.loc["c-t", "verdict"] == "no difference"
+    assert df.loc["c-r", "ours"].startswith("-0.500") and df.loc["c-r", "verdict"] == "not a tie (model behind)"
+    assert df.loc["c-t", "ours"] == "+0.000 [+0.000, +0.000]" and df.loc["c-t", "verdict"] == "equivalent within ±m"
 
 
 def test_the_headline_is_at_most_15_rows_of_existing_claims():

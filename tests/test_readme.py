@@ -257,7 +257,7 @@ def test_readme_starts_with_the_two_fresh_clone_commands():
     then the tests; the install is the one CI makes."""
     text = (ROOT / "README.md").read_text()
     blocks = [body.strip() for lang, body in FENCE.findall(text) if lang == "bash"]
-    assert text.index("```bash") < 1500, "the two commands come first"
+    assert text[:text.index("```bash")].count("\n") < 30, "the two commands come first, after the verdict"
     first, second = blocks[0], blocks[1]
     assert "\n" not in first and "\n" not in second
     cmds = _commands(first)
@@ -415,6 +415,18 @@ def test_point_value_check_finds_a_stale_number(tmp_path):
     assert point_values("RLSAC 0.736 (−0.013), 0.735, 0.500") - generated_values(tmp_path) == {0.736, 0.5}
 
 
+def test_the_readme_opens_with_paper_mds_verdict():
+    """The README's first 25 lines hold paper.md's "In short" word for word, before the install command (issue #62):
+    its sentences and every number in them are the generated page's, so the prose cannot drift from the table."""
+    text = (ROOT / "README.md").read_text()
+    short = (ROOT / "reports" / "paper.md").read_text().split("## In short\n\n", 1)[1].split("\n\n", 1)[0]
+    first = "\n".join(text.splitlines()[:25])
+    assert " ".join(short.split()) in " ".join(first.split()), "README's verdict is not paper.md's In short"
+    assert first.index("mAA R") < text.index("```bash") and 3 <= short.count(". ") + 1 <= 5
+    for term in ("mAA R / t:", "regime *hard*:", "regime *easy*", "selection term, what"):  # defined where first used
+        assert term in first
+
+
 def test_the_readme_is_short_and_its_results_table_is_paper_md():
     """The README's first screen is the answer (issue #47): under 2,500 words, and its results table is the "At a
     glance" table of the generated reports/paper.md, row for row, with at most 15 rows."""
@@ -431,3 +443,9 @@ def test_the_readme_is_short_and_its_results_table_is_paper_md():
         assert f"]({link})" in text
     for page in PAGES:
         assert f"](docs/{page.name})" in text, f"docs/{page.name} is not linked from the README"
+
+
+def test_docs_quote_the_claims_count_line_of_claims_md():
+    """docs/results.md quotes reports/claims.md's count line as generated (it quoted 36 / 24 when claims.md had 41)."""
+    counts = re.search(r"^(\d+ claims: .*)$", (ROOT / "reports" / "claims.md").read_text(), re.M).group(1)
+    assert counts in " ".join((ROOT / "docs" / "results.md").read_text().split())

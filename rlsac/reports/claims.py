@@ -27,7 +27,7 @@ from typing import Any
 import pandas as pd
 
 from rlsac.io import atomic_path, write_text
-from rlsac.reports.retuning import COMPUTE, Compute
+from rlsac.reports.retuning import COMPUTE, Compute, Selection
 
 # a tie: the whole interval within ±0.03 mAA (18 of the 606 fold test pairs; the paper's Table 3 steps are 0.02-0.06)
 TIE_MARGIN = 0.03
@@ -148,20 +148,21 @@ def combine(verdicts: list[str]) -> str:
     return "not supported" if "not supported" in verdicts else "inconclusive"
 
 
-def _row(claim: Claim, seeds: int | str, stats: dict[str, dict], pairs: int, term: float | None = None
+def _row(claim: Claim, seeds: int | str, stats: dict[str, dict], pairs: int, how: str | None = None
          ) -> dict[str, Any]:
-    """A row of claims.md from each metric's metrics.seed_bootstrap_maa result; ``term``: the re-tuning half-width
-    (rlsac.reports.retuning) the verdict's interval carries besides pairs and seeds, None for none."""
-    from rlsac.reports.retuning import widen
-
+    """A row of claims.md from each metric's metrics.seed_bootstrap_maa result, with "sel_lo"/"sel_hi" (the interval
+    with the selection term, rlsac.metrics.contrast_bootstrap) where the fold claims carry it; ``how``: the rows'
+    selection (paper_report's `selection` column), None for the lines."""
     row: dict[str, Any] = {"claim": claim.text, "where": claim.where, "kind": claim.kind, "seeds": seeds,
                            "rows": f"{claim.model} − {claim.control}", "pairs": pairs}
+    if how is not None:
+        row["selection"] = how
     verdicts = []
     for name, s in stats.items():
         row[f"{name}: model − control [95%]"] = f"{s['diff']:+.3f} [{s['lo']:+.3f}, {s['hi']:+.3f}]"
-        if term is not None:
-            s = widen(s, term)
-            row[f"{name}: with re-tuning [95%]"] = f"[{s['lo']:+.3f}, {s['hi']:+.3f}]"
+        if "sel_lo" in s:
+            row[f"{name}: with selection [95%]"] = f"[{s['sel_lo']:+.3f}, {s['sel_hi']:+.3f}]"
+            s = {**s, "lo": s["sel_lo"], "hi": s["sel_hi"]}
         v = verdict(claim.kind, s["lo"], s["hi"], claim.margin)
         verdicts.append(v)
         row[f"{name}: P(improve)"] = f"{s['p_improve']:.2f}"
@@ -170,22 +171,31 @@ def _row(claim: Claim, seeds: int | str, stats: dict[str, dict], pairs: int, ter
     return row
 
 
-def check(claim: Claim, res: dict[tuple[str, str, int], pd.DataFrame], term: float | None = None
+def check(claim: Claim, res: dict[tuple[str, str, int], pd.DataFrame], selection: Selection | None = None
           ) -> dict[str, Any] | None:
     """The claim against ``res`` (rlsac.results.collect of its benchmark) -> a row of claims.md, or None when
-    its rows are missing; ``term``: the re-tuning half-width its intervals carry (None: none)."""
+    its rows are missing; ``selection``: the re-tuning records whose re-chosen settings its intervals carry
+    (rlsac.reports.retuning.Selection; the nested bootstrap of rlsac.metrics.contrast_bootstrap), None for none."""
+    from rlsac.metrics import contrast_bootstrap
+    from rlsac.protocol import LIMIT, N_BOOT
     from rlsac.reports.folds import seed_comparison
+    from rlsac.reports.paper_report import _how
+    from rlsac.reports.retuning import contrast
     from rlsac.results import seed_runs
 
     seeds = seed_runs(res, claim.regime)
     runs, controls = seeds.get(claim.model, [claim.model]), seeds.get(claim.control, [claim.control])
-    stats, pairs = {}, 0
+    stats, pairs, how = {}, 0, {}
     for name in claim.metrics:  # a learned control (e.g. rlsac against one of its variants) over its seeds too
         got = seed_comparison(res, seeds, claim.regime, claim.model, claim.control, claim.iterations, f"err_{name}")
-        if got is None:
+        c = contrast(res, seeds, claim.regime, [(1.0, claim.model), (-1.0, claim.control)], claim.iterations,
+                     f"err_{name}", selection)
+        if got is None or c is None:
             return None
-        stats[name], pairs = got
-    return _row(claim, len(runs) if len(controls) == 1 else f"{len(runs)} vs {len(controls)}", stats, pairs, term)
+        nested = contrast_bootstrap(c["rows"], "maa", LIMIT, c["strata"], n_boot=N_BOOT)
+        stats[name], pairs, how = {**got[0], "sel_lo": nested["sel_lo"], "sel_hi": nested["sel_hi"]}, got[1], c["how"]
+    return _row(claim, len(runs) if len(controls) == 1 else f"{len(runs)} vs {len(controls)}", stats, pairs,
+                _how(how))
 
 
 def check_lines(claim: Claim, root: Path) -> dict[str, Any] | None:
@@ -211,32 +221,32 @@ def check_lines(claim: Claim, root: Path) -> dict[str, Any] | None:
 
 
 def build(eval_root: str | Path = "reports/eval", out_dir: str | Path = "reports",
-          claims: tuple[Claim, ...] = CLAIMS, retuning: dict[str, Any] | None | Compute = COMPUTE) -> dict[str, Any]:
+          claims: tuple[Claim, ...] = CLAIMS, retuning: Selection | None | Compute = COMPUTE) -> dict[str, Any]:
     """Write <out_dir>/claims.{md,csv} from the fold and line results; -> {"files", "missing"} (claims whose rows
-    are absent). ``retuning``: the re-tuning term (rlsac.reports.retuning.halfwidth of ``out_dir``, None for none),
-    computed here by default."""
+    are absent). ``retuning``: the fundamental task's re-tuning records (rlsac.reports.retuning.Selection of
+    ``out_dir``, None for none), read here by default; Table E's rows (the essential task) read their own."""
     from rlsac.protocol import N_BOOT, PAIRED_BOOT
     from rlsac.reports.retuning import resolve
     from rlsac.results import collect
 
-    retuning = resolve(retuning, out_dir)  # the fold claims' intervals carry it (reports/tuning_budget.md, part b)
-    term = None if retuning is None else retuning["s"]
+    selection = {"folds": resolve(retuning, out_dir),
+                 "essential": None if retuning is None else Selection(out_dir, "essential")}
     line_root = Path(eval_root) / "lines"
     results = {sub: collect(eval_root, sub) for sub in sorted({c.sub for c in claims} - {"lines"})}
     have_lines = any(line_root.glob("*/o*/errors.csv"))
     rows, missing = [], []
     for c in claims:
-        row = check_lines(c, line_root) if c.sub == "lines" else check(c, results[c.sub], term)
+        row = check_lines(c, line_root) if c.sub == "lines" else check(c, results[c.sub], selection[c.sub])
         (rows.append(row) if row is not None else missing.append(c.text))
     if not any(results.values()) and not have_lines:
         print(f"claims: no results under {eval_root}; nothing written")
         return {"files": [], "missing": missing}
     # results but no claim's rows (a profile with other budgets or rows, e.g. the quick one): the files say so
     df = pd.DataFrame(rows, columns=None if rows else ["claim", "where", "rows", "kind", "seeds", "pairs", "verdict"])
-    metric_cols = {name: [c for c in (f"{name}: model − control [95%]", f"{name}: with re-tuning [95%]",
+    metric_cols = {name: [c for c in (f"{name}: model − control [95%]", f"{name}: with selection [95%]",
                                       f"{name}: P(improve)", f"{name}: verdict")
                           if c in df.columns] for name in ("R", "t", "angle")}
-    base = ["claim", "where", "rows", "kind", "seeds", "pairs"]
+    base = ["claim", "where", "rows", "kind", "seeds", "pairs"] + (["selection"] if "selection" in df else [])
     df = df[base + [c for cs in metric_cols.values() for c in cs] + ["verdict"]].fillna("–")  # a metric not spoken of
     counts = df["verdict"].value_counts()
     one_seed = int((df["seeds"].astype(str).str.split().str[0] == "1").sum())
@@ -254,10 +264,10 @@ def build(eval_root: str | Path = "reports/eval", out_dir: str | Path = "reports
                                                                                     "not supported"))
             + f"; {one_seed} rest on one training seed.\n\n")
     is_line = df["claim"].isin([c.text for c in claims if c.sub == "lines"])
-    tuned = ("no re-tuning records (reports/retune): the intervals resample pairs and seeds only" if retuning is None
-             else f"`with re-tuning`: the interval widened in quadrature by ±{retuning['s']:.3f}, what re-choosing "
-                  "both rows' settings on resampled validation pairs moves a difference by (reports/tuning_budget.md, "
-                  "part b; the largest re-tuning sd measured, for every claim); the verdict reads that interval")
+    tuned = ("`with selection`: the interval of a nested, paired bootstrap that also re-chooses each re-tuned row's "
+             "settings on the same resample of its validation pairs in every draw (reports/retune; rows and terms "
+             "as in paper.md: `selection` says how each row's settings were chosen, *not measured* where a tuned row "
+             "has no re-tuning record and its interval lacks the term); the verdict reads that interval")
     sections = (("Fold benchmarks (Table 2, Table 3, Table E): mAA@10° of R and t pooled over the folds, the pairs "
                  f"resampled within each test building ({N_BOOT} draws), tie margin ±{TIE_MARGIN} mAA; {tuned}.",
                  ~is_line, metric_cols["R"] + metric_cols["t"]),

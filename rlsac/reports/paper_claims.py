@@ -22,8 +22,13 @@ from dataclasses import dataclass
 
 from rlsac.reports import paper
 
-# the fixed vocabulary of paper.md's verdicts (rlsac.reports.paper_report.verdict picks one)
-VERDICTS = ("reproduced", "same direction, smaller", "no difference", "reversed", "not testable here")
+# the fixed vocabulary of paper.md's verdicts (rlsac.reports.paper_report.verdict picks one; issue #62)
+VERDICTS = ("reproduced", "equivalent within ±m", "same direction, smaller", "no difference detected", "reversed",
+            "not a tie", "not testable here")
+# m, the margin inside which a difference is no difference in practice, once per metric (issue #62): 0.02 mAA@10° is
+# 12 of the 606 fold test pairs; 0.1° of a median error is a tenth of the paper's USAC-to-MAGSAC++ step in ε_R; on
+# lines 0.01 mAA@0.5° is 10 of the 1000 test instances (rlsac.reports.claims.LINE_TIE_MARGIN, one home)
+MARGINS = {"mAA": 0.02, "median": 0.1}
 # mAA@10° / median columns of Table 2 and 3 (paper.TABLE2's tuple order) -> (our errors.csv column, kind)
 F_METRICS = {"mAA R": ("err_R", "maa", 0), "mAA t": ("err_t", "maa", 1), "median ε_R": ("err_R", "median", 2),
              "median ε_t": ("err_t", "median", 3)}
@@ -51,6 +56,27 @@ class PaperClaim:
     regimes: tuple[str, ...] = ("hard",)  # fold regimes, or a line claim's outlier rate
     sign: int = 1  # the paper's direction where it gives no number (+1: the model is better)
     untestable: str = ""  # not testable here: why
+
+
+def margin(metric: str) -> float:
+    """The claim's m: MARGINS by the metric's kind; a line claim's is claims.md's line tie margin."""
+    from rlsac.reports.claims import LINE_TIE_MARGIN
+
+    if metric == LINE_METRIC:
+        return LINE_TIE_MARGIN
+    return MARGINS["mAA" if metric.startswith("mAA") else "median"]
+
+
+def better_sign(metric: str) -> int:
+    """+1 where a higher value is better (mAA), −1 where lower is (median errors)."""
+    return -1 if metric.startswith("median") else 1
+
+
+# the row standing for "uniform minimal sets in our environment" beside each learned row and baseline (issue #62,
+# whose gain): a baseline is its own; the shares are taken where model and control have different ones
+UNIFORM_OF = {"rlsac": "uniform", "rlsac-nodesc": "uniform", "rlsac-trainmax": "uniform",
+              "rlsac-trainmax-prob": "uniform", "rlsac-prob": "uniform", "rlsac-n100": "uniform-n100",
+              "rlsac-n200": "uniform-n200", "rlsac-n300": "uniform-n300"}
 
 
 def _t2(model: str, control: str, metric: str) -> float:

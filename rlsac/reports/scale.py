@@ -113,13 +113,19 @@ def validation_curves(s: dict[str, Any], root: Path = Path(".")) -> pd.DataFrame
     return pd.DataFrame(rows)
 
 
+def seed_sd(values: list[float]) -> float:
+    """The sample sd of the seeds' values (ddof=1, as the other reports); 0 for one seed."""
+    return float(np.std(values, ddof=1)) if len(values) > 1 else 0.0
+
+
 def comparisons(s: dict[str, Any], got: dict[str, Any]) -> pd.DataFrame:
     """RLSAC (seeds) - each control per (arm, step, budget), R and t, with seed-aware intervals."""
     rows = []
     for (arm, k, it), (r, t) in sorted(got["runs"].items()):
         row = {"arm": arm, "step": k, "iterations": it, "seeds": r.shape[0],
                "mAA_R": float(np.mean([mAA(x, LIMIT) for x in r])), "mAA_t": float(np.mean([mAA(x, LIMIT) for x in t])),
-               "sd_R": float(np.std([mAA(x, LIMIT) for x in r])), "sd_t": float(np.std([mAA(x, LIMIT) for x in t]))}
+               # the seed sd with ddof=1, as every other report's (rlsac.metrics.seed_bootstrap_maa); 0 for one seed
+               "sd_R": seed_sd([mAA(x, LIMIT) for x in r]), "sd_t": seed_sd([mAA(x, LIMIT) for x in t])}
         for c in CONTROLS:
             if (c, it) not in got["controls"]:
                 continue

@@ -526,7 +526,7 @@ def build(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
     check_store(track, "reports")
     from rlsac.reports import retuning
 
-    term: dict[str, Any] | None | retuning.Compute = retuning.COMPUTE  # the re-tuning term, read when first needed
+    term: retuning.Selection | None | retuning.Compute = retuning.COMPUTE  # the re-tuning records, read when needed
     with start_run("reports", f"table {which}", params={"which": which, "eval_root": str(eval_root),
                                                         "out_dir": str(out_dir)},
                    tags={"command": "table"}, enabled=track) as run:
@@ -537,8 +537,8 @@ def build(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
                 if which != key and not (which == "all" and key in ALL):
                     continue
                 if key in ("claims", "paper", "tuning-budget") and term is retuning.COMPUTE:
-                    # once per build: the reports/retune records read and their spreads computed for every builder
-                    term = retuning.halfwidth(out_dir)
+                    # once per build: the reports/retune records read and checked for every builder
+                    term = retuning.Selection(out_dir)
                 if key in ("folds", "essential"):  # Tables 2 (folds) and E on the leave-one-building-out folds
                     from rlsac.reports import folds
 

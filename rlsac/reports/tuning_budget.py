@@ -23,7 +23,7 @@ import numpy as np
 import pandas as pd
 
 from rlsac.io import atomic_path, write_text
-from rlsac.reports.retuning import COMPUTE, Z95, Compute, load_retune, resolve, spread, widen
+from rlsac.reports.retuning import COMPUTE, Z95, Compute, Selection, halfwidth, load_retune, resolve, spread
 
 
 def _cells(root: Path, regime: str, row: str, it: int) -> pd.DataFrame | None:
@@ -134,59 +134,28 @@ def retune_rows(c: dict[str, Any], out_dir: Path) -> tuple[list[dict[str, Any]],
     return rows, missing
 
 
-def widened(eval_root: Path, s: float) -> list[dict[str, str]]:
-    """Every fold claim of claims.md (rlsac.reports.claims.CLAIMS): its verdict on the pairs-and-seeds interval alone
-    and with the re-tuning half-width ``s`` added in quadrature (rlsac.reports.retuning.widen), as claims.md now
-    judges it; claims whose rows are absent are left out."""
-    from rlsac.reports.claims import CLAIMS, combine, verdict
-    from rlsac.reports.folds import seed_comparison
-    from rlsac.results import collect, seed_runs
-
-    res, out = collect(eval_root, "folds"), []
-    for c in (c for c in CLAIMS if c.sub == "folds"):
-        seeds, before, after = seed_runs(res, c.regime), [], []
-        for name in c.metrics:
-            got = seed_comparison(res, seeds, c.regime, c.model, c.control, c.iterations, f"err_{name}")
-            if got is None:
-                break
-            st, wide = got[0], widen(got[0], s)
-            before.append(verdict(c.kind, st["lo"], st["hi"], c.margin))
-            after.append(verdict(c.kind, wide["lo"], wide["hi"], c.margin))
-        else:
-            out.append({"claim": c.text, "pairs and seeds only": combine(before), "claims.md": combine(after)})
-    return out
-
-
-def decision(rows: list[dict[str, Any]], margin: float, eval_root: Path, term: dict[str, Any] | None) -> str:
-    """The generated verdict of part (b): what re-tuning adds to a difference of two rows (``term``:
-    rlsac.reports.retuning.halfwidth, None for no record), against the tie margin, and which claims it moves."""
+def decision(rows: list[dict[str, Any]], margin: float, term: dict[str, Any] | None) -> str:
+    """The generated reading of part (b): the spread re-tuning gives a row (``term``: rlsac.reports.retuning.
+    halfwidth, None for no record) against the tie margin, and where the claims now carry it (issue #62)."""
     if term is None or not rows:
-        return "No re-tuning records: nothing to decide, and no interval carries the term.\n"
+        return "No re-tuning records: nothing to decide, and no interval carries a selection term.\n"
     sds = [r[f"_{n}"]["sd"] for r in rows for n in ("R", "t")]
-    add = term["s"]
-    claims = widened(eval_root, add)
-    moved = [c for c in claims if c["pairs and seeds only"] != c["claims.md"]]
-    table = ("\n" + pd.DataFrame(moved).to_markdown(index=False) + "\n") if moved else ""
     return (
-        f"**Decision.** The largest re-tuning sd is {term['sd']:.3f} ({term['row']}, mAA_{term['metric']} at "
-        f"{term['iterations']} iterations; the mean over the rows, budgets and metrics measured: {np.mean(sds):.3f}). "
-        "A claim sets two rows against each other, each tuned on its own: re-tuning both moves their difference by "
-        f"about {Z95}·√2·sd = ±{add:.3f} (95%), {add / margin:.0%} of the tie margin ±{margin} "
-        "(rlsac.reports.claims.TIE_MARGIN). It is folded into the **intervals**, not the tie margin: a wider margin "
-        "would make a tie *easier* to support when the extra variance should make every verdict harder. Every fold "
-        "claim of claims.md and every mAA claim of paper.md on the fold benchmark has its interval widened by this "
-        "term in quadrature (rlsac.reports.retuning.widen: lo − √((diff − lo)² + s²), hi + √((hi − diff)² + s²)), "
-        "with the largest sd for every claim: conservative, most of all for the learned rows over five training "
-        "seeds, each seed tuned on its own, which were not re-tuned (their grids run the network at every point). "
-        "Median-error claims keep their intervals (the term is in mAA).\n\n"
-        f"{len(moved)} of the {len(claims)} fold claims of claims.md change verdict with the term"
-        + (":\n" if moved else ".\n") + table)
+        f"**Decision.** The re-tuning sd of one row ranges {min(sds):.3f}-{max(sds):.3f} (mean {np.mean(sds):.3f}; "
+        f"the largest: {term['row']}, mAA_{term['metric']} at {term['iterations']} iterations), so one term for every "
+        f"claim (its largest, {Z95}·√2·sd = ±{term['s']:.3f}, {term['s'] / margin:.0%} of the tie margin ±{margin}) "
+        "would be too wide for some comparisons and absent from none. Since issue #62 the claims carry the selection "
+        "term per comparison instead: claims.md and paper.md draw a nested, paired bootstrap in which every draw "
+        "takes one of these records' validation resamples, re-chooses each re-tuned row's setting on it, then "
+        "resamples seeds and test pairs (rlsac.metrics.contrast_bootstrap); a row with fixed settings gets no term, a "
+        "learned row's per-seed tuning is counted once (in its seed spread), and a tuned row without a record is "
+        "marked *not measured* there. paper.md lists the verdicts that moved.\n")
 
 
 def build(params: dict[str, Any], eval_root: str | Path = "reports/eval", out_dir: str | Path = "reports",
-          retuning: dict[str, Any] | None | Compute = COMPUTE) -> dict[str, Any]:
-    """Write <out_dir>/tuning_budget.{md,csv}; -> {"files", "missing"}. ``retuning``: the re-tuning term
-    (rlsac.reports.retuning.halfwidth of ``out_dir``, None for none), computed here by default."""
+          retuning: Selection | None | Compute = COMPUTE) -> dict[str, Any]:
+    """Write <out_dir>/tuning_budget.{md,csv}; -> {"files", "missing"}. ``retuning``: the re-tuning records
+    (rlsac.reports.retuning.Selection of ``out_dir``, None for none), read here by default."""
     from rlsac import retune, tune
     from rlsac.protocol import N_BOOT
     from rlsac.reports.claims import TIE_MARGIN
@@ -232,7 +201,7 @@ def build(params: dict[str, Any], eval_root: str | Path = "reports/eval", out_di
     df_b = pd.DataFrame([{k: v for k, v in r.items() if not k.startswith("_")} for r in b_rows])
     if b_rows:
         sec_b += df_b.to_markdown(index=False, disable_numparse=True) + "\n\n"
-    sec_b += decision(b_rows, TIE_MARGIN, eval_root, resolve(retuning, out_dir))
+    sec_b += decision(b_rows, TIE_MARGIN, halfwidth(out_dir) if resolve(retuning, out_dir) is not None else None)
     missing = a_missing + b_missing
     tail = ("\nNot compared (results absent): " + "; ".join(missing) + ".\n") if missing else ""
     write_text(out_dir / "tuning_budget.md", head + sec_a + sec_b + tail)
