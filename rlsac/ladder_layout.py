@@ -92,3 +92,50 @@ def controls_file(rung: str) -> Path:
 
 def actor_file(rung: str, seed: int) -> Path:
     return CKPT_ROOT / rung / f"s{seed}.pt"
+
+
+@dataclass(frozen=True)
+class LadderClaim:
+    """A claim about the ladder, written down before its runs finished (issue #61, item 5): ``a`` minus ``b``
+    (each a rung's sampler: "rlsac" is the rung's learned policy, seed-resampled) on the same test pairs at
+    ``budget`` hypotheses, in ``metric`` ("R" / "t": mAA@10 deg; "pi": pi(inliers)); ``expect``: "better" (the
+    interval above 0), "worse", or "tie" (the interval inside +-TIE_MARGIN)."""
+
+    text: str
+    a: tuple[str, str]
+    b: tuple[str, str]
+    metric: str
+    budget: int
+    expect: str
+
+
+TIE_MARGIN = 0.02  # mAA and pi(inliers): the equivalence margin of the paper's report (issue #62)
+
+# Written at commit time from one run (rung 3, seed 0, and its controls) while the other runs were training: rung 3
+# without the pre-filter showed RLSAC at guided's level and far above uniform; the rest are the ladder's questions.
+CLAIMS = (
+    LadderClaim("On real pairs without the pre-filter (rung 3), RLSAC is above uniform sets", ("rung3", "rlsac"),
+                ("rung3", "uniform"), "R", 100, "better"),
+    LadderClaim("On real pairs without the pre-filter (rung 3), RLSAC ties guided sets", ("rung3", "rlsac"),
+                ("rung3", "guided"), "R", 100, "tie"),
+    LadderClaim("In Table 2's environment (rung 4: the tuned SNN pre-filter on), RLSAC ties uniform sets",
+                ("rung4", "rlsac"), ("rung4", "uniform"), "R", 100, "tie"),
+    LadderClaim("The pre-filter lifts uniform sets more than RLSAC's: uniform gains from it", ("rung4", "uniform"),
+                ("rung3", "uniform"), "R", 100, "better"),
+    LadderClaim("The oracle is more than the margin above guided on real pairs: room a sampler could fill",
+                ("rung3", "oracle"), ("rung3", "guided"), "R", 100, "better"),
+    LadderClaim("Trained on labels (the supervised ceiling), the same actor is above guided sets", ("supervised",
+                "rlsac"), ("supervised", "guided"), "R", 100, "better"),
+    LadderClaim("RLSAC puts less mass on the inliers than the supervised actor", ("rung3", "rlsac"),
+                ("supervised", "rlsac"), "pi", 100, "worse"),
+    LadderClaim("The reward at the evaluation's threshold changes nothing (reward vs rung 3)", ("reward", "rlsac"),
+                ("rung3", "rlsac"), "R", 100, "tie"),
+    LadderClaim("The improvement reward changes nothing (improvement vs rung 3)", ("improvement", "rlsac"),
+                ("rung3", "rlsac"), "R", 100, "tie"),
+    LadderClaim("With real geometry and rung 2's SNN information (rung 3a), RLSAC ties guided", ("rung3a", "rlsac"),
+                ("rung3a", "guided"), "R", 100, "tie"),
+    LadderClaim("On the fitted generator (rung 2), RLSAC ties guided", ("rung2", "rlsac"), ("rung2", "guided"), "R",
+                100, "tie"),
+    LadderClaim("The positive control at inlier ratio 0.3 reaches guided sets by 3000 steps", ("control-0.3", "rlsac"),
+                ("control-0.3", "guided"), "R", 100, "tie"),
+)

@@ -17,7 +17,7 @@ import numpy as np
 
 from rlsac.errors import RlsacError
 from rlsac.io import atomic_path
-from rlsac.ladder_layout import ROOT
+from rlsac.ladder_layout import CLAIMS, ROOT, TIE_MARGIN
 from rlsac.metrics import mAA, seed_bootstrap_maa, stratified_draws
 
 LIMIT = 10.0  # mAA@10 deg, Table 2's
@@ -157,8 +157,55 @@ def convergence(d: dict, budget: str) -> list[dict[str, Any]]:
     return out
 
 
+def _arrays(data: dict[str, dict], side: tuple[str, str], budget: str, key: str) -> np.ndarray | None:
+    """(S, M) per-pair values of one side of a claim: a rung's learned runs (S seeds) or one of its controls (S = 1);
+    None while the rung or its runs are pending."""
+    rung, sampler = side
+    d = data.get(rung)
+    if d is None:
+        return None
+    if sampler != "rlsac":
+        return d["controls"][sampler][budget][key][None]
+    if not d["runs"]:
+        return None
+    return np.stack([d["runs"][k]["final"][budget][key] for k in sorted(d["runs"])])
+
+
+def judge(claim, data: dict[str, dict]) -> dict[str, Any]:
+    """A claim's difference, interval and verdict: supported (better / worse: the interval on that side of 0; tie:
+    inside +-TIE_MARGIN), not supported (the interval on the other side, or a tie's excluding 0), else inconclusive;
+    pending while a side's runs are missing."""
+    key = {"R": "err_R", "t": "err_t", "pi": "pi_inliers"}[claim.metric]
+    a, b = (_arrays(data, side, str(claim.budget), key) for side in (claim.a, claim.b))
+    if a is None or b is None:
+        return {"verdict": "pending", "diff": None, "seeds": 0}
+    if a.shape[1] != b.shape[1]:
+        raise RlsacError(f"claim {claim.text!r}: its two sides were measured on different pairs")
+    if claim.metric == "pi":
+        d, lo, hi = mean_interval(a, b)
+    else:
+        got = seed_bootstrap_maa(a, b, LIMIT)
+        d, lo, hi = got["diff"], got["lo"], got["hi"]
+    if claim.expect == "tie":
+        verdict = "supported" if -TIE_MARGIN <= lo and hi <= TIE_MARGIN else \
+            "not supported" if lo > 0 or hi < 0 else "inconclusive"
+    else:
+        sign = 1 if claim.expect == "better" else -1
+        verdict = "supported" if min(sign * lo, sign * hi) > 0 else \
+            "not supported" if max(sign * lo, sign * hi) < 0 else "inconclusive"
+    return {"verdict": verdict, "diff": (d, lo, hi), "seeds": max(len(a), len(b))}
+
+
 def _ci(t: tuple[float, float, float]) -> str:
     return f"{t[0]:+.3f} [{t[1]:+.3f}, {t[2]:+.3f}]"
+
+
+def _claim_row(cl, data: dict[str, dict]) -> str:
+    j = judge(cl, data)
+    diff = _ci(j["diff"]) if j["diff"] is not None else "–"
+    name = {"R": "mAA_R", "t": "mAA_t", "pi": "π(inliers)"}[cl.metric]
+    return (f"| {cl.text} | {cl.a[0]} {cl.a[1]} − {cl.b[0]} {cl.b[1]} | {name} @ {cl.budget} | {cl.expect} | "
+            f"{j['seeds']} | {diff} | {j['verdict']} |")
 
 
 def markdown(c: dict, data: dict[str, dict], order: list[str], why: dict[str, str], rows: list[dict]) -> str:
@@ -179,6 +226,12 @@ def markdown(c: dict, data: dict[str, dict], order: list[str], why: dict[str, st
         f"{c['settings_from']} control's threshold tuned on the fold's validation pairs; the SNN pre-filter is off "
         "except in rung 4 (Table 2's environment). A rung with fewer seeds than listed is still running: its row "
         "says how many.", "",
+        "## Claims written before the runs finished", "",
+        "Written in rlsac.ladder_layout.CLAIMS when one run (rung 3, seed 0) and its controls were in; each is "
+        "judged here on the runs there are now (a − b on the same test pairs; tie: the interval inside ±"
+        f"{TIE_MARGIN}).", "", "| claim | a − b | metric @ budget | expect | seeds | difference [95%] | verdict |",
+        "|" + " --- |" * 7,
+        *[_claim_row(cl, data) for cl in CLAIMS], "",
         f"## The ladder at {c['curve_iterations']} hypotheses", "",
         "| rung | what changes | seeds | π uniform | π guided | π RLSAC | π oracle | mAA_R uniform | guided | RLSAC | "
         "oracle | RLSAC − uniform, mAA_R | RLSAC − guided, mAA_R |", "|" + " --- |" * 13]
