@@ -193,4 +193,4 @@ def test_commands_end_to_end(tmp_path):
     assert r.returncode == 0, r.stderr[-2000:]
     md = (tmp_path / "reports/learner.md").read_text()
     assert "| rung1 | + the real pairs' SNN overlap of inliers and outliers | 1 |" in md
-    assert (tmp_path / "reports/figures/learner_ladder.png").stat().st_size > 1000
+    assert (tmp_path / "reports/learner_ladder.png").stat().st_size > 1000

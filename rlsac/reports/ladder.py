@@ -1,4 +1,4 @@
-"""reports/learner.md, learner.csv and figures/learner_ladder.png: where the learner stops (issue #61).
+"""reports/learner.md, learner.csv and learner_ladder.png: where the learner stops (issue #61).
 
 Reads the ladder's run records (experiments/ladder/<rung>/s<seed>.json: a run's curve and per-pair test errors) and
 each rung's controls (…/controls.json: uniform, guided and oracle sets in the same environment); nothing is run
@@ -297,7 +297,8 @@ def figure(c: dict, data: dict[str, dict], order: list[str], why: dict[str, str]
         return
     cols = min(4, len(have))
     rows_n = math.ceil(len(have) / cols)
-    fig, axes = plt.subplots(rows_n, cols, figsize=(3.6 * cols, 2.9 * rows_n), squeeze=False, sharey=True)
+    fig, axes = plt.subplots(rows_n, cols, figsize=(max(3.6 * cols, 8.0), 2.9 * rows_n + 0.6), squeeze=False,
+                             sharey=True)
     for ax, rung in zip(axes.ravel(), have, strict=False):
         d = data[rung]
         for seed, r in sorted(d["runs"].items()):
@@ -323,8 +324,8 @@ def figure(c: dict, data: dict[str, dict], order: list[str], why: dict[str, str]
                 handles.append(h)
                 labels.append(lab)
     fig.legend(handles, labels, loc="lower center", ncol=4, fontsize=8, frameon=False)
-    fig.suptitle(f"The learner's ladder: curves at {c['curve_iterations']} hypotheses (real rungs: the fold's "
-                 "validation pairs)", fontsize=9)
+    fig.suptitle(f"Curves at {c['curve_iterations']} hypotheses (real rungs: on the fold's validation pairs)",
+                 fontsize=9)
     fig.tight_layout(rect=(0, 0.06, 1, 0.97))
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:
@@ -333,7 +334,7 @@ def figure(c: dict, data: dict[str, dict], order: list[str], why: dict[str, str]
 
 
 def build(params: dict, out_dir: Path = Path("reports"), root: Path = ROOT) -> dict[str, Any]:
-    """Write reports/learner.md, learner.csv and figures/learner_ladder.png from the ladder's records."""
+    """Write reports/learner.md, learner.csv and learner_ladder.png from the ladder's records."""
     import pandas as pd
 
     from rlsac.ladder_layout import conf, rungs
@@ -349,7 +350,7 @@ def build(params: dict, out_dir: Path = Path("reports"), root: Path = ROOT) -> d
         for k, v in r.items():
             if isinstance(v, tuple):
                 f[f"{k}_lo"], f[f"{k}_hi"] = round(v[1], 4), round(v[2], 4)
-    md, csv, png = out_dir / "learner.md", out_dir / "learner.csv", out_dir / "figures" / "learner_ladder.png"
+    md, csv, png = out_dir / "learner.md", out_dir / "learner.csv", out_dir / "learner_ladder.png"
     with atomic_path(md) as tmp:
         tmp.write_text(markdown(c, data, order, why, rows))
     with atomic_path(csv) as tmp:
