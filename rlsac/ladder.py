@@ -226,12 +226,14 @@ def train_rung(rung: Rung, seed: int, params: dict, c: dict, device: str = "cpu"
         curve, test = real_pairs(rung, c, "val", label_task, pf), None  # the test pairs: read after training
     rows: list[dict] = []
 
-    def at_step(actor, step: int, updates: int) -> dict:
-        """The curve's point: measured on the CPU (a copy of an actor that trains on another device)."""
+    def at_step(actor, step: int, updates: int, alpha: float | None = None) -> dict:
+        """The curve's point: measured on the CPU (a copy of an actor that trains on another device); ``alpha``,
+        SAC's temperature then (what the drift after a peak may follow)."""
         actor.eval()
         on_cpu = actor if dev.type == "cpu" else copy.deepcopy(actor).cpu()
         m = measure("rlsac", curve, eval_task, c["curve_iterations"], on_cpu, state_threshold, env_conf)
-        rows.append({"step": step, "updates": updates, **summary(m)})
+        rows.append({"step": step, "updates": updates, **summary(m),
+                     **({} if alpha is None else {"alpha": round(alpha, 6)})})
         actor.train()
         return {}
 
@@ -263,9 +265,10 @@ def train_rung(rung: Rung, seed: int, params: dict, c: dict, device: str = "cpu"
             labels = on_dev["inliers"] if rung.learner == "supervised" else None
             episodes = RedrawnPairs(train_task, pool_tensors(on_dev, dev), agent.actor, tc.episodes.points,
                                     tc.episodes.swap, labels=labels)
-        at_step(agent.actor, 0, 0)
+        at_step(agent.actor, 0, 0, float(agent.log_alpha.exp()))
         train_loop(agent, train_task, data, env_conf, 0, gen, log=lambda m, s: None,
-                   validate=lambda step: at_step(agent.actor, step, int(agent.n_updates)), val_every=c["every"],
+                   validate=lambda step: at_step(agent.actor, step, int(agent.n_updates),
+                                                 float(agent.log_alpha.exp())), val_every=c["every"],
                    episodes=episodes)
         actor = agent.actor.eval().cpu()
     out = actor_file(rung.name, seed)  # the measured actor (rung 3: the scale study's, copied)
