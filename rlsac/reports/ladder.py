@@ -153,7 +153,8 @@ def convergence(d: dict, budget: str) -> list[dict[str, Any]]:
                     "pi_step": _first(cv, "pi_inliers", g_pi - PI_CLOSE),
                     "maa_step": _first(cv, "mAA_R", g_r - MAA_CLOSE),
                     "peak_pi": peak["pi_inliers"], "peak_step": peak["step"], "last_pi": cv[-1]["pi_inliers"],
-                    "drift": cv[-1]["pi_inliers"] - peak["pi_inliers"]})
+                    "drift": cv[-1]["pi_inliers"] - peak["pi_inliers"], "alpha_peak": peak.get("alpha"),
+                    "alpha_last": cv[-1].get("alpha")})
     return out
 
 
@@ -275,11 +276,14 @@ def markdown(c: dict, data: dict[str, dict], order: list[str], why: dict[str, st
             lines += ["", f"Convergence (curve on the test pairs at {c['curve_iterations']} hypotheses, every "
                       f"{c['every']} steps): the first step where π(inliers) is within {PI_CLOSE} of guided's and "
                       f"mAA_R within {MAA_CLOSE} of guided's; the peak π and the drift after it (last − peak).", "",
-                      "| seed | π step | mAA_R step | peak π (step) | last π | drift |", "|" + " --- |" * 6]
+                      "| seed | π step | mAA_R step | peak π (step) | last π | drift | α at the peak → last |",
+                      "|" + " --- |" * 7]
             for v in convergence(d, str(c["curve_iterations"])):
                 lines.append(f"| {v['seed']} | {v['pi_step'] if v['pi_step'] is not None else 'not reached'} | "
                              f"{v['maa_step'] if v['maa_step'] is not None else 'not reached'} | {v['peak_pi']:.3f} "
-                             f"({v['peak_step']}) | {v['last_pi']:.3f} | {v['drift']:+.3f} |")
+                             f"({v['peak_step']}) | {v['last_pi']:.3f} | {v['drift']:+.3f} | "
+                             + (f"{v['alpha_peak']:.4f} → {v['alpha_last']:.4f} |" if v["alpha_last"] is not None
+                                else "– |"))
         lines += [""]
     return "\n".join(lines)
 
