@@ -1,12 +1,13 @@
 """The numeric platform a committed result was computed on, and whether this machine is the same one.
 
-The same code, inputs and seed give the same bytes only on the same numeric code paths, and three of our
+The same code, inputs and seed give the same bytes only on the same numeric code paths, and four of our
 libraries choose theirs from the CPU at run time:
 - MKL (torch's BLAS and LAPACK) by vendor as well as by instruction set: on a non-Intel CPU it takes a generic
   branch even where AVX-512 is there, so a matmul rounds differently from the same matmul on an Intel AVX-512 CPU;
 - ATen's own kernels by instruction set (``torch.backends.cpu.get_cpu_capability()``);
 - OpenCV (the Strecha import's SIFT) by instruction set, with approximate instructions (rsqrt) whose bits are the
-  vendor's own.
+  vendor's own; and the Intel IPP inside it (SIFT's exp and magnitude) by instruction set too, with its own CPUID
+  dispatcher that OpenCV's switch does not reach (issue #63).
 ``reports/platform.json`` records the platform the committed record was made on (how it was established:
 reports/platform.md); ``rlsac verify --platform`` compares it with this machine's, and CI checks the record byte for
 byte only where they match.
@@ -53,6 +54,9 @@ PINS = {
     "ONEDNN_MAX_CPU_ISA": "AVX2",  # oneDNN (torch's mkldnn ops) likewise
     "OPENBLAS_CORETYPE": "Haswell",  # numpy's OpenBLAS kernels: the AVX2 ones
     "NPY_DISABLE_CPU_FEATURES": _NUMPY_AVX512,  # numpy's own SIMD loops at AVX2
+    # Intel IPP inside OpenCV (SIFT's exp and magnitude) picks its kernels from CPUID itself, past OPENCV_CPU_DISABLE:
+    # its AVX-512 ones round otherwise than its AVX2 ones (issue #63; the record's bins: rlsac.data.sift_record)
+    "OPENCV_IPP": "avx2",
 }
 # OpenCV's dispatched kernels at AVX2; only where the CPU has AVX-512 (pins() adds it)
 OPENCV_PIN = ("OPENCV_CPU_DISABLE", _OPENCV_AVX512)

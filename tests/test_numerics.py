@@ -22,6 +22,7 @@ import json, os, rlsac, torch, numpy, cv2
 from numpy._core._multiarray_umath import __cpu_dispatch__, __cpu_features__
 torch.ones(8, 8) @ torch.ones(8, 8)
 print(json.dumps({"aten": torch.backends.cpu.get_cpu_capability(), "cv2": cv2.getCPUFeaturesLine(),
+                  "ipp": cv2.ipp.getIppVersion() if cv2.ipp.useIPP() else "",
                   "numpy": [k for k in __cpu_dispatch__ if __cpu_features__.get(k)],
                   "env": {k: os.environ.get(k) for k in rlsac.numerics.pins()}}))
 """
@@ -51,10 +52,12 @@ def test_portable_mode_pins_every_library_before_it_loads():
     assert p["aten"] in ("AVX2", "DEFAULT")  # ATen runs AVX2 kernels even on an AVX-512 CPU
     assert not {"X86_V4", "AVX512_ICL", "AVX512_SPR"} & set(p["numpy"])
     assert "AVX512-SKX" not in p["cv2"].replace("AVX512-SKX?", "")  # '?': present but disabled
+    # OpenCV's IPP has its own CPUID dispatcher (issue #63): its AVX2 kernels (l9), or none in a build without IPP
+    assert p["ipp"] == "" or "(l9)" in p["ipp"], p["ipp"]
     n = probe("native")  # native sets nothing: each library takes this CPU's own paths
     assert n["env"] == {k: None for k in numerics.pins()}
     if numerics._has_avx512():
-        assert n["aten"] == "AVX512" and "*AVX512-SKX?" not in n["cv2"]
+        assert n["aten"] == "AVX512" and "*AVX512-SKX?" not in n["cv2"] and "(l9)" not in n["ipp"]
 
 
 def test_a_mode_that_cannot_take_is_a_user_error(monkeypatch):

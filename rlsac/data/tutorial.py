@@ -33,6 +33,7 @@ import cv2
 import h5py
 import numpy as np
 
+from rlsac.data import sift_record
 from rlsac.data.fundamental import KIND, N_FEATURES, gt_inliers
 from rlsac.errors import RlsacError
 from rlsac.io import atomic_path, open_h5, read_array, write_json
@@ -201,15 +202,17 @@ def load_gray(path: Path) -> np.ndarray:
     return img
 
 
-def describe(sift, img: np.ndarray, xy: np.ndarray, size: float, rootsift: bool) -> np.ndarray:
-    """SIFT descriptors (M,128) float32 at the given pixel locations, upright, fixed size."""
+def describe(sift, img: np.ndarray, xy: np.ndarray, size: float, rootsift: bool,
+             recorded: dict | None = None) -> np.ndarray:
+    """SIFT descriptors (M,128) float32 at the given pixel locations, upright, fixed size. ``recorded``: the
+    record's raw descriptors of this image (rlsac.data.sift_record), put back before the normalisation."""
     if len(xy) == 0:
         return np.zeros((0, 128), np.float32)
     kps = [cv2.KeyPoint(float(x), float(y), size, 0.0, 0.0, 0) for x, y in xy]
     out, desc = sift.compute(img, kps)
     if desc is None or len(out) != len(kps):
         raise RuntimeError(f"OpenCV SIFT compute returned {0 if desc is None else len(out)} of {len(kps)} descriptors")
-    desc = desc.astype(np.float32)
+    desc = sift_record.apply(desc.astype(np.float32), xy, recorded or {})
     if rootsift:
         desc = np.sqrt(desc / np.maximum(desc.sum(1, keepdims=True), 1e-12))
     else:
@@ -254,7 +257,8 @@ def _prepare_scene(scene: Scene, conf: PrepareConf, skipped: dict, progress: boo
         img = load_gray(scene.dir / "images" / f"{image}.jpg")
         h, w = img.shape[:2]
         xy = np.concatenate([pairs[i]["matches"][:, 2 * s : 2 * s + 2] for i, s in uses[image]])
-        desc = describe(sift, img, xy, float(conf.kp_size), bool(conf.rootsift))
+        desc = describe(sift, img, xy, float(conf.kp_size), bool(conf.rootsift),
+                        sift_record.recorded(scene.name, image, conf.kp_size))
         start = 0
         for i, s in uses[image]:
             n = pairs[i]["n"]
