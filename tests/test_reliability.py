@@ -1775,3 +1775,83 @@ def _check_killed_pipeline(driver, started: Path, repo: Path) -> None:
     pipeline = run_of("pipeline")
     assert pipeline.info.status == "KILLED" and "ended while the run was RUNNING" in pipeline.data.tags["error"]
     assert not (repo / "out").exists()
+
+
+# issue #64 (reliability, fourth round): the scale study, the positive control, state scales, tuning records
+
+PARAMS = Path(__file__).resolve().parents[1] / "params.yaml"
+
+
+def _params_with(root: Path, **sections) -> Path:
+    """The committed params.yaml with some keys of some sections replaced ({"scale": {"pool": "x"}})."""
+    import yaml
+
+    params = yaml.safe_load(PARAMS.read_text())
+    for name, keys in sections.items():
+        params[name] = {**params[name], **keys}
+    (root / "params.yaml").write_text(yaml.safe_dump(params))
+    return root / "params.yaml"
+
+
+def _refused(workdir: Path, argv: list[str], fragment: str) -> str:
+    """``argv`` is exit 2 with one ``error:`` line holding ``fragment``, the tree unchanged and no MLflow run."""
+    import mlflow
+
+    mlflow.MlflowClient(os.environ["MLFLOW_TRACKING_URI"]).search_experiments()  # the store exists: a run could start
+    store = ("mlflow.db", "mlflow.db.lock")
+    before = _tree(workdir, skip=store)
+    r = CliRunner().invoke(cli, argv)
+    assert r.exit_code == 2, (r.exit_code, r.output, r.exception)
+    err = r.stderr.strip()
+    assert err.startswith("error: ") and "\n" not in err and "Traceback" not in r.output, err
+    assert fragment in err, err
+    assert _tree(workdir, skip=store) == before and _all_runs() == []
+    return err
+
+
+BAD_SECTIONS = [  # (stage, extra argv, section, keys, fragment)
+    ("train", ["--arm", "fixed", "--seed", "0"], "scale", {"val_every": "x"}, "scale.val_every must be an integer"),
+    ("train", ["--arm", "fixed", "--seed", "0"], "scale", {"val_every": 20000},
+     "scale.val_every 20000 is larger than the largest step 10000"),
+    ("train", ["--arm", "fixed", "--seed", "4294967296"], "scale", {"seeds": [4294967296]},
+     "scale.seeds[0] must be in [0, 4294967295]"),
+    ("train", ["--arm", "fixed", "--seed", "0"], "scale", {"seeds": [True]}, "scale.seeds[0] must be an integer"),
+    ("fit", [], "scale", {"synthetic_pairs": "x"}, "scale.synthetic_pairs must be an integer, got 'x'"),
+    ("fit", [], "scale", {"synthetic_pairs": -5}, "scale.synthetic_pairs must be in [1, inf), got -5"),
+    ("pool", [], "scale", {"pool": "x"}, "scale.pool must be an integer, got 'x'"),
+    ("pool", [], "scale", {"pool": -5}, "scale.pool must be in [8, inf), got -5"),
+    ("pool", [], "scale", {"iterations": True}, "scale.iterations must be an integer, got True"),
+    ("control", [], "positive_control", {"seeds": ["a"]}, "positive_control.seeds[0] must be an integer, got 'a'"),
+    ("control", [], "positive_control", {"seeds": [-1]}, "positive_control.seeds[0] must be in [0, 4294967295]"),
+    ("control", [], "positive_control", {"seeds": [0.5]}, "positive_control.seeds[0] must be an integer, got 0.5"),
+    ("control", [], "positive_control", {"seeds": []}, "positive_control.seeds must be a non-empty list"),
+    ("control", [], "positive_control", {"steps": True}, "positive_control.steps must be an integer, got True"),
+    ("control", [], "positive_control", {"every": 700}, "positive_control.every 700 is larger than"),
+    ("control", [], "positive_control", {"inlier_ratios": [0]}, "positive_control.inlier_ratios[0] must be in (0, 1]"),
+]
+
+
+@pytest.mark.parametrize("stage, extra, name, keys, fragment", BAD_SECTIONS,
+                         ids=[f"{c[0]}-{next(iter(c[3]))}-{next(iter(c[3].values()))}" for c in BAD_SECTIONS])
+def test_scale_params_are_typed_and_ranged_before_any_work(workdir, stage, extra, name, keys, fragment):
+    """`rlsac scale`'s sections checked by type and range before any work, the error naming the key and the file
+    (issue #64: ValueError tracebacks; a bool or a float seed ran; a huge seed made its run's folder first)."""
+    _params_with(workdir, **{name: keys})
+    err = _refused(workdir, ["scale", "--stage", stage, *extra], fragment)
+    assert err.startswith("error: params.yaml: "), err
+    assert not (workdir / "checkpoints").exists()
+
+
+def test_scale_threads_are_range_checked(workdir):
+    _params_with(workdir)
+    _refused(workdir, ["scale", "--stage", "fit", "--threads", "-1"], "--threads must be in [0, inf), got -1")
+
+
+def test_positive_control_accepts_an_inlier_ratio_of_one():
+    """(0, 1] includes 1 (issue #64: the integer 1 was refused by a message that said (0, 1])."""
+    import yaml
+
+    from rlsac.positive_control import conf
+
+    pc = yaml.safe_load(PARAMS.read_text())["positive_control"]
+    assert conf({"positive_control": {**pc, "inlier_ratios": [1]}})["inlier_ratios"] == [1.0]
