@@ -1598,6 +1598,10 @@ def test_readers_accept_every_committed_result():
         results.read_errors(f)
     for f in root.glob("tuning/**/*.json"):
         results.read_record(f)
+    for f in root.glob("retune/**/*.json"):
+        results.read_retune_record(f)
+    for f in (root / "positive_control.json", root / "synthetic_fit.json", *root.glob("selection/**/*.json")):
+        results.read_mapping(f, "record")
 
 
 # signals: every command ends its run KILLED with the signal in its error tag, exit 128 + the signal
@@ -1855,3 +1859,93 @@ def test_positive_control_accepts_an_inlier_ratio_of_one():
 
     pc = yaml.safe_load(PARAMS.read_text())["positive_control"]
     assert conf({"positive_control": {**pc, "inlier_ratios": [1]}})["inlier_ratios"] == [1.0]
+
+
+REPORTS = Path(__file__).resolve().parents[1] / "reports"
+
+
+def _json_edit(path: Path, edit) -> None:
+    d = json.loads(path.read_text())
+    edit(d)
+    path.write_text(json.dumps(d))
+
+
+def _nan_pi(d):
+    d["results"][0]["curves"][0]["rows"][-1]["pi_inliers"] = float("nan")
+
+
+def _truncated_final(root: Path) -> None:
+    import shutil
+
+    src = Path(__file__).resolve().parents[1] / "checkpoints/scale/castle/fixed-s0/final.pt"
+    dst = root / "checkpoints/scale/castle/fixed-s0/final.pt"
+    dst.parent.mkdir(parents=True)
+    shutil.copy(src, dst)
+    dst.write_bytes(dst.read_bytes()[:5000])
+
+
+def _pc_nan(root: Path) -> None:
+    import shutil
+
+    (root / "reports").mkdir(exist_ok=True)
+    shutil.copy(REPORTS / "positive_control.json", root / "reports/positive_control.json")
+    _json_edit(root / "reports/positive_control.json", _nan_pi)
+
+
+@pytest.mark.parametrize("setup, fragment", [
+    (_pc_nan, "positive_control.json: results[0].curves[0].rows[6].pi_inliers is not a finite number"),
+    (_truncated_final, "fixed-s0/final.pt: not an rlsac checkpoint"),
+], ids=["positive-control-nan", "truncated-checkpoint"])
+def test_scale_report_refuses_nan_and_truncated_inputs_before_its_run(workdir, setup, fragment):
+    """`rlsac table --which scale` (issue #64: a NaN in the positive control's record was a report at exit 0; a
+    truncated checkpoint of the study a RuntimeError traceback): one error naming the file, before the run."""
+    _params_with(workdir)
+    (workdir / "eval").mkdir()
+    setup(workdir)
+    _refused(workdir, ["table", "--which", "scale", "--eval-root", "eval", "--out-dir", "reports"], fragment)
+
+
+def _retune_errors(value):
+    def edit(d):
+        d["test"]["100"][str(d["full"])]["err_R"][3] = value
+    return edit
+
+
+@pytest.mark.parametrize("value, fragment", [
+    ("x", "err_R[3] is 'x', not an angle in [0, 180] degrees"),
+    (float("nan"), "test.100.4.err_R[3] is not a finite number"),
+    (-1.0, "err_R[3] is -1.0, not an angle in [0, 180] degrees"),
+], ids=["text", "nan", "negative"])
+@pytest.mark.parametrize("which", ["tuning-budget", "claims"])
+def test_retuning_records_are_checked_before_the_run(workdir, value, fragment, which):
+    """A re-tuning record with a string, NaN or negative error (issue #64: a ValueError traceback; a report at exit 0;
+    -1 counted as a perfect pair, moving a row from 0.734 to 0.933): one error naming the file, before the run."""
+    import shutil
+
+    _params_with(workdir)
+    (workdir / "eval").mkdir()
+    rec = workdir / "reports/retune/fundamental/hard/castle/uniform.json"
+    rec.parent.mkdir(parents=True)
+    shutil.copy(REPORTS / "retune/fundamental/hard/castle/uniform.json", rec)
+    _json_edit(rec, _retune_errors(value))
+    err = _refused(workdir, ["table", "--which", which, "--eval-root", "eval", "--out-dir", "reports"], fragment)
+    assert "castle/uniform.json" in err
+
+
+@pytest.mark.parametrize("edit, fragment", [
+    (lambda root: _json_edit(root / "reports/selection/hard/castle/rlsac-nosnn-s1.json",
+                             lambda d: d["history"][0].update({"charts/val_mAA": float("nan")})),
+     "rlsac-nosnn-s1.json: history[0].charts/val_mAA is not a finite number"),
+    (lambda root: (root / "checkpoints").mkdir() or (root / "checkpoints/m.pt").write_bytes(b"PK\x03\x04trunc"),
+     "checkpoints/m.pt: not an rlsac checkpoint"),
+], ids=["record-nan", "truncated-checkpoint"])
+def test_selection_report_checks_its_inputs_before_its_run(workdir, edit, fragment):
+    """`rlsac table --which selection` read its records with a NaN-accepting json.loads and its checkpoints inside
+    the run (issue #64): one error naming the file, before the run."""
+    import shutil
+
+    for f in ("rlsac-nosnn-s1.json", "rlsac-nosnn-s1.csv"):
+        (workdir / "reports/selection/hard/castle").mkdir(parents=True, exist_ok=True)
+        shutil.copy(REPORTS / "selection/hard/castle" / f, workdir / "reports/selection/hard/castle" / f)
+    edit(workdir)
+    _refused(workdir, ["table", "--which", "selection", "--out-dir", "reports"], fragment)

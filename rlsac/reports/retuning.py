@@ -41,22 +41,11 @@ COMPUTE = Compute.COMPUTE
 def load_retune(out_dir: Path, regime: str, row: str) -> list[dict[str, Any]]:
     """The re-tuning records of ``row`` in ``regime``, one per fold (fold order), each checked for the fields the
     report reads: one choice per draw, test errors for every chosen setting at every budget."""
-    from rlsac.results import read_mapping
+    from rlsac.results import read_retune_record
 
     recs = []
     for path in sorted((out_dir / "retune" / "fundamental" / regime).glob(f"*/{row}.json")):
-        rec = read_mapping(path, "re-tuning record")
-        try:
-            n, k = len(rec["test_scenes"]), len(rec["settings"])
-            chosen = {rec["full"], *rec["choices"]}
-            ok = rec["choices"] and all(isinstance(i, int) and 0 <= i < k for i in chosen) and rec["test"] and all(
-                len(per[str(i)][col]) == n for per in rec["test"].values() for i in chosen for col in ("err_R",
-                                                                                                       "err_t"))
-        except (KeyError, TypeError):
-            ok = False
-        if not ok:
-            raise RlsacError(f"{path}: not a re-tuning record of `rlsac folds --stage retune` (choices, settings and "
-                             "test errors of every chosen setting); re-run the command that wrote it, or remove it")
+        rec = read_retune_record(path)
         recs.append({**rec, "path": str(path)})
     return recs
 
