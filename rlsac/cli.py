@@ -268,7 +268,8 @@ def evaluate(tracking: bool, params_path: str, **options) -> None:
     from rlsac.evaluate import evaluate as run
     from rlsac.evaluate import format_summary
 
-    defaults = section(read_params(params_path), "evaluate", options["task"])
+    params = read_params(params_path)
+    defaults = section(params, "evaluate", options["task"])
     record = options.pop("tuning")
     given = {k: v for k, v in options.items() if v is not None}
     if record is not None:
@@ -279,6 +280,9 @@ def evaluate(tracking: bool, params_path: str, **options) -> None:
         if both:  # which one wins would be a guess: refuse
             raise RlsacError(f"--tuning {record} sets {both[0]}; give --{both[0].replace('_', '-')} or --tuning, "
                              "not both")
+        # then against the data it would set: budget, regime, fold and scenes (issue #64: another fold's record ran)
+        record_options(record, options["task"], options["method"], options["checkpoint"], defaults.get("lo"),
+                       options["data"], params, options.get("iterations") or defaults.get("iterations"))
         defaults = {**defaults, **tuned}
     options = {**defaults, **given}
     click.echo(format_summary(run(options, track=tracking)))
