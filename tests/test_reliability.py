@@ -483,6 +483,12 @@ CASES = [
     ("train-set-rlsac-option-with-ngransac", ["train", "--task", "line", "--method", "ngransac", "--data", "{lines}",
                                               "--out", "ck/n.pt", "--params", "", "--set", "sac.actor_lr=1e-4"],
      "--set sac.*: an option of --method rlsac; --method ngransac does not read it (its own: ngransac)"),
+    # issue #64: recorded in the checkpoint and the run though NG-RANSAC's learner never reads them
+    *((f"train-ngransac-{key}", ["train", "--task", "line", "--method", "ngransac", "--data", "{lines}", "--out",
+                                 "ck/n.pt", "--params", "", "--set", value],
+       f"{key}: the ngransac learner does not read it (RLSAC's training only")
+      for key, value in (("kernels", "kernels=onednn"), ("neighbour_max", "neighbour_max=compiled"),
+                         ("snapshot_steps", "snapshot_steps=[1]"), ("episodes", "episodes.swap=true"))),
     ("train-set-ngransac-option-with-rlsac", train("--set", "ngransac.lr=1e-4"),
      "--set ngransac.*: an option of --method ngransac; --method rlsac does not read it"),
     ("train-batch-over-buffer", train("--set", "sac.batch_size=64", "--set", "sac.buffer_size=32"),
