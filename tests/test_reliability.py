@@ -1955,3 +1955,48 @@ def test_selection_report_checks_its_inputs_before_its_run(workdir, edit, fragme
         shutil.copy(REPORTS / "selection/hard/castle" / f, workdir / "reports/selection/hard/castle" / f)
     edit(workdir)
     _refused(workdir, ["table", "--which", "selection", "--out-dir", "reports"], fragment)
+
+
+def test_a_second_signal_inside_a_store_write_ends_the_run_killed_without_a_traceback(workdir):
+    """Issue #64: a second SIGTERM that landed while MLflow committed a metric was raised inside the database commit
+    and surfaced as `MlflowException: interrupted by a second SIGTERM` (a 50-line traceback, the run FAILED). The
+    interruption it wraps is what start_run and the CLI see: the run ends KILLED, one error line, exit 143."""
+    import signal
+
+    import sqlalchemy.orm
+
+    from rlsac.cli import _raise_signalled
+    from rlsac.errors import Interrupted
+    from rlsac.signals import StopOnSignal
+    from rlsac.tracking import start_run
+
+    commit, fired = sqlalchemy.orm.Session.commit, []
+
+    def commit_hit_by_a_signal(self, *a, **k):  # the second signal, once, in the middle of the store's write
+        if not fired:
+            fired.append(True)
+            os.kill(os.getpid(), signal.SIGTERM)
+        return commit(self, *a, **k)
+
+    stop = StopOnSignal()
+    try:
+        with pytest.raises(Exception) as caught, stop, start_run("lines", "hit") as run:
+            os.kill(os.getpid(), signal.SIGTERM)  # the first: the loop is asked to stop
+            assert stop()
+            sqlalchemy.orm.Session.commit = commit_hit_by_a_signal
+            run.metrics({"loss": 1.0})
+    finally:
+        sqlalchemy.orm.Session.commit = commit
+    assert fired and isinstance(caught.value, Interrupted), repr(caught.value)
+    assert caught.value.exit_code == 143 and "second SIGTERM" in str(caught.value)
+    (r,) = _all_runs()
+    assert r.info.status == "KILLED" and "second SIGTERM" in r.data.tags["error"]
+    # the CLI's last line of defence: a wrapped interruption is its one error line, not the wrapper's traceback
+    from mlflow.exceptions import MlflowException
+
+    try:
+        raise MlflowException("interrupted by a second SIGTERM") from caught.value
+    except MlflowException as e:
+        with pytest.raises(Exception) as cli_error:
+            _raise_signalled(e)
+    assert cli_error.value.exit_code == 143 and cli_error.value.format_message() == str(caught.value)
