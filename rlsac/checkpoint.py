@@ -20,6 +20,7 @@ Training state for ``--resume`` (rlsac.learners.sac) is a separate file beside i
 from __future__ import annotations
 
 import io
+import math
 from pathlib import Path
 from typing import Any
 
@@ -49,14 +50,28 @@ def training_scales(task) -> dict[str, float]:
     return {"residual_threshold": float(task.threshold)}
 
 
-def state_scales(path: str | Path, device: str | torch.device = "cpu") -> dict[str, float] | None:
-    """The ``state_scales`` a checkpoint carries (None for one written before the key); RlsacError on a bad value."""
+# how far a checkpoint's residual scale may be from the evaluation's threshold (both in the task's unit) before it is
+# refused as no training threshold: a policy trained at 2 px and evaluated at 0.1 px is a ratio of 400 in px^2
+SCALE_RATIO = 1e6
+
+
+def state_scales(path: str | Path, device: str | torch.device = "cpu", unit: float | None = None
+                 ) -> dict[str, float] | None:
+    """The ``state_scales`` a checkpoint carries; None for one written before the key, and the caller says so (its
+    policy then sees residuals at the evaluation threshold, as the record was made). RlsacError on a value that is
+    not a positive finite number (issue #64: ``true`` was read as 1), or, given the task's threshold ``unit``, one
+    more than ``SCALE_RATIO`` times off it (an absurd scale saturates or flattens the policy's residual channel)."""
     scales = read(path, device).get("state_scales")
     if scales is None:
         return None
     eps = scales.get("residual_threshold") if isinstance(scales, dict) else None
-    if not isinstance(eps, (int, float)) or not eps > 0 or eps != eps or eps == float("inf"):
-        raise RlsacError(f"{path}: state_scales.residual_threshold must be a positive number, got {eps!r}")
+    if (not isinstance(eps, (int, float)) or isinstance(eps, bool) or not math.isfinite(eps) or not eps > 0
+            or (isinstance(scales, dict) and set(scales) != {"residual_threshold"})):
+        raise RlsacError(f"{path}: state_scales must be {{residual_threshold: <a positive number>}}, got "
+                         f"{scales!r:.80}")
+    if unit is not None and not unit / SCALE_RATIO <= eps <= unit * SCALE_RATIO:
+        raise RlsacError(f"{path}: state_scales.residual_threshold {eps!r} is more than {SCALE_RATIO:g} times off "
+                         f"the task's threshold {unit:g} (same unit): not a training threshold")
     return {"residual_threshold": float(eps)}
 
 

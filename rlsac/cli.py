@@ -69,10 +69,23 @@ class _Group(click.Group):
             raise _UserError(" ".join(str(e).split()) or e.__class__.__name__, getattr(e, "exit_code", 2)) from None
         except (MemoryError, RuntimeError) as e:  # sizes within their ranges that this machine cannot hold
             if not isinstance(e, MemoryError) and not any(m in str(e) for m in OUT_OF_MEMORY):
-                raise
+                _raise_signalled(e)
             first = " ".join(str(e).split())[:160]
             raise _UserError(f"out of memory ({e.__class__.__name__}: {first}); lower the sizes you set (batch_size, "
                              "buffer_size, num_envs, samples, val_iterations, ...)", 2) from None
+        except Exception as e:
+            _raise_signalled(e)
+
+
+def _raise_signalled(e: Exception) -> None:
+    """Re-raise ``e``, as the one-line interruption it wraps where a signal's ``Interrupted`` landed inside a library
+    call that wrapped it (MLflow's database commit: issue #64), else as it is."""
+    from rlsac.signals import interrupted_in
+
+    signalled = interrupted_in(e)
+    if signalled is None:
+        raise e
+    raise _UserError(str(signalled), signalled.exit_code) from None
 
 
 class _TaskChoice(click.Choice):
@@ -268,7 +281,8 @@ def evaluate(tracking: bool, params_path: str, **options) -> None:
     from rlsac.evaluate import evaluate as run
     from rlsac.evaluate import format_summary
 
-    defaults = section(read_params(params_path), "evaluate", options["task"])
+    params = read_params(params_path)
+    defaults = section(params, "evaluate", options["task"])
     record = options.pop("tuning")
     given = {k: v for k, v in options.items() if v is not None}
     if record is not None:
@@ -279,6 +293,9 @@ def evaluate(tracking: bool, params_path: str, **options) -> None:
         if both:  # which one wins would be a guess: refuse
             raise RlsacError(f"--tuning {record} sets {both[0]}; give --{both[0].replace('_', '-')} or --tuning, "
                              "not both")
+        # then against the data it would set: budget, regime, fold and scenes (issue #64: another fold's record ran)
+        record_options(record, options["task"], options["method"], options["checkpoint"], defaults.get("lo"),
+                       options["data"], params, options.get("iterations") or defaults.get("iterations"))
         defaults = {**defaults, **tuned}
     options = {**defaults, **given}
     click.echo(format_summary(run(options, track=tracking)))

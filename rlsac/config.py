@@ -252,7 +252,10 @@ def read_params(path: str | Path | None = DEFAULT_PARAMS) -> dict[str, Any]:
     if not path:
         return {}
     params = load_params(path, required=str(path) != DEFAULT_PARAMS)
-    check_params(params)
+    try:
+        check_params(params)
+    except RlsacError as e:  # the key alone does not say which file holds it (issue #64: --params FILE, a worktree's)
+        raise RlsacError(f"{path}: {e}") from None
     return params
 
 

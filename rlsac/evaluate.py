@@ -112,10 +112,12 @@ TYPES = {"checkpoint": str, "iterations": int, "steps_per_episode": int, "seed":
          "batch_size": int, "out_dir": str, "sampling": str, "tags": dict, "threads": int, "guide_temperature": float,
          "lo": dict, "policy_every": int, "sets_per_step": int, "confidence": float, "threshold_px": float,
          "prefilter": float, "refit_output": bool}
+# threshold_px: below a thousandth of a pixel is below any keypoint's precision, above 1000 px every match of a
+# Strecha image (3072 px wide) is an inlier (issue #64: 1e300 and 1e-300 "succeeded" with mAA 0)
 RANGES = {"iterations": "[1, inf)", "steps_per_episode": "[1, inf)", "seed": SEED_RANGE,
           "device": ("auto", "cpu", "cuda"), "batch_size": "[1, inf)", "sampling": ("max", "prob"),
           "threads": "[0, inf)", "guide_temperature": "(0, inf)", "policy_every": "[1, inf)",
-          "sets_per_step": f"[1, {MAX_SETS_PER_STEP}]", "confidence": "[0, 1)", "threshold_px": "(0, inf)",
+          "sets_per_step": f"[1, {MAX_SETS_PER_STEP}]", "confidence": "[0, 1)", "threshold_px": "[0.001, 1000]",
           "prefilter": "(0, 1]"}
 
 
@@ -329,7 +331,20 @@ def prepare(options: dict[str, Any], track: bool = True, read: Callable | None =
         raise RlsacError(f"{o['data']}: no instances")
     check_sets_per_step(o, data, task_cls)
     task, estimate, extra = make_estimator(o, device)
+    check_prefilter(o, data, task_cls, task)
     return Prepared(o, device, data, attrs, task, estimate, extra)
+
+
+def check_prefilter(o: dict[str, Any], data: dict, task_cls, task: Task) -> None:
+    """A pre-filter must leave some instance a minimal set (issue #64: --prefilter 1e-9 kept no point and scored
+    every pair as a failure at exit 0). An instance it leaves short is scored as it comes, as the tables do."""
+    if o["prefilter"] is None:
+        return
+    batch = task_cls.to_batch(data, slice(0, _n_instances(data)))
+    most = int(prefiltered(task, batch, o["prefilter"])["mask"].sum(-1).max())
+    if most < task.sample_size:
+        raise RlsacError(f"prefilter {o['prefilter']:g} leaves fewer than a minimal set ({task.sample_size} points) "
+                         f"in every instance of {o['data']} (at most {most}): nothing could be estimated")
 
 
 def check_all(options: list[dict[str, Any]], track: bool = True, built_later: set[str] = frozenset()) -> None:

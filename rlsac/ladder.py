@@ -303,6 +303,27 @@ def write_json(path: Path, obj: dict) -> None:
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(obj, indent=1) + "\n")
 
+def check_inputs(rung: Rung, c: dict, params: dict, seed: int | None) -> None:
+    """Every file the rung reads, there (and its tuned settings readable) -> None; RlsacError naming the first
+    missing."""
+    from rlsac import scale_layout as lay
+    from rlsac.folds import data_dir
+
+    if rung.data == "synthetic" and "fitted" in (rung.snn, rung.ratios, rung.positions):
+        _statistics()
+    if rung.data == "real":
+        if rung.snn == "redrawn":
+            _statistics()
+        need = [lay.pool_file(c["fold"]), *(data_dir(c["regime"], c["fold"]) / f"{w}.h5" for w in ("val", "test"))]
+        if rung.learner == "scale" and seed is not None:
+            need += [lay.snapshot(c["fold"], "redraw", seed, k) for k in lay.arm_steps(lay.protocol(params), "redraw")
+                     if k <= c["steps"]]
+        for path in need:
+            if not Path(path).is_file():
+                raise RlsacError(f"{path}: missing (the ladder's rung {rung.name} reads it; `dvc repro` its stage)")
+        eval_settings(c, params)
+
+
 def run(params: dict, rung_name: str, seed: int | None, threads: int = 1, device: str = "cpu",
         track: bool = False) -> dict[str, Any]:
     """``rlsac scale --stage ladder --arm <rung> --seed <s>`` (one run) or without a seed (the rung's controls);
@@ -321,6 +342,7 @@ def run(params: dict, rung_name: str, seed: int | None, threads: int = 1, device
     from rlsac.devices import resolve_device
 
     device = str(resolve_device(device))  # "auto": the accelerator where there is one (a preview, not the record)
+    check_inputs(rung, c, params, seed)  # before the MLflow run: a missing input leaves no FAILED run behind
     check_store(track, "scale")
     t0 = time.time()
     name = f"ladder {c['fold']} {c['regime']} {rung_name} " + ("controls" if seed is None else f"s{seed}")

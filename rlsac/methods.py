@@ -113,11 +113,21 @@ def _rlsac(o, device, lo=None):
     check_reads(o["checkpoint"], actor, in_channels(task), "rlsac")
     env = with_lo(env_conf(ckpt_conf, o["steps_per_episode"]), lo)
     # the policy sees residuals in its training unit, whatever threshold this evaluation scores with (issue #46);
-    # a checkpoint from before state_scales sees them at the evaluation threshold, as the record was made
-    scales = state_scales(o["checkpoint"], device)
+    # a checkpoint from before state_scales sees them at the evaluation threshold, as the record was made: said here
+    scales = state_scales(o["checkpoint"], device, unit=float(task.threshold))
     eps = None if scales is None else scales["residual_threshold"]
+    noted = eps is not None  # the fallback said once, when the evaluation runs (after every check: no note
+    # before a later check's one error line)
 
     def estimate(batch, g):
+        nonlocal noted
+        if not noted:
+            import sys
+
+            noted = True
+            print(f"note: {o['checkpoint']} has no state_scales (written before them): its policy sees residuals at "
+                  f"the evaluation threshold {float(task.threshold):g}, as the record's models were evaluated",
+                  file=sys.stderr)
         return rlsac_estimate(task, batch, actor, o["iterations"], env, sampling=o["sampling"], generator=g,
                               policy_every=o["policy_every"], sets_per_step=o["sets_per_step"],
                               confidence=o["confidence"], state_threshold=eps)

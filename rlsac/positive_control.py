@@ -38,19 +38,28 @@ from rlsac.rollout import in_channels, rlsac_estimate
 from rlsac.sac import SACAgent, SACConf, masked_policy, seed_everything, train_loop
 from rlsac.tasks.fundamental import FundamentalTask
 
-KEYS = {"steps": int, "every": int, "iterations": int, "seeds": list, "inlier_ratios": list, "train_pairs": int,
-        "test_pairs": int}
+# key -> (type, range) for rlsac.config.check_value; a list's range is each element's (seeds: numpy's, SEED_RANGE)
+KEYS = {"steps": (int, "[1, inf)"), "every": (int, "[1, inf)"), "iterations": (int, "[1, inf)"),
+        "seeds": (list[int], "SEED_RANGE"), "inlier_ratios": (list[float], "(0, 1]"), "train_pairs": (int, "[1, inf)"),
+        "test_pairs": (int, "[1, inf)")}
 
 
 def conf(params: dict[str, Any]) -> dict[str, Any]:
-    """params.yaml ``positive_control``, checked (every key required, no other)."""
+    """params.yaml ``positive_control``, checked (every key required, no other; issue #64: a bool is not a step count,
+    a float not a seed, and ``every`` past ``steps`` would measure nothing after step 0)."""
+    from rlsac.config import SEED_RANGE, check_value
+
     c = section(params, "positive_control")
-    if set(c) != set(KEYS) or not all(isinstance(c[k], t) for k, t in KEYS.items()):
-        raise RlsacError(f"params.yaml positive_control needs exactly {sorted(KEYS)} with types "
-                         f"{ {k: t.__name__ for k, t in KEYS.items()} }, got {c}")
-    if min(c["steps"], c["every"], c["iterations"], c["train_pairs"], c["test_pairs"]) < 1 or not c["seeds"] or \
-            not all(isinstance(r, float) and 0 < r <= 1 for r in c["inlier_ratios"]) or not c["inlier_ratios"]:
-        raise RlsacError(f"params.yaml positive_control: positive sizes, seeds, inlier ratios in (0, 1]; got {c}")
+    if set(c) != set(KEYS):
+        raise RlsacError(f"positive_control needs exactly {sorted(KEYS)} (missing "
+                         f"{sorted(set(KEYS) - set(c))}, unknown {sorted(set(c) - set(KEYS), key=str)})")
+    for key, (tp, spec) in KEYS.items():
+        c[key] = check_value(f"positive_control.{key}", c[key], tp, SEED_RANGE if spec == "SEED_RANGE" else spec)
+        if tp is not int and not c[key]:
+            raise RlsacError(f"positive_control.{key} must be a non-empty list, got {c[key]!r}")
+    if c["every"] > c["steps"]:
+        raise RlsacError(f"positive_control.every {c['every']} is larger than positive_control.steps {c['steps']}: "
+                         "nothing would be measured after step 0")
     return c
 
 

@@ -52,7 +52,57 @@ def read_mapping(path: str | Path, what: str) -> dict[str, Any] | None:
     d = _load_json(path, what)
     if not isinstance(d, dict):
         raise _fail(path, f"not a valid {what} (holds a {type(d).__name__}, not a mapping)")
+    where = _non_finite(d)
+    if where is not None:  # issue #64: a NaN in the positive control's record was rendered as "nan" at exit 0
+        raise _fail(path, f"{where} is not a finite number")
     return d
+
+
+def _non_finite(obj: Any, where: str = "") -> str | None:
+    """The key path of the first NaN or infinity anywhere in a JSON value (None when there is none): no record a
+    report reads holds one on purpose, and a report would print it, or compute with it, as a number."""
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return where or "the value"
+    items = obj.items() if isinstance(obj, dict) else enumerate(obj) if isinstance(obj, list) else ()
+    for k, v in items:
+        found = _non_finite(v, f"{where}[{k!r}]" if isinstance(k, int) else f"{where}.{k}".lstrip("."))
+        if found is not None:
+            return found
+    return None
+
+
+def read_retune_record(path: str | Path) -> dict[str, Any] | None:
+    """A re-tuning record (``rlsac folds --stage retune``) -> dict, None when absent. Refused, naming the file: not
+    a JSON mapping, a NaN anywhere; ``choices`` / ``full`` not indices of ``settings``; a chosen setting without
+    test errors at some budget, or errors that are not one angle per test pair, each a finite number of degrees in
+    [0, 180] (issue #64: a string was a ValueError traceback, a NaN a report, and an error of -1 a perfect pair)."""
+    path = Path(path)
+    rec = read_mapping(path, "re-tuning record")
+    if rec is None:
+        return None
+    try:
+        n, k = len(rec["test_scenes"]), len(rec["settings"])
+        chosen = {rec["full"], *rec["choices"]}
+        test = rec["test"]
+        ok = bool(rec["choices"]) and bool(test) and isinstance(test, dict) and all(
+            isinstance(i, int) and not isinstance(i, bool) and 0 <= i < k for i in chosen)
+    except (KeyError, TypeError):
+        ok = False
+    if not ok:
+        raise _fail(path, "not a re-tuning record of `rlsac folds --stage retune` (choices, settings and test errors "
+                          "of every chosen setting)")
+    for it, per in test.items():
+        for i in sorted(chosen):
+            errs = per.get(str(i)) if isinstance(per, dict) else None
+            for col in ("err_R", "err_t"):
+                e = errs.get(col) if isinstance(errs, dict) else None
+                if not isinstance(e, list) or len(e) != n:
+                    raise _fail(path, f"test[{it!r}][{str(i)!r}].{col} is not {n} errors, one per test pair")
+                j = next((j for j, v in enumerate(e) if not (_finite_number(v) and 0 <= v <= 180)), None)
+                if j is not None:
+                    raise _fail(path, f"test[{it!r}][{str(i)!r}].{col}[{j}] is {e[j]!r}, not an angle in [0, 180] "
+                                      "degrees")
+    return rec
 
 
 def read_summary(path: str | Path, required: tuple[str, ...] = SUMMARY_REQUIRED) -> dict[str, Any] | None:

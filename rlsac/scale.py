@@ -35,19 +35,24 @@ STAGES = ("pool", "train", "evaluate", "evaluate-final", "validate", "control", 
 
 def scale(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
     """Run one stage (``options``: stage, arm, seed, params, device, threads) -> a summary."""
-    from rlsac.config import read_params
+    from rlsac.config import check_value, read_params
     from rlsac.folds import for_task, protocol
 
     stage = options.get("stage")
     if stage not in STAGES:
         raise RlsacError(f"scale --stage must be one of {', '.join(STAGES)}, got {stage!r}")
+    threads = check_value("--threads", options.get("threads") or 0, int, "[0, inf)")  # as `rlsac evaluate`'s
     params = read_params(options.get("params") or "params.yaml")
+    if threads > 0:
+        import torch
+
+        torch.set_num_threads(threads)
     if stage == "ladder":  # issue #61: where the learner stops (rlsac.ladder); --arm names the rung
         from rlsac.ladder import run as ladder
 
         seed = options.get("seed")
-        return ladder(params, options.get("arm") or "", None if seed is None else int(seed),
-                      int(options.get("threads") or 1), options.get("device") or "cpu", track)
+        return ladder(params, options.get("arm") or "", None if seed is None else int(seed), threads or 1,
+                      options.get("device") or "cpu", track)
     if stage == "control":
         from rlsac.positive_control import run as control
 
@@ -60,13 +65,9 @@ def scale(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
                          "folds")
     if stage not in ("pool", "fit", "synthetic"):
         arm, seed = options.get("arm"), options.get("seed")
-        if arm not in s["arms"] or seed is None or int(seed) not in s["seeds"]:
+        if arm not in s["arms"] or seed is None or seed not in s["seeds"]:
             raise RlsacError(f"scale --stage {stage} needs --arm (one of {', '.join(s['arms'])}) and --seed (one of "
                              f"{s['seeds']})")
-    if int(options.get("threads") or 0) > 0:
-        import torch
-
-        torch.set_num_threads(int(options["threads"]))
     t0 = time.time()
     if stage == "pool":
         out = make_pool(p, params, s, track)
@@ -218,7 +219,6 @@ def train_run(p: dict, params: dict, s: dict, arm: str, seed: int, o: dict, trac
         raise RlsacError(f"{lay.pool_file(s['fold'])}: no pool file (run `rlsac scale --stage pool` first)")
     if arm == "pretrain" and not lay.synthetic_file(s["fold"]).is_file():
         raise RlsacError(f"{lay.synthetic_file(s['fold'])}: no synthetic pairs (run `rlsac scale --stage synthetic`)")
-    lay.run_dir(s["fold"], arm, seed).mkdir(parents=True, exist_ok=True)
     if arm == "pretrain":
         pre = pretrain_options(opts, s, seed)
         if saved_step(pre) < pre["sac"]["total_steps"]:  # one leg: a state of this recipe is complete

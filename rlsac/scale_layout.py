@@ -17,7 +17,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from rlsac.config import section
+from rlsac.config import SEED_RANGE, check_value, section
 from rlsac.errors import RlsacError
 
 # the record's episodes; a fresh draw of the pool per episode, images swapped at random; ``pretrain.steps`` steps on
@@ -27,47 +27,61 @@ ARMS = ("fixed", "redraw", "pretrain", "prefilter")
 
 
 def protocol(params: dict[str, Any]) -> dict[str, Any]:
-    """params.yaml ``scale``, checked: fold, regime, pool, arms, seeds, steps, iterations, settings_from."""
+    """params.yaml ``scale``, every key typed and range-checked (issue #64: a string ``val_every`` or ``pool`` was a
+    ValueError traceback in the stage that read it, a negative one refused under another name): exactly the keys
+    of ``TYPES``; integers are not bools, seeds numpy seeds, sizes positive, ``val_every`` at most the largest step."""
     s = dict(section(params, "scale"))
-    need = ("fold", "regime", "pool", "arms", "seeds", "steps", "iterations", "final_iterations", "settings_from",
-            "val_every", "legs", "final_steps", "synthetic_pairs", "arm_steps", "pretrain")
-    missing = [k for k in need if k not in s]
-    if missing or set(s) - set(need):
-        raise RlsacError(f"params.yaml scale: needs exactly {', '.join(need)} (missing {missing}, "
-                         f"unknown {sorted(set(s) - set(need))})")
+    missing = [k for k in TYPES if k not in s]
+    if missing or set(s) - set(TYPES):
+        raise RlsacError(f"scale: needs exactly {', '.join(TYPES)} (missing {missing}, "
+                         f"unknown {sorted(set(s) - set(TYPES), key=str)})")
+    for key, (tp, spec) in TYPES.items():
+        if tp is list and (not isinstance(s[key], list) or not s[key]):
+            raise RlsacError(f"scale.{key} must be a non-empty list, got {s[key]!r}")
+        if tp is not None:
+            s[key] = check_value(f"scale.{key}", s[key], tp, spec)
     bad = [a for a in s["arms"] if a not in ARMS]
-    if bad or not s["arms"]:
-        raise RlsacError(f"scale.arms {bad or s['arms']}: each one of {', '.join(ARMS)}")
-    for key, low in (("iterations", 1), ("final_iterations", 0)):  # one budget each: one stage's output folder
-        if not isinstance(s[key], int) or isinstance(s[key], bool) or s[key] < low:
-            raise RlsacError(f"scale.{key} must be an integer >= {low} (one budget{'; 0 = none' if low == 0 else ''}), "
-                             f"got {s[key]!r}")
-    for key in ("seeds", "steps"):
-        vals = s[key]
-        if not isinstance(vals, list) or not vals or not all(isinstance(v, int) and v >= 0 for v in vals):
-            raise RlsacError(f"scale.{key} must be a non-empty list of non-negative integers, got {vals!r}")
-    s["steps"] = sorted(set(s["steps"]))
+    if bad:
+        raise RlsacError(f"scale.arms {bad}: each one of {', '.join(ARMS)}")
+    s["seeds"] = [check_value(f"scale.seeds[{i}]", v, int, SEED_RANGE) for i, v in enumerate(s["seeds"])]
+    s["steps"] = sorted({check_value(f"scale.steps[{i}]", v, int, "[1, inf)") for i, v in enumerate(s["steps"])})
+    if s["val_every"] > s["steps"][-1]:
+        raise RlsacError(f"scale.val_every {s['val_every']} is larger than the largest step {s['steps'][-1]}: no "
+                         "validation would run")
     legs = s["legs"]
-    if (not isinstance(legs, list) or not legs or not all(isinstance(v, int) and v > 0 for v in legs)
+    if (not isinstance(legs, list) or not legs or not all(_int(v) and v > 0 for v in legs)
             or legs != sorted(set(legs)) or legs[-1] != s["steps"][-1]):
         raise RlsacError(f"scale.legs must be increasing positive integers ending at the largest step "
                          f"{s['steps'][-1]}, got {legs!r}")
     fin = s["final_steps"]
-    if not isinstance(fin, list) or not set(fin) <= set(s["steps"]):
+    if not isinstance(fin, list) or not all(_int(v) for v in fin) or not set(fin) <= set(s["steps"]):
         raise RlsacError(f"scale.final_steps must be a list of steps of scale.steps {s['steps']} (each arm's last step "
                          f"is tested at final_iterations too), got {fin!r}")
     s["final_steps"] = sorted(set(fin))
     last = s["arm_steps"]
     if (not isinstance(last, dict) or set(last) - set(s["arms"])
-            or any(not isinstance(v, int) or v not in s["steps"] for v in last.values())):
+            or any(not _int(v) or v not in s["steps"] for v in last.values())):
         raise RlsacError(f"scale.arm_steps must map arms of scale.arms to a step of scale.steps {s['steps']} (how far "
                          f"that arm's runs go; an arm left out goes to the largest), got {last!r}")
     pre = s["pretrain"]
-    if (not isinstance(pre, dict) or set(pre) != {"steps", "pairs"}
-            or not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in pre.values())):
+    if not isinstance(pre, dict) or set(pre) != {"steps", "pairs"} or not all(_int(v) and v > 0 for v in pre.values()):
         raise RlsacError(f"scale.pretrain must be {{steps: <int > 0>, pairs: <int > 0>}} (the pretrain arm's synthetic "
                          f"steps and pairs), got {pre!r}")
     return s
+
+
+def _int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+# key -> (type, range) checked by rlsac.config.check_value; None: a structure ``protocol`` checks itself. The pool is
+# what redraw's episodes draw their points from: at least a minimal set (8 points, the fundamental matrix's)
+TYPES: dict[str, tuple[Any, Any]] = {
+    "fold": (str, None), "regime": (str, None), "pool": (int, "[8, inf)"), "arms": (list, None),
+    "seeds": (list, None), "steps": (list, None), "iterations": (int, "[1, inf)"),
+    "final_iterations": (int, "[0, inf)"),  # one budget each: one stage's output folder; 0 = none
+    "settings_from": (str, None), "val_every": (int, "[1, inf)"), "legs": (None, None), "final_steps": (None, None),
+    "synthetic_pairs": (int, "[1, inf)"), "arm_steps": (None, None), "pretrain": (None, None)}
 
 
 def arm_steps(s: dict[str, Any], arm: str) -> list[int]:

@@ -33,6 +33,20 @@ def raise_interrupted(signum: int, frame=None) -> None:
     raise Interrupted(f"interrupted by {name(signum)}", signum)
 
 
+def interrupted_in(exc: BaseException | None) -> Interrupted | None:
+    """The ``Interrupted`` an exception wraps, if any (its ``__cause__`` / ``__context__`` chain). A signal's handler
+    raises wherever the program is: inside the tracking store's database commit, MLflow turns it into an
+    MlflowException (issue #64: a second SIGTERM printed a 50-line traceback and the run ended FAILED); the CLI and
+    ``tracking.start_run`` treat such an exception as the interruption it wraps."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, Interrupted):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
 def install(handler: Callable) -> dict:
     """``handler`` for SIGINT and SIGTERM -> the handlers it replaced (for ``restore``); nothing outside the main
     thread, where Python cannot set handlers (a command called from a worker thread keeps the caller's)."""

@@ -296,13 +296,36 @@ def start_run(experiment: str, run_name: str, params: dict[str, Any] | None = No
         yield run
         status = "FINISHED"
     except BaseException as e:
-        if isinstance(e, KeyboardInterrupt) or getattr(e, "run_status", None) == "KILLED":
+        from rlsac.signals import interrupted_in
+
+        signalled = interrupted_in(e)  # a signal raised inside a store write arrives wrapped by MLflow
+        if isinstance(e, KeyboardInterrupt) or signalled is not None:
             status = "KILLED"
         with contextlib.suppress(Exception):
-            run.tags(_error_tags(e))
+            run.tags(_error_tags(signalled or e))
+        if signalled is not None and signalled is not e:
+            raise signalled from None
         raise
     finally:
+        _end_run(status)
+
+
+def _end_run(status: str) -> None:
+    """``mlflow.end_run``; a signal landing in its write (an MlflowException around ``Interrupted``) ends the run
+    KILLED on a second try and raises the interruption itself."""
+    import mlflow
+
+    from rlsac.signals import interrupted_in
+
+    try:
         mlflow.end_run(status=status)
+    except Exception as e:
+        signalled = interrupted_in(e)
+        if signalled is None:
+            raise
+        with contextlib.suppress(Exception):
+            mlflow.end_run(status="KILLED")
+        raise signalled from None
 
 
 def free_port() -> int:

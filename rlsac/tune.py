@@ -187,12 +187,13 @@ def as_options(chosen: dict[str, Any], lo: dict[str, Any] | None) -> dict[str, A
 
 
 def record_options(path: str | Path, task: str, method: str, checkpoint: str | None,
-                   lo: dict[str, Any] | None) -> dict[str, Any]:
+                   lo: dict[str, Any] | None, data: str | Path | None = None, params: dict[str, Any] | None = None,
+                   iterations: int | None = None) -> dict[str, Any]:
     """``rlsac evaluate --tuning FILE``: a tuning record's chosen settings as evaluate options (``as_options``), so a
     cell of Table 2 / Table E can be reproduced by hand. The record must be one of this task and method (its
     ``method`` field: a -fast row's is ``rlsac``) and, for a learned row, of this checkpoint: settings tuned for
-    another row or model would be silently wrong. The evaluation's own checks (the test file's scenes against the
-    record's validation scenes) are the fold stage's; here the record names them in ``val_scenes``."""
+    another row or model would be silently wrong. Given the ``data`` it would evaluate, the record is checked against
+    it too (``check_record_data``: its budget, regime, fold and scenes)."""
     from rlsac.results import read_record
 
     path = Path(path)
@@ -211,7 +212,49 @@ def record_options(path: str | Path, task: str, method: str, checkpoint: str | N
     want = rec.get("checkpoint")
     if want and (not checkpoint or Path(checkpoint).resolve() != Path(want).resolve()):
         raise RlsacError(f"--tuning {path}: tuned for checkpoint {want}, not {checkpoint or 'none'} (--checkpoint)")
+    from rlsac.config import check_value
+    from rlsac.evaluate import RANGES, TYPES
+
+    for key in sorted(set(rec["chosen"]) & {"threshold_px", "prefilter"}):  # the task's ranges, naming the record
+        check_value(f"--tuning {path}: chosen {key}", rec["chosen"][key], TYPES[key], RANGES[key])
+    if data is not None:
+        check_record_data(rec, path, task, data, params or {}, iterations)
     return as_options(rec["chosen"], lo)
+
+
+def check_record_data(rec: dict[str, Any], path: Path, task: str, data: str | Path, params: dict[str, Any],
+                      iterations: int | None) -> None:
+    """A fold's tuning record against the evaluation it would set (issue #64: castle's record was evaluated on
+    entry's pairs at exit 0): its budget that of the tables' tuning (params tuning.iterations) or the command's;
+    a data file under data/folds/<regime>/<fold>/ the record's regime and fold; no pair of a scene the record was
+    tuned on, and, for a fold params.yaml names, no pair outside that fold's test building."""
+    from rlsac.protocol import read as fold_protocol
+    from rlsac.protocol import scene_list
+    from rlsac.tasks import task_class
+
+    budgets = {conf(params)["iterations"], *([int(iterations)] if iterations is not None else [])}
+    if rec.get("iterations") is not None and rec["iterations"] not in budgets:
+        raise RlsacError(f"--tuning {path}: tuned at {rec['iterations']!r} iterations, neither the tables' tuning "
+                         f"budget nor --iterations ({', '.join(map(str, sorted(budgets)))})")
+    parts = Path(data).parts
+    if len(parts) >= 5 and parts[-5:-3] == ("data", "folds") and "fold" in rec:
+        if (parts[-3], parts[-2]) != (rec.get("regime"), rec["fold"]):
+            raise RlsacError(f"--tuning {path}: a record of regime {rec.get('regime')!r}, fold {rec['fold']!r}; "
+                             f"{data} is regime {parts[-3]!r}, fold {parts[-2]!r}")
+    arrays, _ = task_class(task).read(data)
+    if "scene" not in arrays:
+        return
+    scenes = scenes_of(arrays)
+    leaked = sorted(set(scenes) & set(rec["val_scenes"]))
+    if leaked:
+        raise RlsacError(f"--tuning {path}: tuned on pairs of scene(s) {leaked}, which {data} holds: its settings "
+                         "were chosen on the pairs being evaluated")
+    p = fold_protocol(params)
+    if rec.get("fold") in p["scenes"]:
+        outside = sorted(set(scenes) - set(scene_list(p["scenes"][rec["fold"]])))
+        if outside:
+            raise RlsacError(f"--tuning {path}: a record of fold {rec['fold']!r}; {data} holds pairs of scene(s) "
+                             f"{outside} outside that fold's test building")
 
 
 def tuned_settings(ev: dict, regime: str, fold: str, name: str, train_scenes: list[str], test_scenes: list[str],

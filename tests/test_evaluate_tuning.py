@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 from click.testing import CliRunner
 
@@ -77,3 +78,69 @@ def test_the_command_refuses_a_bad_record_on_one_line_before_any_work(tmp_path, 
 def test_threshold_and_prefilter_are_range_checked(tmp_path):
     r = _evaluate(tmp_path, "--prefilter", "1.5")
     assert r.exit_code == 2 and "prefilter" in r.output and not (tmp_path / "out").exists()
+
+
+@pytest.fixture(scope="module")
+def pairs(tmp_path_factory):
+    """A small prepared fundamental file of one scene, "s1" (test_tutorial's synthetic scene)."""
+    from test_reliability import _fundamental  # tests/ is on sys.path (pytest prepend mode)
+
+    return _fundamental(tmp_path_factory.mktemp("pairs"))
+
+
+def _evaluate_on(tmp_path: Path, data: Path, *extra: str):
+    import shutil
+
+    shutil.copy(Path(__file__).resolve().parents[1] / "params.yaml", tmp_path / "params.yaml")
+    return CliRunner().invoke(cli, ["evaluate", "--no-tracking", "--task", "fundamental", "--method", "magsac",
+                                    "--iterations", "5", "--data", str(data), "--out-dir", str(tmp_path / "out"),
+                                    "--params", str(tmp_path / "params.yaml"), *extra])
+
+
+@pytest.mark.parametrize("record, extra, match", [
+    # issue #64: each evaluated at exit 0, mAA 0 and median errors 180 / 90 degrees, or with the settings of another
+    # fold, chosen on the pairs being evaluated
+    (None, ("--threshold-px", "1e300"), "threshold_px must be in [0.001, 1000], got 1e+300"),
+    (None, ("--threshold-px", "1e-300"), "threshold_px must be in [0.001, 1000], got 1e-300"),
+    (None, ("--prefilter", "1e-9"), "prefilter 1e-09 leaves fewer than a minimal set (8 points) in every instance"),
+    ({"chosen": {"prefilter": 0.8, "threshold_px": 1e6}}, (),
+     "rec.json: chosen threshold_px must be in [0.001, 1000], got 1000000.0"),
+    ({"val_scenes": ["s1", "entry-P10"]}, (), "tuned on pairs of scene(s) ['s1']"),
+    ({}, (), "a record of fold 'castle'; {data} holds pairs of scene(s) ['s1'] outside that fold's test building"),
+    ({"iterations": 5000}, (), "tuned at 5000 iterations, neither the tables' tuning budget nor --iterations (5, 100)"),
+], ids=["threshold-huge", "threshold-tiny", "prefilter-empty", "record-huge-threshold", "record-leak",
+        "record-other-fold", "record-other-budget"])
+def test_settings_and_records_are_checked_against_the_data(tmp_path, pairs, record, extra, match):
+    args = extra if record is None else ("--tuning", str(_record(tmp_path, **record)), *extra)
+    r = _evaluate_on(tmp_path, pairs, *args)
+    assert r.exit_code == 2, r.output
+    err = r.stderr.strip()
+    assert err.startswith("error: ") and "\n" not in err and match.format(data=pairs) in err, err
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_record_of_another_folds_data_path_is_refused(tmp_path, pairs):
+    import shutil
+
+    data = tmp_path / "data/folds/hard/entry/test.h5"
+    data.parent.mkdir(parents=True)
+    shutil.copy(pairs, data)
+    r = _evaluate_on(tmp_path, data, "--tuning", str(_record(tmp_path)))
+    assert r.exit_code == 2 and "a record of regime 'hard', fold 'castle'; " in r.stderr, r.output
+    assert "is regime 'hard', fold 'entry'" in r.stderr and not (tmp_path / "out").exists()
+
+
+def test_a_record_of_the_fold_on_its_own_test_building_runs(tmp_path, pairs):
+    """The checks refuse only what is wrong: a castle record (castle's pairs renamed) evaluates."""
+    import h5py
+
+    data = tmp_path / "castle.h5"
+    import shutil
+
+    shutil.copy(pairs, data)
+    with h5py.File(data, "a") as f:
+        n = len(f["scene"])
+        del f["scene"]
+        f["scene"] = np.array(["castle-P19"] * n, dtype=h5py.string_dtype())
+    r = _evaluate_on(tmp_path, data, "--tuning", str(_record(tmp_path, iterations=100)))
+    assert r.exit_code == 0, r.output

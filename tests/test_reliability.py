@@ -483,6 +483,12 @@ CASES = [
     ("train-set-rlsac-option-with-ngransac", ["train", "--task", "line", "--method", "ngransac", "--data", "{lines}",
                                               "--out", "ck/n.pt", "--params", "", "--set", "sac.actor_lr=1e-4"],
      "--set sac.*: an option of --method rlsac; --method ngransac does not read it (its own: ngransac)"),
+    # issue #64: recorded in the checkpoint and the run though NG-RANSAC's learner never reads them
+    *((f"train-ngransac-{key}", ["train", "--task", "line", "--method", "ngransac", "--data", "{lines}", "--out",
+                                 "ck/n.pt", "--params", "", "--set", value],
+       f"{key}: the ngransac learner does not read it (RLSAC's training only")
+      for key, value in (("kernels", "kernels=onednn"), ("neighbour_max", "neighbour_max=compiled"),
+                         ("snapshot_steps", "snapshot_steps=[1]"), ("episodes", "episodes.swap=true"))),
     ("train-set-ngransac-option-with-rlsac", train("--set", "ngransac.lr=1e-4"),
      "--set ngransac.*: an option of --method ngransac; --method rlsac does not read it"),
     ("train-batch-over-buffer", train("--set", "sac.batch_size=64", "--set", "sac.buffer_size=32"),
@@ -1598,6 +1604,10 @@ def test_readers_accept_every_committed_result():
         results.read_errors(f)
     for f in root.glob("tuning/**/*.json"):
         results.read_record(f)
+    for f in root.glob("retune/**/*.json"):
+        results.read_retune_record(f)
+    for f in (root / "positive_control.json", root / "synthetic_fit.json", *root.glob("selection/**/*.json")):
+        results.read_mapping(f, "record")
 
 
 # signals: every command ends its run KILLED with the signal in its error tag, exit 128 + the signal
@@ -1775,3 +1785,218 @@ def _check_killed_pipeline(driver, started: Path, repo: Path) -> None:
     pipeline = run_of("pipeline")
     assert pipeline.info.status == "KILLED" and "ended while the run was RUNNING" in pipeline.data.tags["error"]
     assert not (repo / "out").exists()
+
+
+# issue #64 (reliability, fourth round): the scale study, the positive control, state scales, tuning records
+
+PARAMS = Path(__file__).resolve().parents[1] / "params.yaml"
+
+
+def _params_with(root: Path, **sections) -> Path:
+    """The committed params.yaml with some keys of some sections replaced ({"scale": {"pool": "x"}})."""
+    import yaml
+
+    params = yaml.safe_load(PARAMS.read_text())
+    for name, keys in sections.items():
+        params[name] = {**params[name], **keys}
+    (root / "params.yaml").write_text(yaml.safe_dump(params))
+    return root / "params.yaml"
+
+
+def _refused(workdir: Path, argv: list[str], fragment: str) -> str:
+    """``argv`` is exit 2 with one ``error:`` line holding ``fragment``, the tree unchanged and no MLflow run."""
+    import mlflow
+
+    mlflow.MlflowClient(os.environ["MLFLOW_TRACKING_URI"]).search_experiments()  # the store exists: a run could start
+    store = ("mlflow.db", "mlflow.db.lock")
+    before = _tree(workdir, skip=store)
+    r = CliRunner().invoke(cli, argv)
+    assert r.exit_code == 2, (r.exit_code, r.output, r.exception)
+    err = r.stderr.strip()
+    assert err.startswith("error: ") and "\n" not in err and "Traceback" not in r.output, err
+    assert fragment in err, err
+    assert _tree(workdir, skip=store) == before and _all_runs() == []
+    return err
+
+
+BAD_SECTIONS = [  # (stage, extra argv, section, keys, fragment)
+    ("train", ["--arm", "fixed", "--seed", "0"], "scale", {"val_every": "x"}, "scale.val_every must be an integer"),
+    ("train", ["--arm", "fixed", "--seed", "0"], "scale", {"val_every": 20000},
+     "scale.val_every 20000 is larger than the largest step 10000"),
+    ("train", ["--arm", "fixed", "--seed", "4294967296"], "scale", {"seeds": [4294967296]},
+     "scale.seeds[0] must be in [0, 4294967295]"),
+    ("train", ["--arm", "fixed", "--seed", "0"], "scale", {"seeds": [True]}, "scale.seeds[0] must be an integer"),
+    ("fit", [], "scale", {"synthetic_pairs": "x"}, "scale.synthetic_pairs must be an integer, got 'x'"),
+    ("fit", [], "scale", {"synthetic_pairs": -5}, "scale.synthetic_pairs must be in [1, inf), got -5"),
+    ("pool", [], "scale", {"pool": "x"}, "scale.pool must be an integer, got 'x'"),
+    ("pool", [], "scale", {"pool": -5}, "scale.pool must be in [8, inf), got -5"),
+    ("pool", [], "scale", {"iterations": True}, "scale.iterations must be an integer, got True"),
+    ("control", [], "positive_control", {"seeds": ["a"]}, "positive_control.seeds[0] must be an integer, got 'a'"),
+    ("control", [], "positive_control", {"seeds": [-1]}, "positive_control.seeds[0] must be in [0, 4294967295]"),
+    ("control", [], "positive_control", {"seeds": [0.5]}, "positive_control.seeds[0] must be an integer, got 0.5"),
+    ("control", [], "positive_control", {"seeds": []}, "positive_control.seeds must be a non-empty list"),
+    ("control", [], "positive_control", {"steps": True}, "positive_control.steps must be an integer, got True"),
+    ("control", [], "positive_control", {"every": 700}, "positive_control.every 700 is larger than"),
+    ("control", [], "positive_control", {"inlier_ratios": [0]}, "positive_control.inlier_ratios[0] must be in (0, 1]"),
+]
+
+
+@pytest.mark.parametrize("stage, extra, name, keys, fragment", BAD_SECTIONS,
+                         ids=[f"{c[0]}-{next(iter(c[3]))}-{next(iter(c[3].values()))}" for c in BAD_SECTIONS])
+def test_scale_params_are_typed_and_ranged_before_any_work(workdir, stage, extra, name, keys, fragment):
+    """`rlsac scale`'s sections checked by type and range before any work, the error naming the key and the file
+    (issue #64: ValueError tracebacks; a bool or a float seed ran; a huge seed made its run's folder first)."""
+    _params_with(workdir, **{name: keys})
+    err = _refused(workdir, ["scale", "--stage", stage, *extra], fragment)
+    assert err.startswith("error: params.yaml: "), err
+    assert not (workdir / "checkpoints").exists()
+
+
+def test_scale_threads_are_range_checked(workdir):
+    _params_with(workdir)
+    _refused(workdir, ["scale", "--stage", "fit", "--threads", "-1"], "--threads must be in [0, inf), got -1")
+
+
+def test_positive_control_accepts_an_inlier_ratio_of_one():
+    """(0, 1] includes 1 (issue #64: the integer 1 was refused by a message that said (0, 1])."""
+    import yaml
+
+    from rlsac.positive_control import conf
+
+    pc = yaml.safe_load(PARAMS.read_text())["positive_control"]
+    assert conf({"positive_control": {**pc, "inlier_ratios": [1]}})["inlier_ratios"] == [1.0]
+
+
+REPORTS = Path(__file__).resolve().parents[1] / "reports"
+
+
+def _json_edit(path: Path, edit) -> None:
+    d = json.loads(path.read_text())
+    edit(d)
+    path.write_text(json.dumps(d))
+
+
+def _nan_pi(d):
+    d["results"][0]["curves"][0]["rows"][-1]["pi_inliers"] = float("nan")
+
+
+def _truncated_final(root: Path) -> None:
+    import shutil
+
+    src = Path(__file__).resolve().parents[1] / "checkpoints/scale/castle/fixed-s0/final.pt"
+    dst = root / "checkpoints/scale/castle/fixed-s0/final.pt"
+    dst.parent.mkdir(parents=True)
+    shutil.copy(src, dst)
+    dst.write_bytes(dst.read_bytes()[:5000])
+
+
+def _pc_nan(root: Path) -> None:
+    import shutil
+
+    (root / "reports").mkdir(exist_ok=True)
+    shutil.copy(REPORTS / "positive_control.json", root / "reports/positive_control.json")
+    _json_edit(root / "reports/positive_control.json", _nan_pi)
+
+
+@pytest.mark.parametrize("setup, fragment", [
+    (_pc_nan, "positive_control.json: results[0].curves[0].rows[6].pi_inliers is not a finite number"),
+    (_truncated_final, "fixed-s0/final.pt: not an rlsac checkpoint"),
+], ids=["positive-control-nan", "truncated-checkpoint"])
+def test_scale_report_refuses_nan_and_truncated_inputs_before_its_run(workdir, setup, fragment):
+    """`rlsac table --which scale` (issue #64: a NaN in the positive control's record was a report at exit 0; a
+    truncated checkpoint of the study a RuntimeError traceback): one error naming the file, before the run."""
+    _params_with(workdir)
+    (workdir / "eval").mkdir()
+    setup(workdir)
+    _refused(workdir, ["table", "--which", "scale", "--eval-root", "eval", "--out-dir", "reports"], fragment)
+
+
+def _retune_errors(value):
+    def edit(d):
+        d["test"]["100"][str(d["full"])]["err_R"][3] = value
+    return edit
+
+
+@pytest.mark.parametrize("value, fragment", [
+    ("x", "err_R[3] is 'x', not an angle in [0, 180] degrees"),
+    (float("nan"), "test.100.4.err_R[3] is not a finite number"),
+    (-1.0, "err_R[3] is -1.0, not an angle in [0, 180] degrees"),
+], ids=["text", "nan", "negative"])
+@pytest.mark.parametrize("which", ["tuning-budget", "claims"])
+def test_retuning_records_are_checked_before_the_run(workdir, value, fragment, which):
+    """A re-tuning record with a string, NaN or negative error (issue #64: a ValueError traceback; a report at exit 0;
+    -1 counted as a perfect pair, moving a row from 0.734 to 0.933): one error naming the file, before the run."""
+    import shutil
+
+    _params_with(workdir)
+    (workdir / "eval").mkdir()
+    rec = workdir / "reports/retune/fundamental/hard/castle/uniform.json"
+    rec.parent.mkdir(parents=True)
+    shutil.copy(REPORTS / "retune/fundamental/hard/castle/uniform.json", rec)
+    _json_edit(rec, _retune_errors(value))
+    err = _refused(workdir, ["table", "--which", which, "--eval-root", "eval", "--out-dir", "reports"], fragment)
+    assert "castle/uniform.json" in err
+
+
+@pytest.mark.parametrize("edit, fragment", [
+    (lambda root: _json_edit(root / "reports/selection/hard/castle/rlsac-nosnn-s1.json",
+                             lambda d: d["history"][0].update({"charts/val_mAA": float("nan")})),
+     "rlsac-nosnn-s1.json: history[0].charts/val_mAA is not a finite number"),
+    (lambda root: (root / "checkpoints").mkdir() or (root / "checkpoints/m.pt").write_bytes(b"PK\x03\x04trunc"),
+     "checkpoints/m.pt: not an rlsac checkpoint"),
+], ids=["record-nan", "truncated-checkpoint"])
+def test_selection_report_checks_its_inputs_before_its_run(workdir, edit, fragment):
+    """`rlsac table --which selection` read its records with a NaN-accepting json.loads and its checkpoints inside
+    the run (issue #64): one error naming the file, before the run."""
+    import shutil
+
+    for f in ("rlsac-nosnn-s1.json", "rlsac-nosnn-s1.csv"):
+        (workdir / "reports/selection/hard/castle").mkdir(parents=True, exist_ok=True)
+        shutil.copy(REPORTS / "selection/hard/castle" / f, workdir / "reports/selection/hard/castle" / f)
+    edit(workdir)
+    _refused(workdir, ["table", "--which", "selection", "--out-dir", "reports"], fragment)
+
+
+def test_a_second_signal_inside_a_store_write_ends_the_run_killed_without_a_traceback(workdir):
+    """Issue #64: a second SIGTERM that landed while MLflow committed a metric was raised inside the database commit
+    and surfaced as `MlflowException: interrupted by a second SIGTERM` (a 50-line traceback, the run FAILED). The
+    interruption it wraps is what start_run and the CLI see: the run ends KILLED, one error line, exit 143."""
+    import signal
+
+    import sqlalchemy.orm
+
+    from rlsac.cli import _raise_signalled
+    from rlsac.errors import Interrupted
+    from rlsac.signals import StopOnSignal
+    from rlsac.tracking import start_run
+
+    commit, fired = sqlalchemy.orm.Session.commit, []
+
+    def commit_hit_by_a_signal(self, *a, **k):  # the second signal, once, in the middle of the store's write
+        if not fired:
+            fired.append(True)
+            os.kill(os.getpid(), signal.SIGTERM)
+        return commit(self, *a, **k)
+
+    stop = StopOnSignal()
+    try:
+        with pytest.raises(Exception) as caught, stop, start_run("lines", "hit") as run:
+            os.kill(os.getpid(), signal.SIGTERM)  # the first: the loop is asked to stop
+            assert stop()
+            sqlalchemy.orm.Session.commit = commit_hit_by_a_signal
+            run.metrics({"loss": 1.0})
+    finally:
+        sqlalchemy.orm.Session.commit = commit
+    assert fired and isinstance(caught.value, Interrupted), repr(caught.value)
+    assert caught.value.exit_code == 143 and "second SIGTERM" in str(caught.value)
+    (r,) = _all_runs()
+    assert r.info.status == "KILLED" and "second SIGTERM" in r.data.tags["error"]
+    # the CLI's last line of defence: a wrapped interruption is its one error line, not the wrapper's traceback
+    from mlflow.exceptions import MlflowException
+
+    try:
+        raise MlflowException("interrupted by a second SIGTERM") from caught.value
+    except MlflowException as e:
+        with pytest.raises(Exception) as cli_error:
+            _raise_signalled(e)
+    assert cli_error.value.exit_code == 143 and cli_error.value.format_message() == str(caught.value)

@@ -73,5 +73,50 @@ def test_training_writes_the_scales_and_a_bad_value_is_refused(tmp_path):
     bad = _checkpoint(tmp_path / "bad.pt", {"residual_threshold": -1.0})
     from rlsac.errors import RlsacError
 
-    with pytest.raises(RlsacError, match="residual_threshold must be a positive number"):
+    with pytest.raises(RlsacError, match="state_scales must be {residual_threshold: <a positive number>}"):
         checkpoint.state_scales(bad)
+
+
+@pytest.fixture(scope="module")
+def pairs(tmp_path_factory):
+    from test_reliability import _fundamental  # tests/ is on sys.path (pytest prepend mode)
+
+    return _fundamental(tmp_path_factory.mktemp("pairs"))
+
+
+@pytest.mark.parametrize("scales, fragment", [
+    ({"residual_threshold": True}, "state_scales must be {residual_threshold: <a positive number>}, got "
+                                   "{'residual_threshold': True}"),
+    ({"residual_threshold": float("nan")}, "state_scales must be"),
+    ({"residual_threshold": 0.0}, "state_scales must be"),
+    ({"residual_threshold": 4.0, "other": 1.0}, "state_scales must be"),
+    ({"residual_threshold": 1e-300}, "state_scales.residual_threshold 1e-300 is more than 1e+06 times off"),
+    ({"residual_threshold": 1e300}, "state_scales.residual_threshold 1e+300 is more than 1e+06 times off"),
+], ids=["bool", "nan", "zero", "unknown-key", "tiny", "huge"])
+def test_evaluate_refuses_a_checkpoint_whose_state_scales_are_no_scale(tmp_path, monkeypatch, pairs, scales,
+                                                                      fragment):
+    """Issue #64: a bool scale was read as 1 (the residual channel scaled by 1 px^2 without a word), absurd ones
+    saturated or flattened it; each is now an error naming the checkpoint, before any evaluation."""
+    from click.testing import CliRunner
+
+    from rlsac.cli import cli
+
+    monkeypatch.chdir(tmp_path)
+    path = _checkpoint(tmp_path / "m.pt", None)
+    payload = checkpoint.read(path)
+    payload["state_scales"] = scales  # as written (actor_payload would make a float of the bool)
+    checkpoint.write(path, payload)
+    h5 = pairs
+    r = CliRunner().invoke(cli, ["evaluate", "--task", "fundamental", "--method", "rlsac", "--checkpoint", str(path),
+                                 "--data", str(h5), "--out-dir", "ev", "--params", "", "--no-tracking"])
+    assert r.exit_code == 2, r.output
+    err = r.stderr.strip()
+    assert err.startswith(f"error: {path}: ") and "\n" not in err and fragment in err, err
+    assert not (tmp_path / "ev").exists()
+
+
+def test_a_checkpoint_without_state_scales_says_so_where_it_falls_back(tmp_path, monkeypatch, capsys):
+    path = _checkpoint(tmp_path / "old.pt", None)
+    _first_memories(path, 0.75, monkeypatch)
+    err = capsys.readouterr().err
+    assert f"note: {path} has no state_scales" in err and "evaluation threshold 0.5625" in err, err

@@ -113,6 +113,11 @@ SPEED_ONLY = ("neighbour_max",)
 LATER_SECTION_DEFAULTS = {"episodes": {"prefilter": []}}
 
 
+# top-level options only RLSAC's learner reads (issue #64: `--method ngransac --set kernels=onednn` recorded kernels
+# onednn in the checkpoint and the run): another learner refuses them away from their defaults
+RLSAC_ONLY = ("episodes", "snapshot_steps", "kernels", "neighbour_max", "init")
+
+
 def stored_conf(conf: TrainConf) -> dict:
     """The configuration a checkpoint and its MLflow run keep: every field but the other methods' sections (and, for
     RLSAC, the ``method`` key: its default; ``LATER_DEFAULTS`` at their defaults; ``SPEED_ONLY``)."""
@@ -143,8 +148,12 @@ def check(options: dict, track: bool = True) -> TrainConf:
     _task(conf)
     if conf.episodes.prefilter and not conf.episodes.pool:
         raise RlsacError("episodes.prefilter needs episodes.pool (pre-filters are drawn with redrawn episodes)")
-    if conf.init and conf.method != "rlsac":
-        raise RlsacError(f"init: the {conf.method} learner does not read it (RLSAC's pretraining only)")
+    if conf.method != "rlsac":  # recorded in the checkpoint and the run, they would say it trained with them
+        defaults = TrainConf()
+        unread = [k for k in RLSAC_ONLY if getattr(conf, k) != getattr(defaults, k)]
+        if unread:
+            raise RlsacError(f"{unread[0]}: the {conf.method} learner does not read it (RLSAC's training only: "
+                             f"{', '.join(RLSAC_ONLY)})")
     if conf.init and not conf.resume and not Path(conf.init).is_file():
         raise RlsacError(f"{conf.init}: no such training state to start from (train --set init=...)")
     out = check_writable(conf.out, "checkpoint")

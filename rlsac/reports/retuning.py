@@ -40,9 +40,10 @@ COMPUTE = Compute.COMPUTE
 def load_retune(out_dir: Path, regime: str, row: str, task: str = "fundamental") -> list[dict[str, Any]]:
     """The re-tuning records of ``row`` in ``regime``, one per fold (fold order), each checked for the fields the
     report reads: one choice per draw, test errors for every chosen setting at every budget."""
-    from rlsac.results import read_mapping
+    from rlsac.results import read_retune_record
 
     recs = []
+<<<<<<< HEAD
     for path in sorted((out_dir / "retune" / task / regime).glob(f"*/{row}.json")):
         rec = read_mapping(path, "re-tuning record")
         try:
@@ -57,6 +58,11 @@ def load_retune(out_dir: Path, regime: str, row: str, task: str = "fundamental")
             raise RlsacError(f"{path}: not a re-tuning record of `rlsac folds --stage retune` (choices, settings and "
                              "test errors of every chosen setting); re-run the command that wrote it, or remove it")
         recs.append({**rec, "path": str(path), "fold": rec.get("fold", path.parent.name)})
+=======
+    for path in sorted((out_dir / "retune" / "fundamental" / regime).glob(f"*/{row}.json")):
+        rec = read_retune_record(path)
+        recs.append({**rec, "path": str(path)})
+>>>>>>> issue-64
     return recs
 
 

@@ -86,27 +86,50 @@ def same_as_record(s: dict[str, Any], root: Path = Path(".")) -> str:
     record = root / "checkpoints" / "folds" / s["regime"] / s["fold"] / "rlsac.pt"
     if "fixed" not in s["arms"] or 0 not in s["seeds"] or not record.is_file():
         return ""
-    rec = torch.load(record, map_location="cpu", weights_only=False)
+    rec = _checkpoint(record, "step", "actor")
     snap = root / lay.snapshot(s["fold"], "fixed", 0, int(rec["step"]))
     if not snap.is_file():
         return ""
-    ours = torch.load(snap, map_location="cpu", weights_only=False)["actor"]
+    ours = _checkpoint(snap, "actor")["actor"]
     same = set(ours) == set(rec["actor"]) and all(torch.equal(ours[k], rec["actor"][k]) for k in ours)
     return (f" The fixed arm's seed-0 actor at step {rec['step']} {'is' if same else 'is NOT'} the record's Table 2 "
             f"model of this fold ({record}), tensor for tensor: the curve starts at the record.")
 
 
-def validation_curves(s: dict[str, Any], root: Path = Path(".")) -> pd.DataFrame:
-    """Each run's validation history (its kept checkpoint's): one row per (arm, seed, step)."""
+def _checkpoint(path: Path, *need: str) -> dict[str, Any]:
+    """A checkpoint the report reads (rlsac.io.load_torch: a truncated or foreign file is an error naming it, issue
+    #64's RuntimeError traceback), with the keys ``need`` (a whole ``step``, an ``actor`` of tensors) and a history
+    of validations whose step is a whole number and whose metrics are finite numbers."""
     import torch
 
+    from rlsac.io import load_torch
+
+    ckpt = load_torch(path)
+    if "step" in need and not (isinstance(ckpt.get("step"), int) and not isinstance(ckpt["step"], bool)):
+        raise RlsacError(f"{path}: its 'step' is {ckpt.get('step')!r}, not a training step")
+    if "actor" in need and not (isinstance(ckpt.get("actor"), dict)
+                                and all(torch.is_tensor(v) for v in ckpt["actor"].values())):
+        raise RlsacError(f"{path}: no actor weights ('actor' is not a mapping of tensors)")
+    hist = ckpt.get("history", [])
+    for i, h in enumerate(hist if isinstance(hist, list) else [None]):
+        bad = (not isinstance(h, dict) or not isinstance(h.get("step"), int)
+               or any(k.startswith("charts/") and not (isinstance(v, (int, float)) and not isinstance(v, bool)
+                                                       and math.isfinite(v)) for k, v in h.items()))
+        if bad:
+            raise RlsacError(f"{path}: history[{i}] is not a validation (a whole step, finite metrics): "
+                             f"{str(h)[:80]}")
+    return ckpt
+
+
+def validation_curves(s: dict[str, Any], root: Path = Path(".")) -> pd.DataFrame:
+    """Each run's validation history (its kept checkpoint's): one row per (arm, seed, step)."""
     rows = []
     for arm in s["arms"]:
         for seed in s["seeds"]:
             path = root / lay.run_dir(s["fold"], arm, seed) / "final.pt"
             if not path.is_file():
                 continue
-            for h in torch.load(path, map_location="cpu", weights_only=False).get("history", []):
+            for h in _checkpoint(path).get("history", []):
                 rows.append({"arm": arm, "seed": seed, "step": int(h["step"]),
                              "val_mAA": float(h.get("charts/val_mAA", math.nan)),
                              "val_inlier_ratio": float(h.get("charts/val_inlier_ratio", math.nan))})
@@ -192,12 +215,19 @@ def _section(path: Path, what: str, render) -> list[str]:
                          "the stage that wrote it") from None
 
 
-def check_inputs(params: dict[str, Any], out_dir: str | Path = "reports") -> None:
-    """The records the report's sections read, rendered once: ``rlsac table --which scale`` calls it before its run."""
-    out_dir = Path(out_dir)
-    _pairs_line(lay.protocol(params), out_dir)
+def check_inputs(params: dict[str, Any], out_dir: str | Path = "reports", eval_root: str | Path = "reports/eval",
+                 root: str | Path = ".") -> None:
+    """Every file the report reads, read once through its refusing reader: ``rlsac table --which scale`` calls it
+    before its run (issue #64: a NaN, truncated or corrupt input failed inside the run, which ended FAILED): the
+    records its sections render, the evaluations' errors, the runs' checkpoints."""
+    s, out_dir = lay.protocol(params), Path(out_dir)
+    _pairs_line(s, out_dir)
     _section(out_dir / "positive_control.json", "positive control record", _positive_control)
     _synthetic_fit(out_dir / "synthetic_fit.json")
+    collect(s, Path(eval_root))
+    deployed_validation(s, Path(eval_root))
+    validation_curves(s, Path(root))
+    same_as_record(s, Path(root))
 
 
 def _pairs_line(s: dict, out_dir: Path, min_matches: int | None = None) -> str:

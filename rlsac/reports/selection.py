@@ -13,7 +13,6 @@ The CSV lists every run: kept, last and candidate steps, each validated actor's 
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
@@ -32,12 +31,11 @@ def _record(path: Path, need: set[str], keys: tuple[str, ...], errors: tuple[str
             ) -> tuple[dict[str, Any], pd.DataFrame]:
     """A selection record ``path`` (.json) and its per-step errors (the .csv beside it, read by rlsac.results: a
     NaN or text error is an error naming the file) -> (record, errors)."""
+    from rlsac.results import read_mapping
+
     csv = path.with_suffix(".csv")
-    try:
-        rec = json.loads(path.read_text())
-    except (OSError, ValueError) as e:
-        raise RlsacError(f"{path}: not a readable selection record ({e.__class__.__name__})") from None
-    if not isinstance(rec, dict) or not need <= set(rec):
+    rec = read_mapping(path, "selection record")  # not JSON, not a mapping, a NaN anywhere: an error naming it
+    if not need <= set(rec):
         raise RlsacError(f"{path}: not a {what}")
     if not csv.is_file():
         raise RlsacError(f"{path}: not a readable selection record (no {csv.name})")
@@ -175,6 +173,15 @@ def shipped(ckpt_root: str | Path) -> pd.DataFrame:
                      "not recorded (written before the checkpoint format kept it)", "kept step": ck.get("step"),
                      "validated steps": " ".join(str(h.get("step")) for h in hist) or "–"})
     return pd.DataFrame(rows)
+
+
+def check_inputs(root: str | Path = "reports/selection", ckpt_root: str | Path | None = None) -> None:
+    """Every file ``build`` reads, read once through its refusing reader: ``rlsac table`` calls it before its run
+    (issue #64: a corrupt record or a truncated checkpoint failed inside the run, which ended FAILED)."""
+    read_runs(root)
+    read_line_runs(Path(root) / LINES)
+    if ckpt_root is not None:
+        shipped(ckpt_root)
 
 
 def build(root: str | Path = "reports/selection", out_dir: str | Path = "reports",

@@ -84,10 +84,8 @@ def _budget_row(c: dict[str, Any], eval_root: Path, out_dir: Path, regime: str, 
     return row
 
 
-def budget_rows(c: dict[str, Any], eval_root: Path, out_dir: Path) -> tuple[list[dict[str, Any]], list[str]]:
-    """Part (a): one row per (regime, method) with results both ways, then each learned model of
-    ``tuning_budget.learned`` over its training seeds (threshold alone, rlsac.folds.threshold_only);
-    -> (rows, missing cells)."""
+def _groups(c: dict[str, Any]) -> list[tuple[str, str, list[str]]]:
+    """Part (a)'s rows: (regime, label, the names of its cells: one, or a learned model's training seeds)."""
     groups = [(r, m, [m]) for r in c["regimes"] for m in c["methods"]]
     models = [n for n in c["learned"] if not re.fullmatch(r".+-s\d+", n) or n.rsplit("-s", 1)[0] not in c["learned"]]
     for r in c["learned_regimes"]:
@@ -95,8 +93,37 @@ def budget_rows(c: dict[str, Any], eval_root: Path, out_dir: Path) -> tuple[list
             names = [n for n in c["learned"] if n == m or (n.rsplit("-s", 1)[0] == m and n != m)]
             label = f"{m} (threshold)" if len(names) == 1 else f"{m} ({len(names)} seeds, threshold)"
             groups.append((r, label, names))
+    return groups
+
+
+def check_inputs(params: dict[str, Any], eval_root: str | Path = "reports/eval", out_dir: str | Path = "reports"
+                 ) -> None:
+    """Every file the report reads, read once through rlsac.results' refusing readers: ``rlsac table --which
+    tuning-budget`` calls it before its run (issue #64: a NaN or truncated input failed inside the run, FAILED):
+    each row's cells both ways, their folds' tuning records, the re-tuning records."""
+    from rlsac import retune, tune
+    from rlsac.protocol import at_suffix
+    from rlsac.results import read_record
+
+    c = {**retune.conf(params), "tuned_at_tables": tune.conf(params)["iterations"]}
+    eval_root, out_dir, it = Path(eval_root), Path(out_dir), c["iterations"]
+    for regime, _, names in _groups(c):
+        for name in names:
+            for sub in ("folds", f"folds{at_suffix(it)}"):
+                cells = _cells(eval_root / sub, regime, name, it)
+                for f in sorted(set(cells["fold"])) if cells is not None else ():
+                    for s in ("", at_suffix(it)):
+                        read_record(out_dir / f"tuning{s}" / "fundamental" / regime / f / f"{name}.json")
+    for m in c["retune_methods"]:
+        load_retune(out_dir, c["retune_regime"], m)
+
+
+def budget_rows(c: dict[str, Any], eval_root: Path, out_dir: Path) -> tuple[list[dict[str, Any]], list[str]]:
+    """Part (a): one row per (regime, method) with results both ways, then each learned model of
+    ``tuning_budget.learned`` over its training seeds (threshold alone, rlsac.folds.threshold_only);
+    -> (rows, missing cells)."""
     rows, missing = [], []
-    for regime, label, names in groups:
+    for regime, label, names in _groups(c):
         got = _budget_row(c, eval_root, out_dir, regime, label, names)
         (missing.append(got) if isinstance(got, str) else rows.append(got))
     return rows, missing
