@@ -43,9 +43,8 @@ def load_retune(out_dir: Path, regime: str, row: str, task: str = "fundamental")
     from rlsac.results import read_retune_record
 
     recs = []
-<<<<<<< HEAD
     for path in sorted((out_dir / "retune" / task / regime).glob(f"*/{row}.json")):
-        rec = read_mapping(path, "re-tuning record")
+        rec = read_retune_record(path)  # finite angles in [0, 180], choices that index the settings (issue #64)
         try:
             n, k = len(rec["test_scenes"]), len(rec["settings"])
             chosen = {rec["full"], *rec["choices"]}
@@ -58,11 +57,6 @@ def load_retune(out_dir: Path, regime: str, row: str, task: str = "fundamental")
             raise RlsacError(f"{path}: not a re-tuning record of `rlsac folds --stage retune` (choices, settings and "
                              "test errors of every chosen setting); re-run the command that wrote it, or remove it")
         recs.append({**rec, "path": str(path), "fold": rec.get("fold", path.parent.name)})
-=======
-    for path in sorted((out_dir / "retune" / "fundamental" / regime).glob(f"*/{row}.json")):
-        rec = read_retune_record(path)
-        recs.append({**rec, "path": str(path)})
->>>>>>> issue-64
     return recs
 
 

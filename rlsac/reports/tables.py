@@ -508,8 +508,7 @@ def build(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
         from rlsac.config import read_params
         from rlsac.reports import scale
 
-<<<<<<< HEAD
-        scale.check_inputs(read_params(options.get("params") or "params.yaml"), out_dir)
+        scale.check_inputs(read_params(options.get("params") or "params.yaml"), out_dir, eval_root)
     if which == "learner":  # issue #61: the ladder's records, read and checked before the run
         from rlsac.config import read_params
         from rlsac.ladder_layout import conf as ladder_conf
@@ -518,11 +517,7 @@ def build(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
 
         lc = ladder_conf(read_params(options.get("params") or "params.yaml"))
         ladder.load(lc, list(rungs(lc)))
-    if which == "tuning-budget":  # its params (rows, budgets) before the run, as the scale study's records
-=======
-        scale.check_inputs(read_params(options.get("params") or "params.yaml"), out_dir, eval_root)
     if which == "tuning-budget":  # its params (rows, budgets) and result files before the run, as the scale study's
->>>>>>> issue-64
         from rlsac.config import read_params
         from rlsac.reports import tuning_budget
 
@@ -535,15 +530,12 @@ def build(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
     check_store(track, "reports")
     from rlsac.reports import retuning
 
-<<<<<<< HEAD
-    term: retuning.Selection | None | retuning.Compute = retuning.COMPUTE  # the re-tuning records, read when needed
-=======
-    # the re-tuning term, from every re-tuning record (checked: rlsac.results.read_retune_record) before the run, for
-    # the builders that use it (issue #64: a corrupt record failed inside the run)
-    term: dict[str, Any] | None | retuning.Compute = retuning.COMPUTE
+    # the selection term's records (issue #62), every re-tuning record read and checked
+    # (rlsac.results.read_retune_record) before the run, for the builders that use it (issue #64: a corrupt record
+    # failed inside the run)
+    term: retuning.Selection | None | retuning.Compute = retuning.COMPUTE
     if which in ("claims", "paper", "tuning-budget", "all"):
-        term = retuning.halfwidth(out_dir)
->>>>>>> issue-64
+        term = retuning.Selection(out_dir)
     with start_run("reports", f"table {which}", params={"which": which, "eval_root": str(eval_root),
                                                         "out_dir": str(out_dir)},
                    tags={"command": "table"}, enabled=track) as run:
@@ -553,12 +545,6 @@ def build(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
                 # "all" = the pipeline's tables; 2, 3 and iterations (the retired 87-pair split) by name only
                 if which != key and not (which == "all" and key in ALL):
                     continue
-<<<<<<< HEAD
-                if key in ("claims", "paper", "tuning-budget") and term is retuning.COMPUTE:
-                    # once per build: the reports/retune records read and checked for every builder
-                    term = retuning.Selection(out_dir)
-=======
->>>>>>> issue-64
                 if key in ("folds", "essential"):  # Tables 2 (folds) and E on the leave-one-building-out folds
                     from rlsac.reports import folds
 
