@@ -292,6 +292,13 @@ def evaluate(tracking: bool, params_path: str, **options) -> None:
 @click.option("--variants", help="Comma-separated variants of the study [default: all of them].")
 @click.option("--force", is_flag=True, default=None, help="Retrain models whose checkpoint exists.")
 @click.option("--train-steps", type=int, help="Override sac.total_steps of every model trained.")
+@click.option("--full", is_flag=True, default=None,
+              help="The record's size: the study's fold stages (every fold, every seed) through `rlsac pipeline`, "
+                   "then its Table 3 under --out. Default: the quick study on one fold (descriptors, sampling).")
+@click.option("--fold", help="The quick study's fold. [default: fountain, the smallest]")
+@click.option("--iterations", type=int, help="The quick study's budget. [default: 1000, Table 2's]")
+@click.option("--out", help="Where the quick study's results and table go. [default: scratch/ablate]")
+@click.option("--workers", type=int, help="--full: stages at once (rlsac pipeline). [default: the cores]")
 @click.option("--params", "params", default="params.yaml", show_default=True,
               help="params.yaml: train.fundamental, ablation and lines sections.")
 @click.option("--set", "sets", multiple=True, metavar="KEY=VALUE",
@@ -299,7 +306,8 @@ def evaluate(tracking: bool, params_path: str, **options) -> None:
 @device_option
 @tracking_option
 def ablate(tracking: bool, sets: tuple[str, ...], **options) -> None:
-    """Run one ablation study: train its models (unless present) and evaluate them (rlsac.ablate)."""
+    """Run one ablation study of Table 3 and print its table (rlsac.ablate): by default, quickly, on one fold with the
+    committed models (rlsac.quick); --full at the record's size."""
     from rlsac.ablate import ablate as run
     from rlsac.ablate import format_summary
     from rlsac.config import parse_sets
