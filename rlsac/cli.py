@@ -431,11 +431,23 @@ def table(tracking: bool, **options) -> None:
         click.echo(f"{s['n_missing']} result file(s) missing (shown as –)")
 
 
+# the keys of rlsac.reports.figures.DEFAULTS (test_cli checks the two agree): the figures module loads torch and
+# matplotlib, too slow to import for `rlsac --help`
+PLOT_KEYS = ("which=all|folds|curves|essential|line|pair|steps|iterations (comma list; folds: pooled fold mAA vs "
+             "budget, curves: the fold models' validation curves, essential: Table E's mAA vs budget, line / pair / "
+             "steps: one instance step by step, iterations: the retired split's budgets); out_dir=reports/figures; "
+             "folds_iterations_csv, essential_iterations_csv, folds_checkpoints, eval_root, reports_dir, "
+             "iterations_csv (inputs); line_data, line_checkpoint, line_index=auto, line_steps=6; fundamental_data, "
+             "fundamental_checkpoint, pair=auto, image_root, fundamental_iterations=1000, fundamental_steps=6; "
+             "seed=0, device=cpu")
+
+
 @cli.command()
-@click.option("--set", "sets", multiple=True, metavar="KEY=VALUE", help="Option; repeatable.")
+@click.option("--set", "sets", multiple=True, metavar="KEY=VALUE", help="Option; repeatable. Keys: " + PLOT_KEYS)
 @tracking_option
 def plot(tracking: bool, sets: tuple[str, ...]) -> None:
-    """Draw the report figures (rlsac.reports.figures)."""
+    """Draw the report figures into reports/figures (rlsac.reports.figures), e.g. `rlsac plot --set
+    which=folds,curves`."""
     from rlsac.config import parse_sets
     from rlsac.reports.figures import plot as run
 
