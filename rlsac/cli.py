@@ -446,12 +446,41 @@ PLOT_KEYS = ("which=all|folds|curves|essential|line|pair|steps|iterations (comma
 @click.option("--set", "sets", multiple=True, metavar="KEY=VALUE", help="Option; repeatable. Keys: " + PLOT_KEYS)
 @tracking_option
 def plot(tracking: bool, sets: tuple[str, ...]) -> None:
-    """Draw the report figures into reports/figures (rlsac.reports.figures), e.g. `rlsac plot --set
-    which=folds,curves`."""
+    """Draw the report figures into reports/figures (rlsac.reports.figures), e.g. --set which=folds,curves."""
     from rlsac.config import parse_sets
     from rlsac.reports.figures import plot as run
 
     _echo_result(run(parse_sets(sets), track=tracking))
+
+
+@cli.command()
+@click.option("--host", default="127.0.0.1", show_default=True, help="Address the UI listens on.")
+@click.option("--port", type=click.IntRange(1, 65535), default=5000, show_default=True, help="Port of the UI.")
+@click.option("--links-only", is_flag=True, help="Print the links, start no server.")
+def ui(host: str, port: int, links_only: bool) -> None:
+    """The MLflow UI on the tracking store (MLFLOW_TRACKING_URI, default sqlite:///mlflow.db), after one link per
+    experiment that opens its runs table with the mAA columns (MLflow 3's UI lands on GenAI pages otherwise)."""
+    import os
+    import sys
+
+    from rlsac.tracking import DEFAULT_URI, runs_links, store_path
+
+    uri = os.environ.get("MLFLOW_TRACKING_URI", DEFAULT_URI)
+    db = store_path(uri)
+    if db is not None and not db.is_file():
+        raise RlsacError(f"{db}: no tracking store here (an rlsac command with tracking makes it; "
+                         "MLFLOW_TRACKING_URI names another)")
+    links = runs_links(uri, f"http://{'127.0.0.1' if host in ('0.0.0.0', '::') else host}:{port}")
+    for e in links:
+        click.echo(f"{e['name']:<12} {e['runs']:>5} runs  {e['url']}")
+    if not links:
+        click.echo(f"{uri}: no runs yet")
+    if links_only:
+        return
+    click.echo("open a link above (the UI's own front page is MLflow's welcome page); Ctrl-C stops the UI", err=True)
+    sys.stdout.flush()
+    os.execv(sys.executable, [sys.executable, "-m", "mlflow", "ui", "--backend-store-uri", uri, "--host", host,
+                              "--port", str(port)])
 
 
 @cli.command("calibrate-lines")
