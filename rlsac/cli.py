@@ -483,6 +483,21 @@ def ui(host: str, port: int, links_only: bool) -> None:
                               "--port", str(port)])
 
 
+@cli.command("quick")
+@click.option("--fold", help="The fold whose test pairs are used. [default: fountain, the smallest]")
+@click.option("--regime", type=click.Choice(["easy", "hard"]), help="The data regime. [default: hard]")
+@click.option("--iterations", type=int, help="Hypotheses per pair. [default: 1000, Table 2's]")
+@click.option("--out", help="Results and table.md. [default: scratch/quick]")
+@click.option("--params", "params", default="params.yaml", show_default=True, help="params.yaml: the folds section.")
+@tracking_option
+def quick_cmd(tracking: bool, **options) -> None:
+    """The workbench's answer in minutes: the committed RLSAC model against uniform sets, OpenCV's RANSAC and
+    MAGSAC++ on one fold's test pairs, a table with paired intervals (rlsac.quick)."""
+    from rlsac.quick import format_summary, quick
+
+    click.echo(format_summary(quick(options, track=tracking)))
+
+
 @cli.command("calibrate-lines")
 @click.option("--n-instances", type=int, default=1000, show_default=True)
 @click.option("--seed", type=int, default=123, show_default=True, help="First data seed.")

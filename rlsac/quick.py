@@ -86,9 +86,10 @@ def run_rows(names: list[str], fold: str, regime: str, iterations: int, out: str
     return {"rows": summaries, "errors": errors, "test": source}
 
 
-def table(errors: dict, reference: str, labels: dict[str, str] | None = None) -> str:
-    """A markdown table: each row's pooled mAA@10° R and t and its paired difference to ``reference`` with its 95%
-    interval over the same pairs."""
+def table(errors: dict, reference: str, labels: dict[str, str] | None = None, ahead: bool = False) -> str:
+    """A markdown table: each row's pooled mAA@10° R and t and its paired difference to ``reference`` over the same
+    pairs with its 95% interval: row − reference, or with ``ahead`` reference − row (how far the reference is
+    ahead of each control)."""
     import pandas as pd
 
     from rlsac.metrics import mAA
@@ -98,8 +99,42 @@ def table(errors: dict, reference: str, labels: dict[str, str] | None = None) ->
     ref = errors[reference]
     out = []
     for name, df in errors.items():
-        d = {c: (_paired(df, ref, f"err_{c}") if name != reference else None) for c in ("R", "t")}
+        pair = (ref, df) if ahead else (df, ref)
+        d = {c: (_paired(*pair, f"err_{c}") if name != reference else None) for c in ("R", "t")}
+        head = (lambda c: f"{reference} − row, {c}") if ahead else (lambda c: f"{c} − {reference}")
         out.append({"row": name, **({"what": labels.get(name, "")} if labels else {}), "pairs": len(df),
                     "mAA_R": f"{mAA(df['err_R'], LIMIT):.3f}", "mAA_t": f"{mAA(df['err_t'], LIMIT):.3f}",
-                    f"R − {reference}": _ci(d["R"]), f"t − {reference}": _ci(d["t"])})
+                    head("R"): _ci(d["R"]), head("t"): _ci(d["t"])})
     return pd.DataFrame(out).to_markdown(index=False, disable_numparse=True)
+
+
+# `rlsac quick`: the README's first command (issue #63 item 6): the committed RLSAC model against its controls
+CONTROLS = {"rlsac": "RLSAC, the committed model", "uniform": "uniform minimal sets in RLSAC's environment",
+            "opencv_ransac": "OpenCV RANSAC", "magsac": "OpenCV MAGSAC++"}
+OPTIONS: dict[str, Any] = {"fold": "fountain", "regime": "hard", "iterations": 1000, "out": "scratch/quick",
+                           "params": "params.yaml"}  # on the CPU: the record's own bytes, as the record ran
+RECORD = ("reports/table2_folds.md (every method, the four folds' 606 pairs, every budget, all training seeds) and "
+          "reports/paper.md (the paper's claims against ours)")
+
+
+def quick(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
+    """RLSAC against uniform sets, OpenCV's RANSAC and MAGSAC++ on one fold's test pairs (``CONTROLS``) -> {"head",
+    "table", "file"}; the table also goes to <out>/table.md."""
+    from rlsac.config import check_mapping
+    from rlsac.io import write_text
+
+    o = {**OPTIONS, **check_mapping({k: v for k, v in options.items() if v is not None}, OPTIONS, "quick",
+                                    types={"iterations": int}, ranges={"iterations": "[1, inf)"})}
+    r = run_rows(list(CONTROLS), o["fold"], o["regime"], int(o["iterations"]), o["out"], track, o["params"])
+    n = len(r["errors"]["rlsac"])
+    head = (f"RLSAC against its controls on fold {o['fold']} ({n} test pairs of a building no model saw in training), "
+            f"{o['regime']} regime, {o['iterations']} iterations (Table 2's budget), each row with the settings tuned "
+            f"on the fold's validation pairs; `rlsac − row`: RLSAC's lead in pooled mAA@10° with its paired 95% "
+            f"bootstrap interval over the pairs (one pair moves an mAA by {1 / max(n, 1):.3f}). The record: {RECORD}.")
+    text = table(r["errors"], "rlsac", CONTROLS, ahead=True)
+    path = write_text(Path(o["out"]) / "table.md", f"{head}\n\nTest pairs: {r['test']}\n\n{text}\n")
+    return {"head": head, "table": text, "file": str(path)}
+
+
+def format_summary(s: dict[str, Any]) -> str:
+    return f"{s['head']}\n\n{s['table']}\n\ntable: {s['file']}"

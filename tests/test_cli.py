@@ -272,7 +272,7 @@ def test_calibrate_lines_tiny(workdir, monkeypatch):
     assert np.allclose(table["mAA_diff"], table["mAA_ours"] - table["mAA_paper"], atol=1e-3)
     md = (workdir / "rep/cal.md").read_text()
     assert "| band |" in md and "0.608" in md
-    # the README's main job runs MKL on its vendor-independent branch (the same bytes on Intel and AMD CPUs)
+    # the line calibration runs MKL on its vendor-independent branch (the same bytes on Intel and AMD CPUs)
     # MKL on its vendor-independent branch while it ran, and the environment put back (tests/conftest.py made this
     # process's first MKL call, so its branch stays the default one)
     assert "(`MKL_CBWR=COMPATIBLE`" in md and os.environ.get("MKL_CBWR") == before
