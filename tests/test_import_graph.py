@@ -28,6 +28,7 @@ RUNNERS = (
     "rlsac.ablate",
     "rlsac.scale",
     "rlsac.pipeline",
+    "rlsac.quick",
 )
 
 # the layers of the package, lowest first: a file imports files of its own layer or of lower ones, never of a higher
@@ -52,7 +53,8 @@ LAYERS = (
     ("rlsac.reports*",),
     # the runners: a protocol's stages, the studies, the pipeline
     ("rlsac.folds", "rlsac.folds_retune", "rlsac.selection", "rlsac.ablate", "rlsac.scale", "rlsac.positive_control",
-     "rlsac.commands", "rlsac.line_calibration", "rlsac.verify", "rlsac.dvc_stage", "rlsac.transfer", "rlsac.pipeline"),
+     "rlsac.commands", "rlsac.line_calibration", "rlsac.verify", "rlsac.dvc_stage", "rlsac.transfer", "rlsac.pipeline",
+     "rlsac.stage_status", "rlsac.quick"),
     # the command line
     ("rlsac.cli",),
 )
