@@ -102,3 +102,9 @@ def test_the_plan_agrees_with_dvc_on_every_change(tmp_path):
     changed, status = _compare(repo)
     assert {a for a, (dvc_says, _) in changed.items() if dvc_says} == {"p", "f", "o", "c", "w", "data", "y"}
     assert all(dvc_says == ours for dvc_says, ours in changed.values()), changed
+    import shutil
+
+    shutil.rmtree(repo / ".dvc" / "cache")  # cached outputs present but not in DVC's cache: changed, for both
+    changed, _ = _compare(repo)
+    assert {a for a, (dvc_says, _) in changed.items() if dvc_says} == {"p", "q", "f", "o", "c", "w", "data", "x", "y"}
+    assert all(dvc_says == ours for dvc_says, ours in changed.values()), changed
