@@ -88,3 +88,25 @@ def test_a_bad_fold_is_refused_before_any_work(tmp_path, monkeypatch):
                                  "--no-tracking"])
     assert r.exit_code == 2 and r.output.startswith("error: fold must be one of castle, "), r.output
     assert not (tmp_path / "o").exists()
+
+
+def test_full_runs_exactly_the_studys_stages_then_its_table(tmp_path, monkeypatch):
+    """--full: `rlsac pipeline` on the study's fold stages only (not `tables`, which needs every stage of the record),
+    then Table 3 (folds) from reports/eval under --out: on the committed results, the committed table's bytes."""
+    import rlsac.pipeline
+
+    asked = []
+
+    def pipeline(options, track=True):  # the stages are the record's: up to date, nothing to run here
+        asked.append(options)
+        return {"results": {}, "counts": {"skipped": 0}}
+
+    monkeypatch.setattr(rlsac.pipeline, "pipeline", pipeline)
+    monkeypatch.chdir(ROOT)
+    r = CliRunner().invoke(cli, ["ablate", "--what", "sampling", "--full", "--workers", "2", "--out", str(tmp_path),
+                                 "--no-tracking"], catch_exceptions=False)
+    assert r.exit_code == 0, r.output
+    assert asked == [{"stages": ",".join(ablate.FOLD_STUDIES["sampling"]), "workers": 2}]
+    made = tmp_path / "sampling-full" / "table3_folds.md"
+    assert made.read_bytes() == (ROOT / "reports" / "table3_folds.md").read_bytes()
+    assert r.output.splitlines()[-1] == f"table: {made}, {tmp_path / 'sampling-full' / 'table3_folds.csv'}"
