@@ -356,7 +356,7 @@ def select_check(checks: Checks, data: Path, out: Path, device: str, logs: Path,
 
 
 def calibrate_check(checks: Checks, out: Path, device: str, logs: Path) -> None:
-    """``rlsac calibrate-lines`` (the README's main job, our RANSAC on fresh lines) on both devices."""
+    """``rlsac calibrate-lines`` (the line calibration, our RANSAC on fresh lines) on both devices."""
     rows = {}
     for dev in (device, "cpu"):
         stem = out / "calibrate" / f"cal-{dev}"

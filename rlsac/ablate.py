@@ -86,7 +86,14 @@ OPTIONS: dict[str, Any] = {
     "what": None, "stage": "all", "variants": None, "models": None, "force": False, "train_steps": None,
     "threads": 0, "device": "auto", "params": "params.yaml", "data_dir": "data/fundamental",
     "lines_dir": "data/lines", "ckpt_dir": "checkpoints", "eval_dir": "reports/eval", "table": True,
+    "full": False, "fold": "fountain", "iterations": 1000, "out": "scratch/ablate", "workers": None,
 }
+# The quick study on the folds (issue #63 item 4): one fold's test pairs (fountain: the smallest, 42 pairs), the
+# committed checkpoints and tuning records, Table 2's budget (1000 iterations); each study's rows against the full
+# model (rlsac.quick). The points study needs its own data (N points per pair): --full only.
+QUICK_ROWS = {"descriptors": ["rlsac-nodesc"], "sampling": ["rlsac-trainmax", "rlsac-trainmax-prob", "rlsac-prob"]}
+QUICK_REFERENCE, QUICK_REGIME = "rlsac", "hard"  # Table 3's reference row and regime (reports/table3_folds.md)
+RECORD = "reports/table3_folds.md"
 
 
 def _names(v) -> list[str] | None:
@@ -101,8 +108,10 @@ def check_options(options: dict[str, Any]) -> dict[str, Any]:
     from rlsac.config import check_mapping
 
     options = check_mapping(options, OPTIONS, "ablate",  # types and ranges, as rlsac.config.build does
-                            types={"train_steps": int, "variants": str | list[str], "models": str | list[str]},
-                            ranges={"threads": "[0, inf)", "device": ("auto", "cpu", "cuda")})
+                            types={"train_steps": int, "variants": str | list[str], "models": str | list[str],
+                                   "iterations": int, "workers": int},
+                            ranges={"threads": "[0, inf)", "device": ("auto", "cpu", "cuda"), "iterations": "[1, inf)",
+                                    "workers": "[1, inf)"})
     o = {**OPTIONS, **{k: v for k, v in options.items() if v is not None}}
     if o["what"] not in WHATS:
         raise RlsacError(f"ablate --what must be one of {', '.join(WHATS)}, got {o['what']!r}")
@@ -266,6 +275,10 @@ def ablate(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
         files += [e["data"] for e in pl["variants"].values()] if o["stage"] != "train" else []
         missing = [f for f in files if not Path(f).is_file()]
         if missing:  # the retired split's data: the study lives in the fold stages
+            if o["full"]:
+                return fold_full(o, track)
+            if o["what"] in QUICK_ROWS:
+                return fold_quick(o, track)
             return {"what": o["what"], "stage": o["stage"], "fold_stages": fold_commands(o["what"]),
                     "missing": missing[0]}
     if int(o["threads"]) > 0:
@@ -314,6 +327,49 @@ def ablate(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
             "table": table}
 
 
+def fold_quick(o: dict[str, Any], track: bool) -> dict[str, Any]:
+    """The study's rows and the full model on one fold's test pairs (see QUICK_ROWS), its table printed and written
+    to <out>/<what>/table.md; nothing committed is written."""
+    from rlsac.io import write_text
+    from rlsac.quick import run_rows, table
+
+    out = Path(o["out"]) / o["what"]
+    names = [QUICK_REFERENCE, *QUICK_ROWS[o["what"]]]
+    device = "cpu" if o["device"] == "auto" else o["device"]
+    r = run_rows(names, o["fold"], QUICK_REGIME, int(o["iterations"]), out, track, o["params"], device)
+    errors = r["errors"]
+    head = (f"Table 3 ({o['what']}), quick: fold {o['fold']} ({len(errors[QUICK_REFERENCE])} test pairs), "
+            f"{QUICK_REGIME} regime, {o['iterations']} iterations, the committed checkpoints and tuning records; "
+            f"`R/t − {QUICK_REFERENCE}`: paired difference to the full model with its 95% bootstrap interval. "
+            f"The record (every fold, every budget, all training seeds): {RECORD}; "
+            f"`rlsac ablate --what {o['what']} --full` re-runs it.")
+    text = table(errors, QUICK_REFERENCE)
+    path = write_text(out / "table.md", f"{head}\n\nTest pairs: {r['test']}\n\n{text}\n")
+    return {"what": o["what"], "stage": "quick", "quick": {"head": head, "table": text, "file": str(path)}}
+
+
+def fold_full(o: dict[str, Any], track: bool) -> dict[str, Any]:
+    """The study at the record's size: exactly its fold stages (FOLD_STUDIES) through `rlsac pipeline`, then Table 3
+    (folds) from reports/eval into <out>/<what>-full/ (the `tables` stage writes the committed one: it depends on
+    every stage of the record)."""
+    from rlsac.pipeline import pipeline
+    from rlsac.reports.folds import table3
+    from rlsac.results import collect, load_records
+
+    pats = [p for study in (STUDIES if o["what"] == "all" else (o["what"],)) for p in FOLD_STUDIES[study]]
+    ran = pipeline({"stages": ",".join(pats), "workers": o["workers"]}, track=track)
+    failed = [a for a, r in ran["results"].items() if r["status"] in ("failed", "not run", "interrupted")]
+    if failed:
+        raise RlsacError(f"ablate --full: {len(failed)} stages did not finish ({failed[0]} first; "
+                         "logs/pipeline/<stage>.log); the table was not rebuilt")
+    out = Path(o["out"]) / f"{o['what']}-full"
+    files = table3(collect("reports/eval"), out, load_records())
+    if not files:
+        raise RlsacError("ablate --full: reports/eval has no Table 3 row in the hard regime")
+    return {"what": o["what"], "stage": "full", "full": {"counts": ran["counts"], "files": files,
+                                                       "table": Path(files[0]).read_text()}}
+
+
 def model_options(t: dict[str, Any], o: dict[str, Any]) -> dict[str, Any]:
     """A model's `rlsac train` options with the command's device, train_steps and threads."""
     from rlsac.config import deep_update
@@ -352,15 +408,22 @@ def fold_commands(what: str) -> list[str]:
 
     pats = [p for study in (STUDIES if what == "all" else (what,)) for p in FOLD_STUDIES[study]]
     quoted = " ".join(shlex.quote(p) for p in pats)
-    return [f"rlsac pipeline {quoted} tables --workers 2", f"dvc repro --glob {quoted} tables"]
+    return [f"rlsac pipeline {quoted} --workers 2", f"dvc repro --glob {quoted}",
+            "rlsac table --which folds   (every table of the record, reports/table3_folds.md among them)"]
 
 
 def format_summary(s: dict[str, Any]) -> str:
+    if "quick" in s:
+        q = s["quick"]
+        return f"{q['head']}\n\n{q['table']}\n\ntable: {q['file']}"
+    if "full" in s:
+        counts = ", ".join(f"{v} {k}" for k, v in s["full"]["counts"].items() if v)
+        return f"{s['full']['table']}\npipeline: {counts}\ntable: {', '.join(s['full']['files'])}"
     if "fold_stages" in s:
         return "\n".join([
             f"ablation {s['what']}: Table 3 runs on the leave-one-building-out folds (reports/table3_folds.md); the "
-            f"87-pair split this command used is retired ({s['missing']} is made by no stage). Its fold stages "
-            "and the table, with the stages they need (up to date on a clone once `dvc repro` rebuilt data/):",
+            f"87-pair split this command used is retired ({s['missing']} is made by no stage). "
+            f"`rlsac ablate --what {s['what']} --full` runs its fold stages and rebuilds its table; by hand:",
             *(f"  {c}" for c in s["fold_stages"])])
     lines = [f"ablation {s['what']} ({s['stage']}): trained {', '.join(s['trained']) or 'none'}; "
              f"kept existing {', '.join(s['skipped']) or 'none'}"]

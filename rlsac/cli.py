@@ -309,6 +309,13 @@ def evaluate(tracking: bool, params_path: str, **options) -> None:
 @click.option("--variants", help="Comma-separated variants of the study [default: all of them].")
 @click.option("--force", is_flag=True, default=None, help="Retrain models whose checkpoint exists.")
 @click.option("--train-steps", type=int, help="Override sac.total_steps of every model trained.")
+@click.option("--full", is_flag=True, default=None,
+              help="The record's size: the study's fold stages (every fold, every seed) through `rlsac pipeline`, "
+                   "then its Table 3 under --out. Default: the quick study on one fold (descriptors, sampling).")
+@click.option("--fold", help="The quick study's fold. [default: fountain, the smallest]")
+@click.option("--iterations", type=int, help="The quick study's budget. [default: 1000, Table 2's]")
+@click.option("--out", help="Where the quick study's results and table go. [default: scratch/ablate]")
+@click.option("--workers", type=int, help="--full: stages at once (rlsac pipeline). [default: the cores]")
 @click.option("--params", "params", default="params.yaml", show_default=True,
               help="params.yaml: train.fundamental, ablation and lines sections.")
 @click.option("--set", "sets", multiple=True, metavar="KEY=VALUE",
@@ -316,7 +323,8 @@ def evaluate(tracking: bool, params_path: str, **options) -> None:
 @device_option
 @tracking_option
 def ablate(tracking: bool, sets: tuple[str, ...], **options) -> None:
-    """Run one ablation study: train its models (unless present) and evaluate them (rlsac.ablate)."""
+    """Run one ablation study of Table 3 and print its table (rlsac.ablate): by default, quickly, on one fold with the
+    committed models (rlsac.quick); --full at the record's size."""
     from rlsac.ablate import ablate as run
     from rlsac.ablate import format_summary
     from rlsac.config import parse_sets
@@ -443,15 +451,71 @@ def table(tracking: bool, **options) -> None:
         click.echo(f"{s['n_missing']} result file(s) missing (shown as –)")
 
 
+# the keys of rlsac.reports.figures.DEFAULTS (test_cli checks the two agree): the figures module loads torch and
+# matplotlib, too slow to import for `rlsac --help`
+PLOT_KEYS = ("which=all|folds|curves|essential|line|pair|steps|iterations (comma list; folds: pooled fold mAA vs "
+             "budget, curves: the fold models' validation curves, essential: Table E's mAA vs budget, line / pair / "
+             "steps: one instance step by step, iterations: the retired split's budgets); out_dir=reports/figures; "
+             "folds_iterations_csv, essential_iterations_csv, folds_checkpoints, eval_root, reports_dir, "
+             "iterations_csv (inputs); line_data, line_checkpoint, line_index=auto, line_steps=6; fundamental_data, "
+             "fundamental_checkpoint, pair=auto, image_root, fundamental_iterations=1000, fundamental_steps=6; "
+             "seed=0, device=cpu")
+
+
 @cli.command()
-@click.option("--set", "sets", multiple=True, metavar="KEY=VALUE", help="Option; repeatable.")
+@click.option("--set", "sets", multiple=True, metavar="KEY=VALUE", help="Option; repeatable. Keys: " + PLOT_KEYS)
 @tracking_option
 def plot(tracking: bool, sets: tuple[str, ...]) -> None:
-    """Draw the report figures (rlsac.reports.figures)."""
+    """Draw the report figures into reports/figures (rlsac.reports.figures), e.g. --set which=folds,curves."""
     from rlsac.config import parse_sets
     from rlsac.reports.figures import plot as run
 
     _echo_result(run(parse_sets(sets), track=tracking))
+
+
+@cli.command()
+@click.option("--host", default="127.0.0.1", show_default=True, help="Address the UI listens on.")
+@click.option("--port", type=click.IntRange(1, 65535), default=5000, show_default=True, help="Port of the UI.")
+@click.option("--links-only", is_flag=True, help="Print the links, start no server.")
+def ui(host: str, port: int, links_only: bool) -> None:
+    """The MLflow UI on the tracking store (MLFLOW_TRACKING_URI, default sqlite:///mlflow.db), after one link per
+    experiment that opens its runs table with the mAA columns (MLflow 3's UI lands on GenAI pages otherwise)."""
+    import os
+    import sys
+
+    from rlsac.tracking import DEFAULT_URI, runs_links, store_path
+
+    uri = os.environ.get("MLFLOW_TRACKING_URI", DEFAULT_URI)
+    db = store_path(uri)
+    if db is not None and not db.is_file():
+        raise RlsacError(f"{db}: no tracking store here (an rlsac command with tracking makes it; "
+                         "MLFLOW_TRACKING_URI names another)")
+    links = runs_links(uri, f"http://{'127.0.0.1' if host in ('0.0.0.0', '::') else host}:{port}")
+    for e in links:
+        click.echo(f"{e['name']:<12} {e['runs']:>5} runs  {e['url']}")
+    if not links:
+        click.echo(f"{uri}: no runs yet")
+    if links_only:
+        return
+    click.echo("open a link above (the UI's own front page is MLflow's welcome page); Ctrl-C stops the UI", err=True)
+    sys.stdout.flush()
+    os.execv(sys.executable, [sys.executable, "-m", "mlflow", "ui", "--backend-store-uri", uri, "--host", host,
+                              "--port", str(port)])
+
+
+@cli.command("quick")
+@click.option("--fold", help="The fold whose test pairs are used. [default: fountain, the smallest]")
+@click.option("--regime", type=click.Choice(["easy", "hard"]), help="The data regime. [default: hard]")
+@click.option("--iterations", type=int, help="Hypotheses per pair. [default: 1000, Table 2's]")
+@click.option("--out", help="Results and table.md. [default: scratch/quick]")
+@click.option("--params", "params", default="params.yaml", show_default=True, help="params.yaml: the folds section.")
+@tracking_option
+def quick_cmd(tracking: bool, **options) -> None:
+    """The workbench's answer in minutes: the committed RLSAC model against uniform sets, OpenCV's RANSAC and
+    MAGSAC++ on one fold's test pairs, a table with paired intervals (rlsac.quick)."""
+    from rlsac.quick import format_summary, quick
+
+    click.echo(format_summary(quick(options, track=tracking)))
 
 
 @cli.command("calibrate-lines")

@@ -155,7 +155,7 @@ def _mkl_sentence(mkl_cbwr: str) -> str:
 
 def calibrate_lines(options: dict[str, Any], track: bool = True,
                     params_path: str | Path | None = "params.yaml") -> dict:
-    """``_calibrate_lines`` with MKL on its vendor-independent branch: the README's main job gives the same bytes on
+    """``_calibrate_lines`` with MKL on its vendor-independent branch: the calibration gives the same bytes on
     Intel and AMD CPUs (the rest of the record is on its platform's branch, reports/platform.md)."""
     from rlsac import numerics
 

@@ -217,6 +217,15 @@ def run_name(o: dict[str, Any]) -> str:
     return f"{o['task']}_{o['method']}{model}_{Path(o['data']).stem}_i{o['iterations']}_s{o['seed']}"
 
 
+def mlflow_name(o: dict[str, Any]) -> str:
+    """The MLflow run's name: method, model, the data file with its folders (fold and regime), budget and seed
+    (``evaluate rlsac rlsac folds/hard/entry/test i1000 s0``); ``run_name`` names the default output folder."""
+    from rlsac.tracking import data_label
+
+    model = f" {Path(o['checkpoint']).stem}" if o.get("checkpoint") else ""
+    return f"evaluate {o['method']}{model} {data_label(o['data'])} i{o['iterations']} s{o['seed']}"
+
+
 def make_estimator(o: dict[str, Any], device: str) -> tuple[Task, Callable[[dict, torch.Generator], dict], dict]:
     """-> (task, estimate(batch, generator) -> {hyp, valid, inliers} torch tensors, extra run params),
     built by the method's registered builder (rlsac.methods)."""
@@ -403,11 +412,10 @@ def run(p: Prepared, track: bool = True) -> dict[str, Any]:
     task_cls = task_class(o["task"])
     n = p.n
     out_dir = Path(o["out_dir"])
-    name = run_name(o)
     params = {**recorded_options(o), "device": device, "n_instances": n, **extra, "task_options": _task_options(task),
               "data_attrs": {k: _plain(v) for k, v in p.attrs.items()}}
     tags = {"command": "evaluate", "method": o["method"], **{k: str(v) for k, v in (o["tags"] or {}).items()}}
-    with start_run(task_cls.experiment, f"evaluate {name}", params=params, tags=tags, enabled=track) as mlrun:
+    with start_run(task_cls.experiment, mlflow_name(o), params=params, tags=tags, enabled=track) as mlrun:
         torch_threads = torch.get_num_threads()
         if device == "cpu" and o["threads"] > 0:
             torch.set_num_threads(o["threads"])

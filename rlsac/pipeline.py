@@ -1,7 +1,8 @@
 """``rlsac pipeline``: the DVC pipeline's out-of-date stages as Ray tasks, in dependency order (issue #30).
 
-The plan comes from DVC itself (``Repo.index.graph``, ``Stage.changed``), once: a stage runs when it changed or when
-a stage it depends on runs; frozen stages and stages without a command never run. Each stage is one Ray task
+The plan comes from DVC's stage graph (``Repo.index.graph``) and DVC's rules on dvc.lock with each file hashed once
+(rlsac.stage_status: ``Stage.changed`` per stage took minutes), once: a stage runs when it changed or when a stage it
+depends on runs; frozen stages and stages without a command never run. Each stage is one Ray task
 (``num_cpus=1``; ``num_gpus`` for the stages matching ``gpu_stages`` when ``gpus_per_train`` > 0). With the direct
 runner (the default, issue #50) the task runs the stage's own command as DVC would and computes its lock entry with
 DVC's code, and this process, the one writer, merges the entries into ``dvc.lock`` by an atomic rename
@@ -124,13 +125,14 @@ def load_plan(repo_dir: str | os.PathLike, names: str | None = None, runner: str
         deps = {addr[s]: sorted(addr[d] for d in graph.successors(s) if d in run_set) for s in runnable}
         todo: list[str] = []
         why: dict[str, str] = {}
+        how = ""
         specs, writer, paths = {}, None, {}
         from dvc.lock import LockError
 
         for attempt in range(LOCK_TRIES):
             try:
                 with repo.lock:
-                    todo, why = [], _reasons(runnable, addr, deps)
+                    todo, (why, how) = [], _reasons(repo, runnable, addr, deps)
                     for s in runnable:  # an upstream stage that runs makes everything downstream of it run
                         if any(d in todo for d in deps[addr[s]]) or why[addr[s]] != UP_TO_DATE:
                             todo.append(addr[s])
@@ -146,7 +148,7 @@ def load_plan(repo_dir: str | os.PathLike, names: str | None = None, runner: str
                 time.sleep(1.0)
     finally:
         repo.close()
-    return {"root": root, "order": [addr[s] for s in runnable], "deps": deps, "todo": todo, "why": why,
+    return {"root": root, "order": [addr[s] for s in runnable], "deps": deps, "todo": todo, "why": why, "how": how,
             "selected": sorted(addr[s] for s in ordered), "specs": specs, "writer": writer, "paths": paths}
 
 
@@ -183,25 +185,38 @@ CHANGED, UPSTREAM, REGENERATE, AFTER_DATA, UP_TO_DATE = ("changed", "upstream ch
                                                         "inputs missing", "up to date")
 
 
-def _reasons(runnable: list, addr: dict, deps: dict) -> dict[str, str]:
-    """{address: one of the reasons above}, in dependency order. A missing input counts as a change unless a stage
-    that only re-makes missing outputs makes it (its path is one of their outputs)."""
+def _reasons(repo, runnable: list, addr: dict, deps: dict) -> tuple[dict[str, str], str]:
+    """({address: one of the reasons above}, how the files were checked), in dependency order, by DVC's rules on
+    dvc.lock and the files' md5s (rlsac.stage_status: each file hashed once, kept by size and time across plans). A
+    missing input counts as a change unless a stage that only re-makes missing outputs makes it: it is one of their
+    outputs or lies inside one (``fold_data`` records the folder data/folds/<regime>/<fold>, later stages read files
+    in it)."""
+    from rlsac.stage_status import Status
+
+    status = Status(repo)
     why: dict[str, str] = {}
-    remade: set[str] = set()  # output paths of the stages that only re-make missing outputs
+    remade: list[str] = []  # output paths of the stages that only re-make missing outputs
+
+    def remade_by_data(d) -> bool:
+        path = str(d.fs_path)
+        return status.missing(d) and any(path == o or path.startswith(o.rstrip(os.sep) + os.sep) for o in remade)
+
     for s in runnable:
         a = addr[s]
-        changed = [d for d in s.deps if d.changed()]
-        own = s.changed_stage() or any(not (str(d.fs_path) in remade and not d.exists) for d in changed)
+        changed = [d for d in s.deps if status.changed(d)]
+        own = (s.changed_stage() or s.always_changed or s.is_callback
+               or any(not remade_by_data(d) for d in changed))
         if own:
             why[a] = CHANGED
         elif any(why[u] in (CHANGED, UPSTREAM) for u in deps[a]):
             why[a] = UPSTREAM
-        elif s.changed_outs():
+        elif status.changed_outs(s):
             why[a] = REGENERATE
-            remade.update(str(o.fs_path) for o in s.outs)
+            remade.extend(str(o.fs_path) for o in s.outs)
         else:
             why[a] = AFTER_DATA if changed else UP_TO_DATE
-    return why
+    status.hashes.save()
+    return why, status.hashes.summary()
 
 
 def _groups(addresses: list[str]) -> dict[str, int]:
@@ -727,7 +742,8 @@ def pipeline(options: dict[str, Any], track: bool = True) -> dict:
     base = {"root": str(plan["root"]), "n_selected": len(plan["order"]), "todo": plan["todo"], "run_id": None}
     if o["dry_run"]:
         return {**base, "dry_run": True, "results": {a: {"stage": a, "status": "skipped"} for a in skipped},
-                "counts": {"skipped": len(skipped)}, "wall_s": 0.0, "workers": None, "why": plan["why"]}
+                "counts": {"skipped": len(skipped)}, "wall_s": 0.0, "workers": None, "why": plan["why"],
+                "how": plan["how"]}
     check_store(track, "pipeline")
     plan["priority"] = _priorities(plan, track)
     params = {k: o[k] for k in ("stages", "workers", "address", "gpus_per_train", "gpu_stages", "runner", "remote",
@@ -879,23 +895,28 @@ def _shown(path: str) -> str:
 
 def _plan_lines(s: dict, by: dict) -> list[str]:
     """The dry run: the count, the stages to run; where some only re-make missing outputs (a clean clone's data),
-    what runs after them, one line per stage group."""
-    lines = [f"pipeline (dry run): {len(s['todo'])} to run, {len(by['skipped'])} up to date of {s['n_selected']} "
-             "stages"]
-    if s["todo"]:
-        lines.append(f"to run   {_names(s['todo'])}")
+    what runs after them (one line per stage group when any does), and how the files were checked. A stage that
+    waits only on re-made outputs counts as up to date: it is skipped when its turn comes if they match dvc.lock."""
     why = s.get("why") or {}
-    remake = [a for a in s["todo"] if why.get(a) == REGENERATE]
-    if not remake:
-        return lines
-    after = [a for a in s["todo"] if why.get(a) in (CHANGED, UPSTREAM)]
-    waiting = [a for a in s["todo"] if why.get(a) == AFTER_DATA]
-    lines += [f"plan: {len(remake)} stages re-make missing outputs from unchanged inputs ({_names(remake)}); "
-              f"once they match dvc.lock, {len(after)} run and {len(waiting) + len(by['skipped'])} are up to date",
-              "  group                          run  up to date"]
-    run_g, all_g = _groups(after), _groups([a for a in s["why"] if a not in remake])
-    for g, n in all_g.items():
-        lines.append(f"  {g:<30} {run_g.get(g, 0):>3}  {n - run_g.get(g, 0):>10}")
+    waiting = [a for a in s["todo"] if why.get(a) in (AFTER_DATA, UP_TO_DATE)]  # in todo after a waiting stage
+    run = [a for a in s["todo"] if a not in set(waiting)]
+    lines = [f"pipeline (dry run): {len(run)} to run, {len(by['skipped']) + len(waiting)} up to date of "
+             f"{s['n_selected']} stages" + (f" ({len(waiting)} of them once the re-made outputs match dvc.lock)"
+                                             if waiting else "")]
+    if run:
+        lines.append(f"to run   {_names(run)}")
+    remake = [a for a in run if why.get(a) == REGENERATE]
+    if remake:
+        after = [a for a in run if why.get(a) in (CHANGED, UPSTREAM)]
+        lines.append(f"plan: {len(remake)} stages re-make missing outputs from unchanged inputs ({_names(remake)}); "
+                     f"after them {len(after)} run" + (", by group:" if after else ""))
+        if after:
+            lines.append("  group                          run  up to date")
+            run_g, all_g = _groups(after), _groups([a for a in s["why"] if a not in remake])
+            for g, n in all_g.items():
+                lines.append(f"  {g:<30} {run_g.get(g, 0):>3}  {n - run_g.get(g, 0):>10}")
+    if s.get("how"):
+        lines.append(s["how"])
     return lines
 
 

@@ -207,7 +207,8 @@ def close_dead_runs(client=None) -> list[str]:
 
 
 # MLflow 3's UI opens an experiment on its GenAI overview ("Traces: 0") unless the experiment says it is model
-# training: with this tag it opens on the runs table (issue #47). The kind is the UI's, not a documented constant
+# training: with this tag it opens on the runs table (issue #47) where the UI's workflow switch is off; 3.17's is on
+# and reads the page's workflowType instead (RUNS_PAGE below). The kind is the UI's, not a documented constant
 EXPERIMENT_KIND = ("mlflow.experimentKind", "custom_model_development")
 # The runs table's columns: MLflow 3.17 shows no metric column until one is picked, and takes none from the URL; a
 # shared view state (an experiment tag the UI reads for `?viewStateShareKey=rlsac`) brings the main metrics and the
@@ -326,6 +327,40 @@ def _end_run(status: str) -> None:
         with contextlib.suppress(Exception):
             mlflow.end_run(status="KILLED")
         raise signalled from None
+
+
+def data_label(path: str | os.PathLike) -> str:
+    """A data file as run names show it: its path without ``data/`` and the extension (``folds/hard/entry/test``):
+    the fold and regime are in the name, so that one command on two folds gives two names (issue #63 item 5)."""
+    p = Path(path)
+    if p.is_absolute():
+        with contextlib.suppress(ValueError):
+            p = p.relative_to(Path.cwd())
+    parts = p.with_suffix("").parts
+    return "/".join(parts[1:] if parts[:1] == ("data",) and len(parts) > 1 else parts)
+
+
+# The UI's "workflow" (GenAI or machine learning) decides whether an experiment opens on its traces or its runs. MLflow
+# 3.17 takes it from the page's `workflowType` parameter, else from what the browser last picked (GenAI at first): it
+# no longer reads the experiment's `mlflow.experimentKind` tag (rlsac still sets it, for the versions that do). So
+# `rlsac ui` prints, per experiment, the link that opens its runs table with the mAA columns (VIEW_STATE).
+RUNS_PAGE = "/#/experiments/{id}/runs?workflowType=machine_learning&viewStateShareKey=" + VIEW_KEY
+
+
+def runs_links(uri: str, base: str) -> list[dict[str, Any]]:
+    """[{"name", "id", "runs", "url"}] of every experiment of the store at ``uri`` that holds runs, ``url`` its runs
+    table on the UI served at ``base`` (``http://host:port``)."""
+    _quiet()
+    import mlflow
+
+    client = mlflow.MlflowClient(uri)
+    out = []
+    for e in client.search_experiments():
+        n = len(client.search_runs([e.experiment_id], max_results=1000))
+        if n:
+            out.append({"name": e.name, "id": e.experiment_id, "runs": n,
+                        "url": base + RUNS_PAGE.format(id=e.experiment_id)})
+    return out
 
 
 def free_port() -> int:

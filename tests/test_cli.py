@@ -2,6 +2,7 @@
 
 import json
 import os
+import re
 import subprocess
 import sys
 import types
@@ -271,7 +272,7 @@ def test_calibrate_lines_tiny(workdir, monkeypatch):
     assert np.allclose(table["mAA_diff"], table["mAA_ours"] - table["mAA_paper"], atol=1e-3)
     md = (workdir / "rep/cal.md").read_text()
     assert "| band |" in md and "0.608" in md
-    # the README's main job runs MKL on its vendor-independent branch (the same bytes on Intel and AMD CPUs)
+    # the line calibration runs MKL on its vendor-independent branch (the same bytes on Intel and AMD CPUs)
     # MKL on its vendor-independent branch while it ran, and the environment put back (tests/conftest.py made this
     # process's first MKL call, so its branch stays the default one)
     assert "(`MKL_CBWR=COMPATIBLE`" in md and os.environ.get("MKL_CBWR") == before
@@ -308,3 +309,18 @@ def test_portable_blas_sets_compatible_inside_keeps_a_users_value_and_puts_the_e
     with portable_blas() as pinned:
         assert pinned is False and os.environ["MKL_CBWR"] == "AVX2"
     assert os.environ["MKL_CBWR"] == "AVX2"
+
+
+def test_plot_help_names_every_key_and_its_error_the_docs_names(workdir):
+    """`rlsac plot --help` listed no key (issue #63 item 7); an unknown figure's error named the file names, not the
+    short ones docs/commands.md uses (`which=line`, `folds`)."""
+    from rlsac.reports.figures import DEFAULTS, SHORT
+
+    r = invoke("plot", "--help")
+    assert r.exit_code == 0
+    text = " ".join(r.output.split())
+    missing = [k for k in DEFAULTS if not re.search(rf"(?<!\w){k}(?!\w)", text)]  # a whole word each
+    assert not missing, missing
+    bad = invoke("plot", "--set", "which=line_stepz", "--no-tracking")
+    assert_user_error(bad, "unknown figure 'line_stepz'", *(f"{k} ({v})" for k, v in SHORT.items()))
+    assert not os.listdir(workdir)

@@ -29,6 +29,7 @@ RUNNERS = (
     "rlsac.scale",
     "rlsac.ladder",
     "rlsac.pipeline",
+    "rlsac.quick",
 )
 
 # the layers of the package, lowest first: a file imports files of its own layer or of lower ones, never of a higher
@@ -54,7 +55,8 @@ LAYERS = (
     # the runners: a protocol's stages, the studies, the pipeline
     ("rlsac.folds", "rlsac.folds_retune", "rlsac.selection", "rlsac.ablate", "rlsac.scale", "rlsac.positive_control",
      "rlsac.ladder",
-     "rlsac.commands", "rlsac.line_calibration", "rlsac.verify", "rlsac.dvc_stage", "rlsac.transfer", "rlsac.pipeline"),
+     "rlsac.commands", "rlsac.line_calibration", "rlsac.verify", "rlsac.dvc_stage", "rlsac.transfer", "rlsac.pipeline",
+     "rlsac.stage_status", "rlsac.quick"),
     # the command line
     ("rlsac.cli",),
 )

@@ -54,7 +54,7 @@ def test_ci_false_and_explicit_switches(monkeypatch):
 
 
 def test_calibrate_lines_shows_its_progress_on_a_terminal_only(tmp_path, monkeypatch, capsys):
-    """The README's main job draws one bar over its rate x seed sets (issue #47: it printed nothing while it ran);
+    """The line calibration draws one bar over its rate x seed sets (issue #47: it printed nothing while it ran);
     redirected, as under dvc repro or CI, it draws none."""
     from rlsac.commands import calibrate_lines
 

@@ -117,10 +117,13 @@ def test_the_dry_run_plans_after_the_missing_data(tmp_path):
     r = run_pipeline("--repo", str(repo), "--dry-run", "--no-tracking")
     assert r.exit_code == 0, r.output
     lines = summary(r.output)
-    assert lines[0] == "pipeline (dry run): 4 to run, 0 up to date of 4 stages", r.output
-    assert lines[2] == ("plan: 1 stages re-make missing outputs from unchanged inputs (a); once they match dvc.lock, "
-                        "1 run and 2 are up to date"), r.output
-    assert [ln.split() for ln in lines[4:]] == [["b", "0", "1"], ["c", "0", "1"], ["d", "1", "0"]], r.output
+    assert lines[0] == ("pipeline (dry run): 2 to run, 2 up to date of 4 stages (2 of them once the re-made outputs "
+                        "match dvc.lock)"), r.output
+    assert lines[1] == "to run   a, d", r.output
+    assert lines[2] == ("plan: 1 stages re-make missing outputs from unchanged inputs (a); after them 1 run, "
+                        "by group:"), r.output
+    assert [ln.split() for ln in lines[4:7]] == [["b", "0", "1"], ["c", "0", "1"], ["d", "1", "0"]], r.output
+    assert lines[7].startswith("checked against dvc.lock by md5: "), r.output
 
 
 def test_failed_stage_stops_dependents_only(tmp_path):

@@ -253,8 +253,8 @@ def test_every_inline_command_is_accepted(doc):
 
 
 def test_readme_starts_with_the_two_fresh_clone_commands():
-    """The first two code blocks: install + the main job on the embedded default (in the venv it activates),
-    then the tests; the install is the one CI makes."""
+    """The first two code blocks: install + the main job (in the venv it activates: RLSAC against its controls on
+    one fold's shipped pairs, rlsac quick), then the tests; the install is the one CI makes."""
     text = (ROOT / "README.md").read_text()
     blocks = [body.strip() for lang, body in FENCE.findall(text) if lang == "bash"]
     assert text[:text.index("```bash")].count("\n") < 30, "the two commands come first, after the verdict"
@@ -263,7 +263,7 @@ def test_readme_starts_with_the_two_fresh_clone_commands():
     cmds = _commands(first)
     assert [c[0] for c in cmds] == ["python3", ".", "pip", "rlsac"]
     assert cmds[1] == [".", ".venv/bin/activate"]  # later bare rlsac/dvc/mlflow commands find the venv
-    assert cmds[3] == ["rlsac", "calibrate-lines"]
+    assert cmds[3] == ["rlsac", "quick"]
     assert _commands(second) == [["python", "-m", "pytest", "-q"]] and second.startswith(".venv/bin/python")
     for argv in cmds:
         check(argv, first)

@@ -195,7 +195,7 @@ def test_plot_iterations_and_line_steps(tree):
     assert "no checkpoint" in s["notes"] and (tree / "figs2" / "line_steps.png").stat().st_size > 1000
 
 
-def test_learning_curves_take_a_models_seeds_together(tmp_path):
+def test_learning_curves_take_a_models_seeds_together(tmp_path, monkeypatch):
     """Issue #27: rlsac and rlsac-s1 are one model's two seeds: one table (steps x seeds) per fold, which the figure
     draws as the seed mean with its band; another model stays its own column."""
     from rlsac.reports import fold_figures
@@ -211,8 +211,20 @@ def test_learning_curves_take_a_models_seeds_together(tmp_path):
     assert set(got) == {("rlsac", "hard/castle"), ("rlsac-nosnn", "hard/castle")}
     t = got[("rlsac", "hard/castle")]
     assert list(t.columns) == ["rlsac", "rlsac-s1"] and t.mean(axis=1).tolist() == pytest.approx([0.3, 0.3])
+    drawn = []
+    real_save = fold_figures._save
+    monkeypatch.setattr(fold_figures, "_save", lambda fig, out, name: drawn.append(fig) or real_save(fig, out, name))
     files, _ = fold_figures.plot_learning_curves(read, tmp_path / "fig")
     assert [Path(f).name for f in files] == ["learning_curves.png", "learning_curves.pdf"]
+    # issue #63: a row per model (no empty cell), every panel titled, one legend for the figure
+    titles = [ax.get_title() for ax in drawn[0].axes]
+    assert titles == ["rlsac (2 seeds, kept by inlier_ratio): validation mAA@10°",
+                      "rlsac (2 seeds, kept by inlier_ratio): validation mean inlier ratio",
+                      "rlsac-nosnn (1 seed, kept by inlier_ratio): validation mAA@10°",
+                      "rlsac-nosnn (1 seed, kept by inlier_ratio): validation mean inlier ratio"]
+    assert all(ax.get_legend() is None for ax in drawn[0].axes) and len(drawn[0].legends) == 1
+    assert [t.get_text() for t in drawn[0].legends[0].get_texts()] == ["hard/castle", "min–max over seeds",
+                                                                      "kept actor"]
 
 
 def test_table1_ngransac_row_over_its_seeds(tree):
@@ -254,8 +266,9 @@ def test_cli_table_failing_half_way_leaves_every_table_as_it_was(tree, monkeypat
 
 
 def test_figure_4_shows_the_papers_rows_and_the_appendix_every_row(tmp_path, monkeypatch):
-    """Issue #47: Figure 4 (folds_iterations) draws the paper's methods and our controls only, each panel with its
-    own legend; every other row (here PROSAC, a peer) is in the appendix figure folds_iterations_all."""
+    """Issue #47: Figure 4 (folds_iterations) draws the paper's methods and our controls only; every other row (here
+    PROSAC, a peer) is in the appendix figure folds_iterations_all. Issue #63: one legend for the figure (a legend
+    per panel repeated seven entries eight times), every panel titled."""
     import pandas as pd
 
     from rlsac.reports import fold_figures
@@ -263,18 +276,24 @@ def test_figure_4_shows_the_papers_rows_and_the_appendix_every_row(tmp_path, mon
     rows = [{"regime": "hard", "method": m, "iterations": it, "mAA_R": 0.5, "mAA_t": 0.4, "n_pairs": 6,
              "dR": 0.01, "dR_lo": -0.01, "dR_hi": 0.03, "dt": 0.0, "dt_lo": -0.02, "dt_hi": 0.02}
             for m in ("rlsac", "uniform", "magsac", "prosac") for it in (10, 100)]
-    legends = {}
+    drawn = {}
     real_save = fold_figures._save
 
     def save(fig, out_dir, name):
-        legends[name] = [sorted(t.get_text() for t in ax.get_legend().get_texts()) for ax in fig.axes]
+        drawn[name] = fig
         return real_save(fig, out_dir, name)
 
     monkeypatch.setattr(fold_figures, "_save", save)
     files, _ = fold_figures.plot_folds_iterations(pd.DataFrame(rows), tmp_path)
     assert [Path(f).name for f in files] == ["folds_iterations.png", "folds_iterations.pdf",
                                              "folds_iterations_all.png", "folds_iterations_all.pdf"]
-    main, appendix = legends["folds_iterations"], legends["folds_iterations_all"]
-    assert len(main) == 4 and main[0] == ["magsac", "rlsac", "uniform"]
-    assert main[2] == ["RLSAC − magsac", "RLSAC − uniform"]
-    assert appendix[0] == ["magsac", "prosac", "rlsac", "uniform"] and "RLSAC − prosac" in appendix[2]
+    for name, methods in (("folds_iterations", ["magsac", "rlsac", "uniform"]),
+                          ("folds_iterations_all", ["magsac", "prosac", "rlsac", "uniform"])):
+        fig = drawn[name]
+        assert len(fig.axes) == 4 and all(ax.get_legend() is None for ax in fig.axes)
+        assert [len(fig.legends)] == [1] and sorted(t.get_text() for t in fig.legends[0].get_texts()) == methods
+        assert [ax.get_title() for ax in fig.axes] == [
+            "hard regime (6 test pairs): mAA@10° of R", "hard regime (6 test pairs): mAA@10° of t",
+            "hard regime: RLSAC − method in R (95% interval)", "hard regime: RLSAC − method in t (95% interval)"]
+    diffs = drawn["folds_iterations"].axes[2]  # RLSAC − magsac and − uniform, each with its interval
+    assert sorted(c.get_label() for c in diffs.containers) == ["magsac", "uniform"]

@@ -80,3 +80,37 @@ def test_experiments_open_on_the_runs_table(tmp_path, monkeypatch):
         assert view["selectedColumns"][:3] == ["metrics.`mAA`", "metrics.`mAA_R`", "metrics.`mAA_t`"]
         assert view["orderByKey"] == "metrics.`mAA`" and view["orderByAsc"] is False
     assert client.get_experiment_by_name("lines").experiment_id == old
+
+
+def test_run_names_carry_the_data_folders_and_rlsac_ui_links_each_runs_table(workdir):
+    """Issue #63 item 5: the same command on two folds gave two runs of one name (`evaluate
+    fundamental_rlsac_rlsac_test_i1000_s0`, `prepare-test`): names carry the data file's folders (fold, regime).
+    MLflow 3.17's UI picks its GenAI or runs page by the page's `workflowType` (no longer by the experiment's tag):
+    `rlsac ui` prints each experiment's runs-table link."""
+    import mlflow
+    from click.testing import CliRunner
+
+    from rlsac.cli import cli
+
+    run = CliRunner().invoke
+    for fold in ("castle", "entry"):
+        out = f"data/folds/hard/{fold}/test.h5"
+        assert run(cli, ["synth-lines", "--n-instances", "3", "--out", out, "--params", ""]).exit_code == 0
+        r = run(cli, ["evaluate", "--task", "line", "--method", "ransac", "--data", out, "--iterations", "5",
+                      "--out-dir", f"ev/{fold}", "--params", ""])
+        assert r.exit_code == 0, r.output
+    client = mlflow.MlflowClient(f"sqlite:///{workdir / 'mlflow.db'}")
+    lines = client.get_experiment_by_name("lines")
+    names = sorted(r.info.run_name for r in client.search_runs([lines.experiment_id]))
+    assert [n for n in names if n.startswith("evaluate")] == ["evaluate ransac folds/hard/castle/test i5 s0",
+                                                              "evaluate ransac folds/hard/entry/test i5 s0"], names
+    assert [n for n in names if n.startswith("synth")] == ["synth-lines folds/hard/castle/test o0.5 s0",
+                                                           "synth-lines folds/hard/entry/test o0.5 s0"], names
+
+    r = run(cli, ["ui", "--port", "5055", "--links-only"])
+    assert r.exit_code == 0, r.output
+    assert r.output.split() == ["lines", "4", "runs", f"http://127.0.0.1:5055/#/experiments/{lines.experiment_id}"
+                                "/runs?workflowType=machine_learning&viewStateShareKey=rlsac"], r.output
+    (workdir / "mlflow.db").unlink()
+    gone = run(cli, ["ui", "--links-only"])
+    assert gone.exit_code == 2 and gone.output.startswith("error: ") and "no tracking store here" in gone.output

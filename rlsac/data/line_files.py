@@ -14,7 +14,7 @@ from rlsac import config
 from rlsac.config import read_params, section
 from rlsac.errors import RlsacError
 from rlsac.io import check_writable
-from rlsac.tracking import check_store, start_run
+from rlsac.tracking import check_store, data_label, start_run
 
 
 def line_conf(options: dict[str, Any], params_path: str | Path | None = "params.yaml"):
@@ -45,7 +45,7 @@ def synth_lines(options: dict[str, Any], track: bool = True, params_path: str | 
     path = check_writable(Path(out) if out else default_lines_path(conf))
     check_store(track, "lines")
     params = config.to_dict(conf)
-    name = f"synth-lines {path.stem} o{conf.outlier_rate:g} s{conf.seed}"
+    name = f"synth-lines {data_label(path)} o{conf.outlier_rate:g} s{conf.seed}"
     with start_run("lines", name, params={**params, "out": str(path)},
                    tags={"command": "synth-lines", "artifact_path": str(path)}, enabled=track) as run:
         data = lines.generate(conf)

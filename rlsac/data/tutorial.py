@@ -38,7 +38,7 @@ from rlsac.data.fundamental import KIND, N_FEATURES, gt_inliers
 from rlsac.errors import RlsacError
 from rlsac.io import atomic_path, open_h5, read_array, write_json
 from rlsac.progress import tqdm  # no bars unless a person watches (not under CI, not redirected)
-from rlsac.tracking import start_run
+from rlsac.tracking import data_label, start_run
 
 FILES = ("matches.h5", "match_conf.h5", "K1_K2.h5", "R.h5", "T.h5")
 
@@ -361,7 +361,7 @@ def prepare(conf: PrepareConf, track: bool = True, progress: bool = True, collec
     descriptor = descriptor_text(conf)
     # the OpenCV version goes to MLflow only: in the h5 it would change the file's hash with every OpenCV build
     params = {**asdict(conf), "scenes": ",".join(scenes), "descriptor": descriptor, "opencv_version": cv2.__version__}
-    with start_run("fundamental", f"prepare-{Path(conf.out).stem}", params, enabled=track) as run:
+    with start_run("fundamental", f"prepare {data_label(conf.out)}", params, enabled=track) as run:
         n_pairs = len(data["pair"])
         n_skipped = sum(len(v) for v in skipped.values())
         skip_json = json.dumps({k: {"count": len(v), "pairs": v[:200]} for k, v in skipped.items()})

@@ -18,8 +18,8 @@ and moved into ``out_dir`` only when every one succeeded: a failing ``rlsac plot
 figures untouched. An empty checkpoint option (``--set line_checkpoint=``) draws uniform random minimal
 sets (RANSAC) instead of a policy, and says so in the title. Options (all optional):
 
-    which                  "all" or a comma list of the figure names above (short: iterations, line,
-                           pair, steps)
+    which                  "all" or a comma list of the figures' names: folds, curves, essential, line, pair,
+                           steps, iterations (``SHORT``), or the file names above
     out_dir                reports/figures
     eval_root, reports_dir reports/eval, reports (the iterations table is rebuilt from the summaries in
                            memory; reports_dir is unused and kept for old command lines)
@@ -65,6 +65,8 @@ ALL = tuple(f for f in FIGURES if f != "fundamental_iterations")
 SHORT = {"iterations": "fundamental_iterations", "line": "line_steps", "pair": "fundamental_pair",
          "steps": "fundamental_steps", "folds": "folds_iterations", "curves": "learning_curves",
          "essential": "essential_iterations"}
+# the names the docs use (docs/commands.md), each with its figure's file name: what an error lists
+KNOWN = "all, " + ", ".join(f"{k} ({v})" for k, v in SHORT.items())
 DEFAULTS: dict[str, Any] = {
     "which": "all",
     "out_dir": "reports/figures",
@@ -126,9 +128,9 @@ def _options(options: dict[str, Any]) -> dict[str, Any]:
         elif w in FIGURES or w in SHORT:
             names.append(SHORT.get(w, w))
         else:
-            raise RlsacError(f"unknown figure {w!r}; known: all, {', '.join(FIGURES)}")
+            raise RlsacError(f"unknown figure {w!r}; which= takes {KNOWN}")
     if not names:
-        raise RlsacError(f"which names no figure; known: all, {', '.join(FIGURES)}")
+        raise RlsacError(f"which names no figure; which= takes {KNOWN}")
     o["which"] = list(dict.fromkeys(names))
     for key in ("line_index", "pair"):  # an index, or "auto" (the instance the figure picks)
         if isinstance(o[key], str) and o[key] != "auto":

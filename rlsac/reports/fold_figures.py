@@ -95,13 +95,14 @@ def plot_folds_iterations(csv: str | Path | pd.DataFrame, out_dir: Path, name: s
 
 
 def _iterations_figure(df: pd.DataFrame, out_dir: Path, name: str, diff_rows, fixed: bool, title: str) -> list[str]:
+    """One row of panels per regime (R, t), and under it RLSAC − each of ``diff_rows`` when the table has the paired
+    differences; every panel titled, one legend for the figure (a method has one colour and marker in every panel)."""
     regimes = sorted(df["regime"].unique())
     methods = list(dict.fromkeys(df["method"]))
     style = _styles(methods, fixed)
     diffs = "dR" in df and df["dR"].notna().any()  # the table's paired differences to RLSAC, with 95% intervals
     per = 2 if diffs else 1
-    width = 14 if fixed else 15  # room for the legends beside the panels
-    fig, axes = plt.subplots(per * len(regimes), 2, figsize=(width, 4 * per * len(regimes)), squeeze=False,
+    fig, axes = plt.subplots(per * len(regimes), 2, figsize=(12, 3.6 * per * len(regimes) + 1.2), squeeze=False,
                              layout="constrained")
     fig.suptitle(f"Pooled mAA@10° against the budget: {title}")
     for r, regime in enumerate(regimes):
@@ -113,41 +114,50 @@ def _iterations_figure(df: pd.DataFrame, out_dir: Path, name: str, diff_rows, fi
             for m, g in d.groupby("method", sort=False):
                 g = g.sort_values("iterations")
                 colour, marker = style[m]
-                ax.plot(g["iterations"], g[col], marker=marker, color=colour, label=m)
+                ax.plot(g["iterations"], g[col], marker=marker, color=colour, label=m, lw=1.6 if m == "rlsac" else 1)
             ax.set_xscale("log")
             ax.set_xlabel("iterations (hypotheses per pair)")
             ax.set_ylabel(f"mAA@10° {what}")
-            ax.set_title(f"{regime} regime ({int(d['n_pairs'].max())} test pairs): {what}", fontsize=10)
+            ax.set_title(f"{regime} regime ({int(d['n_pairs'].max())} test pairs): mAA@10° of {what}")
             ax.grid(alpha=0.3)
-            _legend(ax, fixed)
+    _shared_legend(fig, style, methods)
     return _save(fig, out_dir, name)
 
 
-def _legend(ax, fixed: bool) -> None:
-    """Every panel its own legend, beside it: inside, it covered lines or bands somewhere (issue #47)."""
-    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7 if fixed else 6, borderaxespad=0)
+def _shared_legend(fig, style: dict, methods: list[str]) -> None:
+    """One legend for every panel, under them (a legend per panel repeated seven entries eight times, issue #63)."""
+    from matplotlib.lines import Line2D
+
+    handles = [Line2D([], [], color=style[m][0], marker=style[m][1], label=m) for m in methods]
+    fig.legend(handles=handles, loc="outside lower center", ncols=min(len(methods), 8), fontsize=9,
+               title="method (difference panels: RLSAC − method, the bar its paired 95% interval over pairs)",
+               title_fontsize=9)
 
 
 def _plot_diffs(axes, d: pd.DataFrame, regime: str, rows: list[str], style: dict) -> None:
-    """RLSAC minus each of ``rows`` against the budget, pooled, with the paired 95% interval as a band (the table
-    stores method - RLSAC; the sign is flipped so that above zero means RLSAC is ahead)."""
-    fixed = all(style[m] == STYLE.get(m, ("black", ".")) for m in rows)
+    """RLSAC minus each of ``rows`` against the budget, pooled, with the paired 95% interval as an error bar, each
+    method's bars nudged sideways so that they do not hide each other (bands over bands did; the table stores
+    method - RLSAC, the sign is flipped so that above zero means RLSAC is ahead)."""
+    import numpy as np
+
+    shown = [m for m in rows if not d[d["method"] == m]["dR"].isna().all()]
     for c, (col, what) in enumerate((("dR", "R"), ("dt", "t"))):
         ax = axes[c]
-        for m in rows:
+        for k, m in enumerate(shown):
             g = d[d["method"] == m].sort_values("iterations")
-            if g.empty or g[col].isna().all():
-                continue
             colour, marker = style[m]
-            ax.plot(g["iterations"], -g[col], marker=marker, color=colour, label=f"RLSAC − {m}")
-            ax.fill_between(g["iterations"], -g[f"{col}_hi"], -g[f"{col}_lo"], color=colour, alpha=0.12, lw=0)
+            # at most a tenth of a decade either side, whatever the number of rows
+            nudge = 10 ** (min(0.025, 0.2 / max(len(shown), 1)) * (k - (len(shown) - 1) / 2))
+            x, y = g["iterations"].to_numpy() * nudge, -g[col].to_numpy()
+            err = np.vstack([y - (-g[f"{col}_hi"].to_numpy()), -g[f"{col}_lo"].to_numpy() - y])
+            ax.errorbar(x, y, yerr=err, marker=marker, color=colour, ms=4, lw=1, elinewidth=0.8, capsize=2,
+                        label=m)
         ax.axhline(0.0, color="black", lw=0.8)
         ax.set_xscale("log")
         ax.set_xlabel("iterations (hypotheses per pair)")
         ax.set_ylabel(f"RLSAC − method, mAA@10° {what}")
-        ax.set_title(f"{regime}: RLSAC − method in {what}, 95% interval over pairs", fontsize=10)
+        ax.set_title(f"{regime} regime: RLSAC − method in {what} (95% interval)")
         ax.grid(alpha=0.3)
-        _legend(ax, fixed)
 
 
 def read_checkpoints(ckpt_root: str | Path) -> dict[Path, dict]:
@@ -188,42 +198,51 @@ def seed_curves(read: dict[Path, dict], key: str) -> dict[tuple[str, str], pd.Da
 
 def plot_learning_curves(ckpt_root: str | Path | dict, out_dir: Path) -> tuple[list[str], str]:
     """The validation curves of every fold checkpoint under ``ckpt_root`` (or of ``read_checkpoints``' dict): one
-    column per model, one colour per fold; a model trained with several seeds (<model>-s<seed>, issue #27) is drawn
-    as the seed mean with its min-max band, each seed's kept actor circled."""
+    row per model, its validation mAA beside its validation inlier ratio, one colour per fold (the same in every
+    panel, one legend for the figure); a model trained with several seeds (<model>-s<seed>, issue #27) is drawn as
+    the seed mean with its min-max band, each seed's kept actor circled."""
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
     from rlsac.protocol import split_seed
 
     read = ckpt_root if isinstance(ckpt_root, dict) else read_checkpoints(ckpt_root)
     kept = {p.stem + "@" + f"{p.parent.parent.name}/{p.parent.name}": ck.get("step") for p, ck in read.items()}
     selection = {split_seed(p.stem)[0]: ck.get("selection", "val_mAA") for p, ck in read.items()}
     models = sorted(selection)
-    # a grid (issue #47: eight models made one 4547 x 847 px row): at most four models a row, each its two panels
-    # (validation mAA over validation inlier ratio) in one column
-    ncols = min(4, len(models))
-    nrows = -(-len(models) // ncols)
-    fig, grid = plt.subplots(2 * nrows, ncols, figsize=(4.6 * ncols, 6.4 * nrows), squeeze=False, layout="constrained")
-    axes = {(r, c): grid[2 * (c // ncols) + r, c % ncols] for c in range(len(models)) for r in range(2)}
-    for k in range(len(models), nrows * ncols):  # empty cells of the last row
-        grid[2 * (k // ncols), k % ncols].set_visible(False)
-        grid[2 * (k // ncols) + 1, k % ncols].set_visible(False)
-    for r, key in enumerate(("charts/val_mAA", "charts/val_inlier_ratio")):
-        for (model, where), table in seed_curves(read, key).items():
-            ax = axes[r, models.index(model)]
-            label = where + (f" ({table.shape[1]} seeds)" if table.shape[1] > 1 else "")
-            line, = ax.plot(table.index, table.mean(axis=1), marker=".", label=label)
+    curves = {key: seed_curves(read, key) for key in KEYS}
+    folds = sorted({where for table in curves.values() for _, where in table})
+    colour = {f: plt.get_cmap("tab10")(i % 10) for i, f in enumerate(folds)}
+    # a row per model, no empty cell (issue #63: a 4 x 4 grid of 14 panels, the inlier-ratio panels untitled)
+    fig, axes = plt.subplots(len(models), 2, figsize=(11, 2.5 * len(models) + 1.0), squeeze=False,
+                             layout="constrained")
+    fig.suptitle("Validation curves of the fold models (params.yaml folds.train): seed mean, min–max band over "
+                 "seeds, kept actor circled")
+    for c, key in enumerate(KEYS):
+        for (model, where), table in curves[key].items():
+            ax = axes[models.index(model), c]
+            ax.plot(table.index, table.mean(axis=1), marker=".", ms=4, color=colour[where])
             if table.shape[1] > 1:
-                ax.fill_between(table.index, table.min(axis=1), table.max(axis=1), alpha=0.2, color=line.get_color(),
+                ax.fill_between(table.index, table.min(axis=1), table.max(axis=1), alpha=0.15, color=colour[where],
                                 lw=0)
             for run in table.columns:
                 step = kept.get(f"{run}@{where}")
                 if step in table.index:
-                    ax.plot([step], [table.loc[step, run]], "o", mfc="none", ms=10, color=line.get_color())
-    for c, model in enumerate(models):
-        axes[0, c].set_title(f"{model}\n(kept actors circled; selection: {selection[model]})", fontsize=9)
-        axes[0, c].set_ylabel("val. mAA@10° (seed mean, min-max)", fontsize=8)
-        axes[1, c].set_ylabel("val. mean inlier ratio", fontsize=8)
-        for r in range(2):
-            axes[r, c].set_xlabel("SAC step", fontsize=8)
-            axes[r, c].tick_params(labelsize=7)
-            axes[r, c].grid(alpha=0.3)
-        axes[0, c].legend(fontsize=6)
+                    ax.plot([step], [table.loc[step, run]], "o", mfc="none", ms=8, color=colour[where])
+    for r, model in enumerate(models):
+        seeds = max((t.shape[1] for (m, _), t in curves[next(iter(KEYS))].items() if m == model), default=1)
+        for c, key in enumerate(KEYS):
+            ax = axes[r, c]
+            ax.set_title(f"{model} ({seeds} seed{'s' if seeds > 1 else ''}, kept by {selection[model]}): "
+                         f"{KEYS[key]}", fontsize=10)
+            ax.set_ylabel(KEYS[key], fontsize=9)
+            ax.set_xlabel("SAC step", fontsize=9)
+            ax.grid(alpha=0.3)
+    handles = [Line2D([], [], color=colour[f], marker=".", label=f) for f in folds]
+    handles += [Patch(color="grey", alpha=0.3, label="min–max over seeds"),
+                Line2D([], [], ls="", marker="o", mfc="none", color="grey", label="kept actor")]
+    fig.legend(handles=handles, loc="outside lower center", ncols=len(handles), fontsize=9)
     return _save(fig, out_dir, "learning_curves"), ""
+
+
+KEYS = {"charts/val_mAA": "validation mAA@10°", "charts/val_inlier_ratio": "validation mean inlier ratio"}
