@@ -20,6 +20,9 @@ from rlsac.errors import RlsacError
 # how the reports compare results: the mAA limits (Table 1's line angle; the fold benchmark's R and t, the tutorial's)
 # and the bootstrap's draws (interval ends stable to ~0.001)
 LINE_LIMIT_DEG = 0.5  # Table 1's mAA limit (thresholds 0.05..0.5 deg)
+# the line claims' tie margin: ±0.01 mAA@0.5° (10 of the 1000 test instances per rate; our RANSAC-to-oracle gap is
+# 0.001-0.09)
+LINE_TIE_MARGIN = 0.01
 LIMIT = 10.0  # mAA@10 deg (the tutorial's and Table 2's)
 PAIRED_BOOT = 2000  # bootstrap resamples of the Table 1 paired comparison: interval ends stable to ~0.001
 N_BOOT = 2000  # bootstrap resamples of the fold benchmark's intervals

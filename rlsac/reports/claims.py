@@ -27,12 +27,11 @@ from typing import Any
 import pandas as pd
 
 from rlsac.io import atomic_path, write_text
+from rlsac.protocol import LINE_TIE_MARGIN
 from rlsac.reports.retuning import COMPUTE, Compute, Selection
 
 # a tie: the whole interval within ±0.03 mAA (18 of the 606 fold test pairs; the paper's Table 3 steps are 0.02-0.06)
 TIE_MARGIN = 0.03
-# on lines: ±0.01 mAA@0.5° (10 of the 1000 test instances per rate; our RANSAC-to-oracle gap is 0.001-0.09)
-LINE_TIE_MARGIN = 0.01
 LINE_ITERATIONS = 150  # Table 1's budget (params.yaml lines.iterations): the line claims speak of it
 KINDS = ("better", "worse", "tie")
 
