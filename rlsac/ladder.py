@@ -339,6 +339,9 @@ def run(params: dict, rung_name: str, seed: int | None, threads: int = 1, device
     if threads > 0:
         torch.set_num_threads(threads)
     rung = all_rungs[rung_name]
+    if seed is None and rung.controls_from:
+        raise RlsacError(f"ladder rung {rung_name} is measured against rung {rung.controls_from}'s controls (the same "
+                         f"pairs and settings): run `--arm {rung.controls_from}` without --seed")
     from rlsac.devices import resolve_device
 
     device = str(resolve_device(device))  # "auto": the accelerator where there is one (a preview, not the record)

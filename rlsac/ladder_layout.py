@@ -26,6 +26,13 @@ class Rung:
     reward: str = "inlier_ratio"  # EnvConf.reward
     reward_threshold: str = "train"  # "train" (the task's, 2 px) or "eval" (the rung's evaluation threshold)
     prefilter: bool = False  # measured with the settings_from row's tuned SNN pre-filter (Table 2's environment)
+    # the rung whose controls (uniform, guided, oracle) are this rung's: the same test pairs, inputs and settings,
+    # so they are measured once (the learner-only arms of rung 3)
+    controls_from: str = ""
+
+    @property
+    def controls(self) -> str:
+        return self.controls_from or self.name
 
     @property
     def why(self) -> str:
@@ -51,9 +58,9 @@ def rungs(c: dict[str, Any]) -> dict[str, Rung]:
         "rung2": Rung("rung2", "synthetic", snn="fitted", ratios="fitted", positions="fitted"),
         "rung3a": Rung("rung3a", "real", snn="redrawn"),
         "rung3": Rung("rung3", "real", snn="real", learner="scale"),
-        "supervised": Rung("supervised", "real", snn="real", learner="supervised"),
-        "reward": Rung("reward", "real", snn="real", reward_threshold="eval"),
-        "improvement": Rung("improvement", "real", snn="real", reward="improvement"),
+        "supervised": Rung("supervised", "real", snn="real", learner="supervised", controls_from="rung3"),
+        "reward": Rung("reward", "real", snn="real", reward_threshold="eval", controls_from="rung3"),
+        "improvement": Rung("improvement", "real", snn="real", reward="improvement", controls_from="rung3"),
         "rung4": Rung("rung4", "real", snn="real", learner="scale", prefilter=True),
     })
     return out

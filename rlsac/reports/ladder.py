@@ -58,13 +58,15 @@ def read_json(path: Path) -> dict:
     return d
 
 
-def load(c: dict[str, Any], order: list[str], root: Path = ROOT) -> dict[str, dict]:
+def load(c: dict[str, Any], order: list[str], root: Path = ROOT,
+         controls_of: dict[str, str] | None = None) -> dict[str, dict]:
     """Every rung's controls and finished runs, checked -> {rung: {"controls": {sampler: {budget: arrays}},
     "runs": {seed: record with arrays}}} (a rung without controls is left out; missing runs are pending)."""
     budgets = [str(i) for i in c["iterations"]]
+    controls_of = controls_of or {}  # a rung measured against another rung's controls (Rung.controls)
     out: dict[str, dict] = {}
     for rung in order:
-        cpath = root / rung / "controls.json"
+        cpath = root / controls_of.get(rung, rung) / "controls.json"
         if not cpath.is_file():
             continue
         ctl = read_json(cpath)
@@ -346,7 +348,7 @@ def build(params: dict, out_dir: Path = Path("reports"), root: Path = ROOT) -> d
     c = conf(params)
     all_rungs = rungs(c)
     order, why = list(all_rungs), {k: v.why for k, v in all_rungs.items()}
-    data = load(c, order, root)
+    data = load(c, order, root, {k: v.controls for k, v in all_rungs.items()})
     rows = [row for rung in order if rung in data for row in rung_rows(rung, data[rung], [str(i) for i in
                                                                                          c["iterations"]])]
     flat = [{k: (v if not isinstance(v, tuple) else round(v[0], 4)) for k, v in r.items()} for r in rows]

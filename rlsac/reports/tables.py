@@ -516,7 +516,7 @@ def build(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
         from rlsac.reports import ladder
 
         lc = ladder_conf(read_params(options.get("params") or "params.yaml"))
-        ladder.load(lc, list(rungs(lc)))
+        ladder.load(lc, list(rungs(lc)), controls_of={k: v.controls for k, v in rungs(lc).items()})
     if which == "tuning-budget":  # its params (rows, budgets) and result files before the run, as the scale study's
         from rlsac.config import read_params
         from rlsac.reports import tuning_budget
