@@ -454,7 +454,10 @@ def _check_options(o: dict) -> None:
         raise RlsacError(f"--retries {o['retries']}: must be at least 0")
     if o["runner"] not in RUNNERS:
         raise RlsacError(f"--runner {o['runner']}: one of {', '.join(RUNNERS)}")
-    if o["address"] and o["address"] != "auto":
+    if o["address"] == "auto":  # checked too: Ray retried a stale cluster file's dead address for 900 s (issue #64)
+        address, found = _auto_address()
+        _check_address(address, f"auto (Ray's address {address}, {found})")
+    elif o["address"]:
         _check_address(o["address"])
     if o["remote"] is not None:
         from rlsac.transfer import check_url
@@ -478,19 +481,38 @@ def _check_tracking_server() -> None:
                          "server command)")
 
 
-def _check_address(address: str) -> None:
+def _auto_address() -> tuple[str, str]:
+    """The address Ray's ``auto`` joins, found as ``ray.init`` finds it: RAY_ADDRESS, else the address file the last
+    ``ray start`` (or a local cluster) wrote in Ray's temporary folder (ray_current_cluster; a killed cluster leaves it
+    behind), else a Ray cluster process of this machine. -> (the address, where it was found)."""
+    if os.environ.get("RAY_ADDRESS"):
+        return os.environ["RAY_ADDRESS"], "from RAY_ADDRESS"
+    from ray._common.utils import get_ray_address_file
+    from ray._private.services import canonicalize_bootstrap_address
+
+    try:
+        address = canonicalize_bootstrap_address("auto")
+    except Exception as e:  # noqa: BLE001 (Ray's ConnectionError when there is none; a bad file's ValueError)
+        raise RlsacError(f"--address auto: no Ray cluster to join ({' '.join(str(e).split())[:160]})") from None
+    file = get_ray_address_file(None)
+    return address, f"from {file}" if Path(file).is_file() else "a Ray process of this machine"
+
+
+def _check_address(address: str, shown: str | None = None) -> None:
     """A TCP connection to ``address`` (host:port, or ray://host:port) within ``ADDRESS_TIMEOUT_S``, retried while
-    refused (a head started just before): Ray's own connection retried for over 400 s, with the MLflow run open."""
+    refused (a head started just before): Ray's own connection retried for over 400 s, with the MLflow run open.
+    ``shown``: the option's value in the error, when not ``address`` (``auto`` and what it stood for)."""
     import socket
     from urllib.parse import urlsplit
 
+    shown = shown or address
     where = urlsplit(address if "://" in address else f"ray://{address}")
     try:
         host, port = where.hostname, where.port
     except ValueError:  # a port that is not a number
         host, port = None, None
     if not host or not port:
-        raise RlsacError(f"--address {address}: not host:port (`ray start --head` prints the address), nor 'auto'")
+        raise RlsacError(f"--address {shown}: not host:port (`ray start --head` prints the address), nor 'auto'")
     end = time.monotonic() + ADDRESS_TIMEOUT_S
     while True:
         try:
@@ -498,7 +520,7 @@ def _check_address(address: str) -> None:
             return
         except OSError as e:
             if time.monotonic() + 0.5 >= end:
-                raise RlsacError(f"--address {address}: no Ray cluster answers there within {ADDRESS_TIMEOUT_S:g} s "
+                raise RlsacError(f"--address {shown}: no Ray cluster answers there within {ADDRESS_TIMEOUT_S:g} s "
                                  f"({e.__class__.__name__}: {' '.join(str(e).split())[:120]})") from None
             time.sleep(0.5)
 
