@@ -1785,6 +1785,28 @@ def _check_killed_pipeline(driver, started: Path, repo: Path) -> None:
     pipeline = run_of("pipeline")
     assert pipeline.info.status == "KILLED" and "ended while the run was RUNNING" in pipeline.data.tags["error"]
     assert not (repo / "out").exists()
+    _check_recovered(repo)
+
+
+def _check_recovered(repo: Path) -> None:
+    """Issue #64: the killed driver left its stage's outputs set aside and its local Ray cluster's agents running;
+    `rlsac pipeline --recover` puts the one back and ends the other (found by the session the driver noted)."""
+    import psutil
+
+    from rlsac.dvc_stage import ASIDE
+    from rlsac.pipeline import DRIVERS
+
+    (note,) = (repo / DRIVERS).glob("*.json")
+    session = json.loads(note.read_text())["session"]
+    assert list((repo / ASIDE).iterdir())  # what the next command repairs
+    r = CliRunner().invoke(cli, ["pipeline", "--recover", "--repo", str(repo)])
+    assert r.exit_code == 0 and "leftovers repaired: 1 set-aside outputs restored (out)" in r.output, r.output
+    assert not list((repo / ASIDE).iterdir()) and not note.exists()
+    left = []
+    for proc in psutil.process_iter(["cmdline"]):
+        if session in " ".join(proc.info["cmdline"] or []):
+            left.append(proc.info["cmdline"])
+    assert not left, left
 
 
 # issue #64 (reliability, fourth round): the scale study, the positive control, state scales, tuning records
