@@ -758,11 +758,15 @@ def pipeline(options: dict[str, Any], track: bool = True) -> dict:
 
     o = {**DEFAULTS, **{k: v for k, v in options.items() if v is not None}}
     _check_options(o)
+    remote = o["remote"] is not None and not o["dry_run"]
+    if remote and _dvc_root(o["repo"]) is not None:  # a remote's name or URL before anything is read or written
+        from rlsac.transfer import resolve
+
+        resolve(o["remote"], _dvc_root(o["repo"]))
     if not o["dry_run"]:  # a killed driver's set-aside outputs back before the plan reads the tree
         line = format_recovery(recover(o["repo"]))
         if line:
             print(line)
-    remote = o["remote"] is not None and not o["dry_run"]
     plan = load_plan(o["repo"], o["stages"], None if o["dry_run"] else o["runner"], remote=remote)
     skipped = [a for a in plan["order"] if a not in plan["todo"]]
     base = {"root": str(plan["root"]), "n_selected": len(plan["order"]), "todo": plan["todo"], "run_id": None}
@@ -770,22 +774,23 @@ def pipeline(options: dict[str, Any], track: bool = True) -> dict:
         return {**base, "dry_run": True, "results": {a: {"stage": a, "status": "skipped"} for a in skipped},
                 "counts": {"skipped": len(skipped)}, "wall_s": 0.0, "workers": None, "why": plan["why"],
                 "how": plan["how"]}
-    check_store(track, "pipeline")
-    plan["priority"] = _priorities(plan, track)
-    params = {k: o[k] for k in ("stages", "workers", "address", "gpus_per_train", "gpu_stages", "runner", "remote",
-                                "retries")}
-    params.update(repo=str(plan["root"]), n_todo=len(plan["todo"]))
-    t0 = time.time()
     if not o["address"] and plan["todo"]:  # a local cluster has this machine's GPUs: known before Ray starts
         import torch
 
         _check_resources(o, plan, {"GPU": torch.cuda.device_count()})
-    if remote and plan["todo"]:  # the bucket answers and holds the code tree before Ray or MLflow starts
+    if remote and plan["todo"]:  # the bucket answers and holds the code tree before the tracking store, Ray or
+        # MLflow is touched: a bad --remote leaves no store file and no run (issue #64)
         from rlsac.transfer import Workspace
 
         plan["remote"] = Workspace(o["remote"], plan["root"])
-    # Ray before the MLflow run: a cluster that cannot start or lacks the GPUs asked for fails with no run
+    params = {k: o[k] for k in ("stages", "workers", "address", "gpus_per_train", "gpu_stages", "runner", "remote",
+                                "retries")}
+    params.update(repo=str(plan["root"]), n_todo=len(plan["todo"]))
+    t0 = time.time()
     try:
+        check_store(track, "pipeline")
+        plan["priority"] = _priorities(plan, track)
+        # Ray before the MLflow run: a cluster that cannot start or lacks the GPUs asked for fails with no run
         ray, started = _start_ray(o) if plan["todo"] else (None, False)
     except BaseException:
         if plan.get("remote") is not None:
@@ -870,7 +875,7 @@ def recover(repo: str | os.PathLike = ".", required: bool = False) -> dict:
     from rlsac.dvc_stage import _alive
     from rlsac.dvc_stage import recover as recover_outputs
 
-    root = next((d for d in (Path(repo).resolve(), *Path(repo).resolve().parents) if (d / ".dvc").is_dir()), None)
+    root = _dvc_root(repo)
     if root is None:
         if required:
             raise RlsacError(f"--repo {repo}: not in a DVC repository (no .dvc folder here or above)")
@@ -888,6 +893,11 @@ def recover(repo: str | os.PathLike = ".", required: bool = False) -> dict:
     # a dead worker's guard ends its stage's command within the grace: the outputs wait for that, no longer
     outputs = recover_outputs(root, wait_s=KILL_GRACE_S + 5.0)
     return {"processes": ended, "outputs": [os.path.relpath(p, root) for p in outputs]}
+
+
+def _dvc_root(repo: str | os.PathLike) -> Path | None:
+    """The DVC repository holding ``repo`` (the nearest folder with a .dvc folder, up from it), None outside one."""
+    return next((d for d in (Path(repo).resolve(), *Path(repo).resolve().parents) if (d / ".dvc").is_dir()), None)
 
 
 def format_recovery(r: dict) -> str | None:
