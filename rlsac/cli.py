@@ -606,15 +606,25 @@ def verify(tracking: bool, platform_only: bool, **options) -> None:
 @click.option("--retries", type=click.IntRange(min=0), default=2, show_default=True,
               help="Runs again of a stage whose Ray worker or node died (a stage is idempotent: its outputs are "
                    "removed before its command runs); a stage whose command failed is not run again.")
+@click.option("--recover", is_flag=True,
+              help="Only repair what a killed (SIGKILL) run left: put back the outputs it had set aside, end its "
+                   "local Ray cluster's leftover processes (every run does this first).")
 @tracking_option
-def pipeline(tracking: bool, stages: tuple[str, ...], **options) -> None:
+def pipeline(tracking: bool, stages: tuple[str, ...], recover: bool, **options) -> None:
     """Run the DVC pipeline's out-of-date stages (or STAGES: names, foreach groups or patterns, with what they
     need) as Ray tasks in dependency order, each its own command, recorded in dvc.lock as `dvc repro` records it
     (rlsac.pipeline, rlsac.dvc_stage); exit 1 when one fails."""
     from rlsac.errors import Interrupted
-    from rlsac.pipeline import format_summary
+    from rlsac.pipeline import format_recovery, format_summary
     from rlsac.pipeline import pipeline as run
 
+    if recover:
+        from rlsac.pipeline import recover as repair
+
+        if stages or options["dry_run"]:
+            raise RlsacError(f"--recover only repairs a killed run; it takes no {'STAGES' if stages else '--dry-run'}")
+        click.echo(format_recovery(repair(options["repo"], required=True)) or "pipeline: nothing to recover")
+        return
     try:
         # an empty STAGES argument ('') names no stage: it is not "every stage" (issue #49)
         s = run({**options, "stages": ",".join(stages) if stages else None}, track=tracking)

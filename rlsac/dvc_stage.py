@@ -322,22 +322,46 @@ def _remove(path: Path) -> None:
 
 def set_aside(stage, root: str | os.PathLike, spec: dict) -> Path:
     """Move the stage's outputs that exist (persistent ones stay) into ``aside_dir`` (a rename where it can), with a
-    manifest of where each came from. A folder left by a run that was never restored (its driver killed) is
-    restored first: it holds the last good outputs. -> the folder."""
+    manifest of where each came from and the process that moved them (``owner``). A folder left by a run that was
+    never restored (its driver killed) is restored first: it holds the last good outputs. -> the folder."""
     d = aside_dir(root, spec)
     if d.exists():  # a lost worker's attempt: its guard ends its command within seconds
         restore(root, spec, wait_s=15.0)
     d.mkdir(parents=True)
-    moved = []  # [path, the name it has here, or None: it did not exist, and what the command writes there goes]
-    for i, out in enumerate(o for o in stage.outs if not o.persist):
-        path = Path(out.fs_path)
-        if path.exists() or path.is_symlink():
-            shutil.move(path, d / str(i))  # a rename; a copy when data/ is linked to another disk
-            moved.append([str(path), str(i)])
-        else:
-            moved.append([str(path), None])
-    (d / "manifest.json").write_text(json.dumps(moved))
+    outs = [Path(o.fs_path) for o in stage.outs if not o.persist]
+    # [path, the name it has here, or None: it did not exist, and what the command writes there goes]; written
+    # before the moves, so a kill among them loses nothing (``_restore_dir`` leaves an output not yet moved)
+    moved = [[str(p), str(i) if p.exists() or p.is_symlink() else None] for i, p in enumerate(outs)]
+    (d / "owner.json").write_text(json.dumps(_owner()))
+    write_atomic(d / "manifest.json", json.dumps(moved))
+    for path, key in moved:
+        if key is not None:
+            shutil.move(path, d / key)  # a rename; a copy when data/ is linked to another disk
     return d
+
+
+def _owner() -> dict:
+    """This process, as ``_alive`` knows it again: host, pid and start time (a pid is reused)."""
+    import socket
+
+    import psutil
+
+    return {"host": socket.gethostname(), "pid": os.getpid(), "started": psutil.Process().create_time()}
+
+
+def _alive(owner: dict) -> bool:
+    """Whether the process ``owner`` (``_owner``) still runs; one of another host counts as running (unknown)."""
+    import socket
+
+    import psutil
+
+    if owner.get("host") != socket.gethostname():
+        return True
+    try:
+        p = psutil.Process(int(owner["pid"]))
+        return p.create_time() == owner["started"] and p.status() != psutil.STATUS_ZOMBIE
+    except (psutil.NoSuchProcess, psutil.AccessDenied, KeyError, TypeError, ValueError):
+        return False
 
 
 def _note_pid(d: Path, pid: int | None) -> None:
@@ -345,31 +369,70 @@ def _note_pid(d: Path, pid: int | None) -> None:
     (d / "pid").write_text("" if pid is None else str(pid))
 
 
+def _group_alive(d: Path) -> bool:
+    """Whether the command ``_note_pid`` noted in ``d`` still runs (another user's group of that id is not it)."""
+    pid = (d / "pid").read_text().strip() if (d / "pid").is_file() else ""
+    if not pid:
+        return False
+    try:
+        os.killpg(int(pid), 0)
+    except (ProcessLookupError, PermissionError):
+        return False
+    return True
+
+
 def restore(root: str | os.PathLike, spec: dict, wait_s: float = 0.0) -> bool:
     """Put the stage's outputs back as they were before its command (the ones ``set_aside`` moved return, what the
     command wrote is deleted) and remove the folder. ``wait_s``: wait up to this long for the command's process
     group to end first (an interrupted stage is being stopped by its guard). -> whether there was anything to
     restore."""
-    d = aside_dir(root, spec)
+    return _restore_dir(aside_dir(root, spec), wait_s)
+
+
+def _restore_dir(d: Path, wait_s: float = 0.0) -> bool:
     if not (d / "manifest.json").is_file():
         if d.exists():
             shutil.rmtree(d)
         return False
-    pid = (d / "pid").read_text().strip() if (d / "pid").is_file() else ""
     end = time.monotonic() + wait_s
-    while pid and time.monotonic() < end:
-        try:
-            os.killpg(int(pid), 0)
-        except (ProcessLookupError, PermissionError):
-            break
+    while _group_alive(d) and time.monotonic() < end:
         time.sleep(0.2)
     for path, key in json.loads((d / "manifest.json").read_text()):
+        if key is not None and not (d / key).exists() and not (d / key).is_symlink():
+            continue  # killed before this one moved: it is where it was
         _remove(Path(path))  # a part-written output goes
         if key is not None:
             Path(path).parent.mkdir(parents=True, exist_ok=True)
             shutil.move(d / key, path)
     shutil.rmtree(d)
     return True
+
+
+def recover(root: str | os.PathLike, wait_s: float = 0.0) -> list[str]:
+    """Put back the outputs that runs of dead processes set aside (a SIGKILLed ``rlsac pipeline``: its workers died
+    with it, before any ``restore``; the outputs were missing from the tree until the stage ran again): the folders
+    of ``ASIDE`` whose owner (the worker that moved them, on this host) is gone, once their command has ended too
+    (its guard ends it: ``wait_s``, else it is left for a later call). A folder of a live worker, or of another
+    host's (a cluster sharing this folder), stays. -> the outputs of the stages restored (their paths: each as it
+    was before the stage's command, there or absent)."""
+    top = Path(root) / ASIDE
+    back = []
+    for d in sorted(top.iterdir()) if top.is_dir() else []:
+        try:
+            owner = json.loads((d / "owner.json").read_text())
+        except (OSError, ValueError):
+            continue  # an older run's (no owner): the stage's next run restores it (``set_aside``)
+        if not isinstance(owner, dict) or _alive(owner):
+            continue
+        end = time.monotonic() + wait_s
+        while _group_alive(d) and time.monotonic() < end:
+            time.sleep(0.2)
+        if _group_alive(d):
+            continue
+        manifest = json.loads((d / "manifest.json").read_text()) if (d / "manifest.json").is_file() else []
+        if _restore_dir(d):
+            back += [p for p, _ in manifest]
+    return back
 
 
 def record(stage) -> dict[str, Any]:

@@ -454,7 +454,10 @@ def _check_options(o: dict) -> None:
         raise RlsacError(f"--retries {o['retries']}: must be at least 0")
     if o["runner"] not in RUNNERS:
         raise RlsacError(f"--runner {o['runner']}: one of {', '.join(RUNNERS)}")
-    if o["address"] and o["address"] != "auto":
+    if o["address"] == "auto":  # checked too: Ray retried a stale cluster file's dead address for 900 s (issue #64)
+        address, found = _auto_address()
+        _check_address(address, f"auto (Ray's address {address}, {found})")
+    elif o["address"]:
         _check_address(o["address"])
     if o["remote"] is not None:
         from rlsac.transfer import check_url
@@ -478,19 +481,38 @@ def _check_tracking_server() -> None:
                          "server command)")
 
 
-def _check_address(address: str) -> None:
+def _auto_address() -> tuple[str, str]:
+    """The address Ray's ``auto`` joins, found as ``ray.init`` finds it: RAY_ADDRESS, else the address file the last
+    ``ray start`` (or a local cluster) wrote in Ray's temporary folder (ray_current_cluster; a killed cluster leaves it
+    behind), else a Ray cluster process of this machine. -> (the address, where it was found)."""
+    if os.environ.get("RAY_ADDRESS"):
+        return os.environ["RAY_ADDRESS"], "from RAY_ADDRESS"
+    from ray._common.utils import get_ray_address_file
+    from ray._private.services import canonicalize_bootstrap_address
+
+    try:
+        address = canonicalize_bootstrap_address("auto")
+    except Exception as e:  # noqa: BLE001 (Ray's ConnectionError when there is none; a bad file's ValueError)
+        raise RlsacError(f"--address auto: no Ray cluster to join ({' '.join(str(e).split())[:160]})") from None
+    file = get_ray_address_file(None)
+    return address, f"from {file}" if Path(file).is_file() else "a Ray process of this machine"
+
+
+def _check_address(address: str, shown: str | None = None) -> None:
     """A TCP connection to ``address`` (host:port, or ray://host:port) within ``ADDRESS_TIMEOUT_S``, retried while
-    refused (a head started just before): Ray's own connection retried for over 400 s, with the MLflow run open."""
+    refused (a head started just before): Ray's own connection retried for over 400 s, with the MLflow run open.
+    ``shown``: the option's value in the error, when not ``address`` (``auto`` and what it stood for)."""
     import socket
     from urllib.parse import urlsplit
 
+    shown = shown or address
     where = urlsplit(address if "://" in address else f"ray://{address}")
     try:
         host, port = where.hostname, where.port
     except ValueError:  # a port that is not a number
         host, port = None, None
     if not host or not port:
-        raise RlsacError(f"--address {address}: not host:port (`ray start --head` prints the address), nor 'auto'")
+        raise RlsacError(f"--address {shown}: not host:port (`ray start --head` prints the address), nor 'auto'")
     end = time.monotonic() + ADDRESS_TIMEOUT_S
     while True:
         try:
@@ -498,7 +520,7 @@ def _check_address(address: str) -> None:
             return
         except OSError as e:
             if time.monotonic() + 0.5 >= end:
-                raise RlsacError(f"--address {address}: no Ray cluster answers there within {ADDRESS_TIMEOUT_S:g} s "
+                raise RlsacError(f"--address {shown}: no Ray cluster answers there within {ADDRESS_TIMEOUT_S:g} s "
                                  f"({e.__class__.__name__}: {' '.join(str(e).split())[:120]})") from None
             time.sleep(0.5)
 
@@ -737,6 +759,14 @@ def pipeline(options: dict[str, Any], track: bool = True) -> dict:
     o = {**DEFAULTS, **{k: v for k, v in options.items() if v is not None}}
     _check_options(o)
     remote = o["remote"] is not None and not o["dry_run"]
+    if remote and _dvc_root(o["repo"]) is not None:  # a remote's name or URL before anything is read or written
+        from rlsac.transfer import resolve
+
+        resolve(o["remote"], _dvc_root(o["repo"]))
+    if not o["dry_run"]:  # a killed driver's set-aside outputs back before the plan reads the tree
+        line = format_recovery(recover(o["repo"]))
+        if line:
+            print(line)
     plan = load_plan(o["repo"], o["stages"], None if o["dry_run"] else o["runner"], remote=remote)
     skipped = [a for a in plan["order"] if a not in plan["todo"]]
     base = {"root": str(plan["root"]), "n_selected": len(plan["order"]), "todo": plan["todo"], "run_id": None}
@@ -744,27 +774,29 @@ def pipeline(options: dict[str, Any], track: bool = True) -> dict:
         return {**base, "dry_run": True, "results": {a: {"stage": a, "status": "skipped"} for a in skipped},
                 "counts": {"skipped": len(skipped)}, "wall_s": 0.0, "workers": None, "why": plan["why"],
                 "how": plan["how"]}
-    check_store(track, "pipeline")
-    plan["priority"] = _priorities(plan, track)
-    params = {k: o[k] for k in ("stages", "workers", "address", "gpus_per_train", "gpu_stages", "runner", "remote",
-                                "retries")}
-    params.update(repo=str(plan["root"]), n_todo=len(plan["todo"]))
-    t0 = time.time()
     if not o["address"] and plan["todo"]:  # a local cluster has this machine's GPUs: known before Ray starts
         import torch
 
         _check_resources(o, plan, {"GPU": torch.cuda.device_count()})
-    if remote and plan["todo"]:  # the bucket answers and holds the code tree before Ray or MLflow starts
+    if remote and plan["todo"]:  # the bucket answers and holds the code tree before the tracking store, Ray or
+        # MLflow is touched: a bad --remote leaves no store file and no run (issue #64)
         from rlsac.transfer import Workspace
 
         plan["remote"] = Workspace(o["remote"], plan["root"])
-    # Ray before the MLflow run: a cluster that cannot start or lacks the GPUs asked for fails with no run
+    params = {k: o[k] for k in ("stages", "workers", "address", "gpus_per_train", "gpu_stages", "runner", "remote",
+                                "retries")}
+    params.update(repo=str(plan["root"]), n_todo=len(plan["todo"]))
+    t0 = time.time()
     try:
+        check_store(track, "pipeline")
+        plan["priority"] = _priorities(plan, track)
+        # Ray before the MLflow run: a cluster that cannot start or lacks the GPUs asked for fails with no run
         ray, started = _start_ray(o) if plan["todo"] else (None, False)
     except BaseException:
         if plan.get("remote") is not None:
             plan["remote"].close()
         raise
+    note = _note_driver(plan["root"], ray) if started and not o["address"] else None
     try:
         resources = ray.cluster_resources() if ray is not None else {}
         workers = int(resources.get("CPU", 0))
@@ -790,9 +822,91 @@ def pipeline(options: dict[str, Any], track: bool = True) -> dict:
     finally:
         if started:
             ray.shutdown()
+        if note is not None:
+            note.unlink(missing_ok=True)
         if plan.get("remote") is not None:
             plan["remote"].close()
     return summary
+
+
+DRIVERS = Path(".dvc") / "tmp" / "rlsac-drivers"  # under the repository's root: <pid>.json of each running driver
+
+
+def _note_driver(root: Path, ray) -> Path | None:
+    """The local Ray cluster this driver started, by its session's name (in the command line of each of its
+    processes), in ``DRIVERS``: if the driver is SIGKILLed, ``recover`` ends what of the cluster outlived it (Ray's
+    agents did). -> the note's path, removed when the driver ends; None when Ray does not say its session."""
+    from rlsac.dvc_stage import _owner, write_atomic
+
+    try:
+        session = Path(ray._private.worker._global_node.get_session_dir_path()).name
+    except Exception:  # noqa: BLE001 (Ray's internals moved: nothing to note, nothing ended later)
+        return None
+    path = root / DRIVERS / f"{os.getpid()}.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_atomic(path, json.dumps({"owner": _owner(), "session": session}))
+    return path
+
+
+def _end_session(session: str) -> int:
+    """End (SIGTERM, then SIGKILL after 5 s) this user's processes whose command line names the Ray session
+    ``session``. -> how many there were."""
+    import psutil
+
+    me, user = os.getpid(), psutil.Process().username()
+    procs = []
+    for p in psutil.process_iter(["cmdline", "username"]):
+        with contextlib.suppress(psutil.Error):
+            if p.pid != me and p.info["username"] == user and session in " ".join(p.info["cmdline"] or []):
+                p.terminate()
+                procs.append(p)
+    _, left = psutil.wait_procs(procs, timeout=5)
+    for p in left:
+        with contextlib.suppress(psutil.Error):
+            p.kill()
+    return len(procs)
+
+
+def recover(repo: str | os.PathLike = ".", required: bool = False) -> dict:
+    """What a SIGKILLed driver of this repository left, repaired: its local Ray cluster's processes that outlived it
+    ended, then the outputs its stages had set aside put back (rlsac.dvc_stage.recover). ``repo``: the repository or
+    a folder in it (``required``: else an error; not: nothing to do). -> {"processes": how many were ended,
+    "outputs": the paths restored, from the root}."""
+    from rlsac.dvc_stage import _alive
+    from rlsac.dvc_stage import recover as recover_outputs
+
+    root = _dvc_root(repo)
+    if root is None:
+        if required:
+            raise RlsacError(f"--repo {repo}: not in a DVC repository (no .dvc folder here or above)")
+        return {"processes": 0, "outputs": []}
+    ended = 0
+    for note in sorted((root / DRIVERS).glob("*.json")) if (root / DRIVERS).is_dir() else []:
+        try:
+            driver = json.loads(note.read_text())
+            if _alive(driver["owner"]):
+                continue
+            ended += _end_session(str(driver["session"]))
+        except (OSError, ValueError, KeyError, TypeError):
+            pass  # a note cut short or not ours: it goes
+        note.unlink(missing_ok=True)
+    # a dead worker's guard ends its stage's command within the grace: the outputs wait for that, no longer
+    outputs = recover_outputs(root, wait_s=KILL_GRACE_S + 5.0)
+    return {"processes": ended, "outputs": [os.path.relpath(p, root) for p in outputs]}
+
+
+def _dvc_root(repo: str | os.PathLike) -> Path | None:
+    """The DVC repository holding ``repo`` (the nearest folder with a .dvc folder, up from it), None outside one."""
+    return next((d for d in (Path(repo).resolve(), *Path(repo).resolve().parents) if (d / ".dvc").is_dir()), None)
+
+
+def format_recovery(r: dict) -> str | None:
+    """One line of what ``recover`` did, None when there was nothing to do."""
+    if not r["processes"] and not r["outputs"]:
+        return None
+    return (f"pipeline: a killed run's leftovers repaired: {len(r['outputs'])} set-aside outputs restored"
+            + (f" ({_names(r['outputs'])})" if r["outputs"] else "")
+            + f", {r['processes']} Ray processes of its cluster ended")
 
 
 def _restore_interrupted(plan: dict, addresses) -> None:

@@ -1785,6 +1785,28 @@ def _check_killed_pipeline(driver, started: Path, repo: Path) -> None:
     pipeline = run_of("pipeline")
     assert pipeline.info.status == "KILLED" and "ended while the run was RUNNING" in pipeline.data.tags["error"]
     assert not (repo / "out").exists()
+    _check_recovered(repo)
+
+
+def _check_recovered(repo: Path) -> None:
+    """Issue #64: the killed driver left its stage's outputs set aside and its local Ray cluster's agents running;
+    `rlsac pipeline --recover` puts the one back and ends the other (found by the session the driver noted)."""
+    import psutil
+
+    from rlsac.dvc_stage import ASIDE
+    from rlsac.pipeline import DRIVERS
+
+    (note,) = (repo / DRIVERS).glob("*.json")
+    session = json.loads(note.read_text())["session"]
+    assert list((repo / ASIDE).iterdir())  # what the next command repairs
+    r = CliRunner().invoke(cli, ["pipeline", "--recover", "--repo", str(repo)])
+    assert r.exit_code == 0 and "leftovers repaired: 1 set-aside outputs restored (out)" in r.output, r.output
+    assert not list((repo / ASIDE).iterdir()) and not note.exists()
+    left = []
+    for proc in psutil.process_iter(["cmdline"]):
+        if session in " ".join(proc.info["cmdline"] or []):
+            left.append(proc.info["cmdline"])
+    assert not left, left
 
 
 # issue #64 (reliability, fourth round): the scale study, the positive control, state scales, tuning records
@@ -2000,3 +2022,41 @@ def test_a_second_signal_inside_a_store_write_ends_the_run_killed_without_a_trac
         with pytest.raises(Exception) as cli_error:
             _raise_signalled(e)
     assert cli_error.value.exit_code == 143 and cli_error.value.format_message() == str(caught.value)
+
+
+def _dead_port() -> int:
+    """A local TCP port nothing listens on (bound, then closed)."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_pipeline_address_auto_with_a_stale_cluster_file_fails_in_seconds(workdir, monkeypatch):
+    """Issue #64: `--address auto` with the address file a killed local cluster left (ray_current_cluster in Ray's
+    temporary folder) and a tracking server that does not answer hung for 900 s: `auto` skipped the reachability
+    check an explicit host:port gets. Now the address `auto` stands for is checked the same way."""
+    import time
+
+    import ray._private.services
+
+    port = _dead_port()
+    stale = f"127.0.0.1:{port}"
+    (workdir / "raytmp" / "ray").mkdir(parents=True)
+    (workdir / "raytmp" / "ray" / "ray_current_cluster").write_text(stale + "\n")
+    monkeypatch.setenv("RAY_TMPDIR", str(workdir / "raytmp"))
+    monkeypatch.delenv("RAY_ADDRESS", raising=False)
+    # no Ray cluster process on this machine (another test's would be joined by `auto` instead of the file's)
+    monkeypatch.setattr(ray._private.services, "find_gcs_addresses", lambda: frozenset())
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"http://127.0.0.1:{_dead_port()}")
+    (workdir / "repo").mkdir()
+    before = _tree(workdir)
+    t0 = time.monotonic()
+    r = CliRunner().invoke(cli, ["pipeline", "--repo", "repo", "--address", "auto"])
+    took = time.monotonic() - t0
+    err = r.stderr.strip()
+    assert r.exit_code == 2 and err.startswith("error: --address auto") and "\n" not in err, (r.output, r.exception)
+    assert f":{port}, from " in err and "ray_current_cluster" in err and "no Ray cluster answers" in err, err
+    assert took < 30, took  # the explicit address's 10 s of retries
+    assert _tree(workdir) == before

@@ -168,6 +168,36 @@ def test_bad_remote_is_one_error_line_before_any_work(tmp_path, s3, monkeypatch)
     assert not (repo / "a.txt").exists() and not (repo / "dvc.lock").exists()
 
 
+def test_bad_remote_creates_nothing_and_starts_no_run(tmp_path, s3, monkeypatch):
+    """Issue #64: with tracking on, a bad --remote was refused only after the tracking store was made (its sqlite
+    file, the stage times read from it): the bucket is now checked first, nothing is created and no run starts."""
+    repo = make_repo(tmp_path / "repo", {"a": TOY["a"]})
+    store = tmp_path / "store" / "mlflow.db"
+    store.parent.mkdir()
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{store}")
+    monkeypatch.chdir(tmp_path)
+    closed = f"http://127.0.0.1:{free_port()}"
+    dvc(repo, "status")  # DVC's own files of .dvc/tmp (its lock), which any read of the repository makes
+
+    def paths() -> set[str]:  # every file and folder but git's and DVC's own state
+        skip = (repo / ".git", repo / ".dvc" / "tmp")
+        return {p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*")
+                if not any(p.is_relative_to(s) for s in skip)}
+
+    before = paths()
+    for args, env, message in ((["--remote", "nosuch"], {}, "no DVC remote of that name"),
+                               (["--remote", "s3://no-such-bucket/p"], {}, "cannot write to the store"),
+                               (["--remote", f"s3://{BUCKET}/p"], {"AWS_ENDPOINT_URL": closed},
+                                "cannot write to the store")):
+        with monkeypatch.context() as m:
+            for k, v in env.items():
+                m.setenv(k, v)
+            r = CliRunner().invoke(cli, ["pipeline", "--repo", str(repo), *args])
+        assert r.exit_code == 2 and message in r.output and len(r.output.splitlines()) == 1, (args, r.output)
+        assert paths() == before, args
+        assert not store.exists(), args  # the tracking store untouched: no run could have started
+
+
 def test_a_dvc_remote_by_name_carries_its_endpoint(tmp_path, s3, monkeypatch):
     """`--remote NAME`: a DVC remote of the repository, its `endpointurl` from `dvc remote modify` (no AWS_ENDPOINT_URL
     in the environment), as docs/reproducing.md shows it."""

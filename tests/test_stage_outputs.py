@@ -75,3 +75,87 @@ def test_an_interrupted_stage_gets_its_outputs_back_once_its_command_ended(tmp_p
     assert proc.poll() is not None  # waited for the command to end
     assert (repo / "a.txt").read_text() == "good" and (repo / "out" / "x").read_text() == "good"
     assert not aside.exists()
+
+
+def _dead_pid() -> int:
+    proc = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    return int(proc.stdout)
+
+
+def _left_by_a_killed_driver(repo: Path) -> Path:
+    """The state a SIGKILLed `rlsac pipeline` leaves (issue #64): a stage's committed outputs set aside by a worker
+    that died with the driver, and a part-written output of its command in their place."""
+    import json
+
+    from dvc.repo import Repo
+
+    with contextlib.chdir(repo), Repo(".") as r:
+        stage = r.stage.collect("a")[0]
+        aside = dvc_stage.set_aside(stage, str(repo), dvc_stage.stage_spec(stage, repo))
+    owner = json.loads((aside / "owner.json").read_text())
+    (aside / "owner.json").write_text(json.dumps({**owner, "pid": _dead_pid()}))
+    (repo / "a.txt").write_text("part")
+    return aside
+
+
+def _committed_repo(path: Path) -> Path:
+    from test_ray_pipeline import dvc
+
+    repo = _repo(path, WRITE.format("good"))
+    assert dvc(repo, "repro").returncode == 0  # dvc.lock: the stage is up to date
+    return repo
+
+
+def test_the_next_pipeline_puts_back_what_a_killed_driver_set_aside(tmp_path, monkeypatch):
+    """A SIGKILLed driver's set-aside outputs stayed missing until the stage ran again: the next `rlsac pipeline`
+    puts them back first (the stage is then up to date: nothing runs), what the command had written goes."""
+    from click.testing import CliRunner
+
+    from rlsac.cli import cli
+
+    repo = _committed_repo(tmp_path / "repo")
+    aside = _left_by_a_killed_driver(repo)
+    monkeypatch.chdir(tmp_path)
+    r = CliRunner().invoke(cli, ["pipeline", "--repo", "repo", "--no-tracking"])
+    assert r.exit_code == 0, (r.output, r.exception)
+    assert "2 set-aside outputs restored (a.txt, out)" in r.output and "0 done, 1 skipped" in r.output, r.output
+    assert (repo / "a.txt").read_text() == "good" and (repo / "out" / "x").read_text() == "good"
+    assert not aside.exists()
+
+
+def test_recover_puts_back_dead_drivers_outputs_only_and_ends_their_ray_processes(tmp_path, monkeypatch):
+    """`rlsac pipeline --recover`: a dead worker's set-aside folder is restored, a live one's is left to it; the
+    processes of a dead driver's local Ray cluster (its agents outlived it) are ended by the session's name."""
+    import json
+    import uuid
+
+    from click.testing import CliRunner
+
+    from rlsac.cli import cli
+    from rlsac.pipeline import DRIVERS
+
+    repo = _committed_repo(tmp_path / "repo")
+    dead = _left_by_a_killed_driver(repo)
+    live = repo / dvc_stage.ASIDE / "0123456789abcdef"  # another stage's, of a worker still running (this process)
+    live.mkdir()
+    (live / "manifest.json").write_text(json.dumps([[str(repo / "b.txt"), None]]))
+    (live / "owner.json").write_text(json.dumps(dvc_stage._owner()))
+    session = f"session_test_{uuid.uuid4().hex}"
+    agent = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)", f"--session-dir=/tmp/{session}"])
+    (repo / DRIVERS).mkdir(parents=True)
+    (repo / DRIVERS / "1.json").write_text(json.dumps({"owner": {**dvc_stage._owner(), "pid": _dead_pid()},
+                                                       "session": session}))
+    monkeypatch.chdir(tmp_path)
+    try:
+        r = CliRunner().invoke(cli, ["pipeline", "--recover", "--repo", "repo"])
+        assert r.exit_code == 0, (r.output, r.exception)
+        assert "2 set-aside outputs restored (a.txt, out)" in r.output and "1 Ray processes" in r.output, r.output
+        assert agent.wait(timeout=10) is not None
+    finally:
+        agent.kill()
+    assert (repo / "a.txt").read_text() == "good" and not dead.exists() and live.exists()
+    assert not (repo / DRIVERS / "1.json").exists()
+    r = CliRunner().invoke(cli, ["pipeline", "--recover", "--repo", "repo"])
+    assert r.exit_code == 0 and "nothing to recover" in r.output, r.output
+    r = CliRunner().invoke(cli, ["pipeline", "--recover", "--repo", str(tmp_path / "no-repo")])
+    assert r.exit_code == 2 and "not in a DVC repository" in r.stderr, r.output
