@@ -212,7 +212,7 @@ def test_evaluate_rlsac_uses_the_checkpoint_task_options(workdir, monkeypatch):
     from rlsac import checkpoint, rollout
 
     monkeypatch.setattr(checkpoint, "load_actor", load_actor)
-    monkeypatch.setattr(checkpoint, "state_scales", lambda path, device: {"residual_threshold": 0.3})
+    monkeypatch.setattr(checkpoint, "state_scales", lambda path, device, unit=None: {"residual_threshold": 0.3})
     monkeypatch.setattr(rollout, "rlsac_estimate", rlsac_estimate)
     synth("d.h5", 4)
     (workdir / "ck.pt").write_bytes(b"x")
