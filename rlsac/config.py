@@ -276,6 +276,7 @@ PARAM_SECTIONS = {
     "scale": "rlsac.scale_layout:protocol",
     "positive_control": "rlsac.positive_control:conf",
     "ladder": "rlsac.ladder_layout:conf",
+    "ladder_record": "rlsac.ladder_layout:record",
 }
 
 

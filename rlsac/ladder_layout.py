@@ -91,6 +91,35 @@ def conf(params: dict[str, Any]) -> dict[str, Any]:
             raise RlsacError(f"params.yaml ladder.{k}: a non-empty list of valid values, got {c[k]!r}")
     return c
 
+def record(params: dict[str, Any]) -> dict[str, Any]:
+    """params.yaml ``ladder_record`` (the runs recorded so far, one dvc.yaml stage each), checked against ``ladder``:
+    ``synthetic`` / ``real``: {"<rung>-s<seed>": {"arm": rung, "seed": seed}} of that kind of rung;
+    ``synthetic_controls`` / ``real_controls``: rungs of that kind that have controls of their own."""
+    from rlsac.config import section
+
+    r = section(params, "ladder_record")
+    kinds = ("synthetic", "real", "synthetic_controls", "real_controls")
+    if sorted(r) != sorted(kinds):
+        raise RlsacError(f"params.yaml ladder_record: keys {list(kinds)}, got {sorted(r)}")
+    all_rungs, seeds = rungs(conf(params)), conf(params)["seeds"]
+    for kind in ("synthetic", "real"):
+        runs = r[kind] or {}
+        if not isinstance(runs, dict):
+            raise RlsacError(f"params.yaml ladder_record.{kind}: a mapping of runs, got {runs!r}")
+        for name, item in runs.items():
+            ok = (isinstance(item, dict) and sorted(item) == ["arm", "seed"] and item["arm"] in all_rungs
+                  and all_rungs[item["arm"]].data == kind and item["seed"] in seeds
+                  and name == f"{item['arm']}-s{item['seed']}")
+            if not ok:
+                raise RlsacError(f"params.yaml ladder_record.{kind}.{name}: {{arm: <a {kind} rung>, seed: <one of "
+                                 f"ladder.seeds>}} named <arm>-s<seed>, got {item!r}")
+        arms = r[f"{kind}_controls"] or []
+        bad = [a for a in arms if a not in all_rungs or all_rungs[a].data != kind or all_rungs[a].controls_from]
+        if not isinstance(arms, list) or bad:
+            raise RlsacError(f"params.yaml ladder_record.{kind}_controls: {kind} rungs with controls of their own, "
+                             f"got {bad or arms!r}")
+    return r
+
 def run_file(rung: str, seed: int) -> Path:
     return ROOT / rung / f"s{seed}.json"
 

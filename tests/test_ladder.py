@@ -13,7 +13,7 @@ import pytest
 import torch
 import yaml
 
-from rlsac import ladder
+from rlsac import ladder, ladder_layout
 from rlsac.data import match_statistics as ms
 from rlsac.errors import RlsacError
 from rlsac.policy import PolicyConf
@@ -167,7 +167,7 @@ def test_report_refuses_a_nan(tmp_path):
     d.mkdir()
     (d / "controls.json").write_text(json.dumps({"samplers": {s: {str(i): m for i in c["iterations"]}
                                                               for s in report.SAMPLERS}}))
-    with pytest.raises(RlsacError, match="controls.json.*NaN"):
+    with pytest.raises(RlsacError, match="controls.json.*not a finite number"):
         report.load(c, ["rung1"], tmp_path)
 
 
@@ -177,6 +177,8 @@ def test_commands_end_to_end(tmp_path):
     params = yaml.safe_load((ROOT / "params.yaml").read_text())
     params["ladder"].update(steps=24, every=12, train_pairs=12, test_pairs=6, iterations=[10, 30],
                             curve_iterations=30, seeds=[0])
+    params["ladder_record"] = {"synthetic": {"rung1-s0": {"arm": "rung1", "seed": 0}}, "real": {},
+                               "synthetic_controls": ["rung1"], "real_controls": []}
     (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
     (tmp_path / "reports").mkdir()
     (tmp_path / "reports" / "synthetic_fit.json").write_text((ROOT / "reports" / "synthetic_fit.json").read_text())
@@ -194,3 +196,34 @@ def test_commands_end_to_end(tmp_path):
     md = (tmp_path / "reports/learner.md").read_text()
     assert "| rung1 | + the real pairs' SNN overlap of inliers and outliers | 1 |" in md
     assert (tmp_path / "reports/learner_ladder.png").stat().st_size > 1000
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda r: r["real"].update({"rung1-s0": {"arm": "rung1", "seed": 0}}), "ladder_record.real.rung1-s0"),
+    (lambda r: r["synthetic"].update({"rung1-s9": {"arm": "rung1", "seed": 9}}), "ladder_record.synthetic.rung1-s9"),
+    (lambda r: r["synthetic"].update({"rung1-s1": {"arm": "rung1", "seed": 0}}), "named <arm>-s<seed>"),
+    (lambda r: r["real_controls"].append("supervised"), "real_controls"),
+    (lambda r: r.pop("real_controls"), "keys"),
+])
+def test_ladder_record_is_checked(change, message):
+    """params ladder_record (one dvc.yaml stage per recorded run): a run under the wrong kind of rung, a seed that
+    ladder.seeds lacks, a name that is not its arm and seed, controls of a rung that borrows another's, a missing
+    list: each an error naming the entry."""
+    params = yaml.safe_load((ROOT / "params.yaml").read_text())
+    ladder_layout.record(params)
+    change(params["ladder_record"])
+    with pytest.raises(RlsacError, match=message):
+        ladder_layout.record(params)
+
+
+def test_a_claim_at_a_budget_the_profile_lacks_is_not_measured():
+    """The quick profile measures at 10 hypotheses only: a claim at 100 is "not measured", never a KeyError."""
+    from rlsac.reports import ladder as report
+
+    m = {"err_R": np.ones(4), "err_t": np.ones(4), "pi_inliers": np.full(4, 0.5)}
+    rung = {"controls": {s: {"10": m} for s in report.SAMPLERS}, "runs": {0: {"final": {"10": m}}}}
+    claim = ladder_layout.CLAIMS[0]
+    data = {claim.a[0]: rung, claim.b[0]: rung}
+    assert report.judge(claim, data)["verdict"] == "not measured"
+    at_100 = {"controls": {s: {"100": m} for s in report.SAMPLERS}, "runs": {0: {"final": {"100": m}}}}
+    assert report.judge(claim, {claim.a[0]: at_100, claim.b[0]: at_100})["verdict"] != "not measured"

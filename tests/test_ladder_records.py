@@ -51,3 +51,23 @@ def test_controls_record(path):
     assert set(rec["samplers"]) == {"uniform", "guided", "oracle"}
     for per in rec["samplers"].values():
         assert sorted(per, key=int) == [str(i) for i in C["iterations"]]
+
+
+def test_ladder_record_lists_exactly_the_committed_runs():
+    """params ladder_record names one dvc.yaml stage per committed record, under its rung's kind: a record missing
+    from it is not reproducible by `dvc repro`, a listed run missing from the tree is a stage that would run."""
+    record = yaml.safe_load((REPO / "params.yaml").read_text())["ladder_record"]
+    all_rungs = rungs(C)
+    listed = {}
+    for kind in ("synthetic", "real"):
+        for name, item in record[kind].items():
+            assert name == f"{item['arm']}-s{item['seed']}", name
+            assert all_rungs[item["arm"]].data == kind, name
+            listed[(item["arm"], item["seed"])] = kind
+    committed = {(p.parent.name, int(p.stem[1:])) for p in RUNS}
+    assert set(listed) == committed
+    for kind in ("synthetic", "real"):
+        for arm in record[f"{kind}_controls"]:
+            assert all_rungs[arm].data == kind and not all_rungs[arm].controls_from, arm
+    controls = [a for k in ("synthetic", "real") for a in record[f"{k}_controls"]]
+    assert sorted(controls) == sorted(p.parent.name for p in CONTROLS)

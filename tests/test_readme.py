@@ -264,7 +264,7 @@ def test_readme_starts_with_the_two_fresh_clone_commands():
     assert [c[0] for c in cmds] == ["python3", ".", "pip", "rlsac"]
     assert cmds[1] == [".", ".venv/bin/activate"]  # later bare rlsac/dvc/mlflow commands find the venv
     assert cmds[3] == ["rlsac", "quick"]
-    assert _commands(second) == [["python", "-m", "pytest", "-q"]] and second.startswith(".venv/bin/python")
+    assert _commands(second) == [["python", "-m", "pytest", "-q", "-n", "auto"]] and second.startswith(".venv/bin/python")
     for argv in cmds:
         check(argv, first)
     assert ci_runs_readme_blocks() == [first, second], ".ci/run runs the README's two commands as written"

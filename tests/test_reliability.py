@@ -2060,3 +2060,49 @@ def test_pipeline_address_auto_with_a_stale_cluster_file_fails_in_seconds(workdi
     assert f":{port}, from " in err and "ray_current_cluster" in err and "no Ray cluster answers" in err, err
     assert took < 30, took  # the explicit address's 10 s of retries
     assert _tree(workdir) == before
+
+
+@pytest.mark.parametrize("stage, signame, code", [("ladder", "SIGTERM", 143), ("ladder", "SIGINT", 130),
+                                                  ("control", "SIGTERM", 143)])
+def test_signal_ends_a_scale_stage_killed_with_nothing_half_written(workdir, stage, signame, code):
+    """`rlsac scale --stage ladder` (a rung's training run) and `--stage control` (the positive control) stopped
+    by a signal mid-training (issue #64, round 4): exit 130 / 143 with one error line, the MLflow run ends KILLED,
+    and neither the record, the actor nor a temporary file is left behind."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    import mlflow
+    import yaml
+
+    repo = Path(__file__).resolve().parents[1]
+    params = yaml.safe_load((repo / "params.yaml").read_text())
+    params["ladder"].update(steps=3000, every=3000, seeds=[0], train_pairs=8, test_pairs=4, iterations=[10],
+                            curve_iterations=10)
+    params["ladder_record"] = {"synthetic": {}, "real": {}, "synthetic_controls": [], "real_controls": []}
+    params["positive_control"].update(steps=3000, every=3000, train_pairs=8, test_pairs=4, seeds=[0],
+                                      inlier_ratios=[0.3])
+    (workdir / "params.yaml").write_text(yaml.safe_dump(params))
+    argv = ["--arm", "control-0.3", "--seed", "0"] if stage == "ladder" else []
+    mlflow.MlflowClient(os.environ["MLFLOW_TRACKING_URI"]).search_experiments()  # the store exists: a run could start
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    proc = subprocess.Popen([sys.executable, "-m", "rlsac.cli", "scale", "--stage", stage, *argv], cwd=workdir,
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and proc.poll() is None:  # until its run exists: the work has started
+        if (workdir / "mlflow.db").exists() and _all_runs():
+            break
+        time.sleep(0.5)
+    time.sleep(3.0)  # into the training loop (3000 steps: minutes; it cannot finish first)
+    assert proc.poll() is None, proc.communicate()
+    proc.send_signal(getattr(signal, signame))
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == code, (out, err)
+    assert err.strip().splitlines()[-1] == f"error: interrupted by {signame}", err
+    (run,) = _all_runs()
+    run = mlflow.MlflowClient(os.environ["MLFLOW_TRACKING_URI"]).get_run(run.info.run_id)
+    assert run.info.status == "KILLED" and run.data.tags["error"] == f"interrupted by {signame}"
+    left = sorted(str(p.relative_to(workdir)) for p in workdir.rglob("*")
+                  if p.is_file() and not p.name.startswith("mlflow.db") and p.name != "params.yaml")
+    assert left == [], left

@@ -8,7 +8,6 @@ pairs (rlsac.metrics.seed_bootstrap_maa); pi(inliers) intervals the same way.
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 from typing import Any
@@ -19,6 +18,8 @@ from rlsac.errors import RlsacError
 from rlsac.io import atomic_path
 from rlsac.ladder_layout import CLAIMS, ROOT, TIE_MARGIN
 from rlsac.metrics import mAA, seed_bootstrap_maa, stratified_draws
+from rlsac.protocol import N_BOOT
+from rlsac.results import read_mapping
 
 LIMIT = 10.0  # mAA@10 deg, Table 2's
 SAMPLERS = ("uniform", "guided", "oracle")
@@ -49,13 +50,8 @@ def _measurement(m: Any, path: Path, what: str, n: int | None) -> dict[str, np.n
 
 
 def read_json(path: Path) -> dict:
-    try:
-        d = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise RlsacError(f"{path}: not a ladder record ({e.__class__.__name__})") from None
-    if not isinstance(d, dict):
-        raise RlsacError(f"{path}: not a ladder record (a JSON object expected)")
-    return d
+    """A ladder record (rlsac.results.read_mapping: JSON, a mapping, every number finite)."""
+    return read_mapping(path, "ladder record")
 
 
 def load(c: dict[str, Any], order: list[str], root: Path = ROOT,
@@ -97,7 +93,7 @@ def load(c: dict[str, Any], order: list[str], root: Path = ROOT,
     return out
 
 
-def mean_interval(a: np.ndarray, b: np.ndarray, n_boot: int = 2000, seed: int = 0) -> tuple[float, float, float]:
+def mean_interval(a: np.ndarray, b: np.ndarray, n_boot: int = N_BOOT, seed: int = 0) -> tuple[float, float, float]:
     """mean(a) - mean(b) of per-pair values, a (S_a, M) seeds x pairs, b (S_b, M): seeds then pairs resampled, the
     pairs paired -> (difference, low, high)."""
     rng = np.random.default_rng(seed)
@@ -177,8 +173,10 @@ def _arrays(data: dict[str, dict], side: tuple[str, str], budget: str, key: str)
 def judge(claim, data: dict[str, dict]) -> dict[str, Any]:
     """A claim's difference, interval and verdict: supported (better / worse: the interval on that side of 0; tie:
     inside +-TIE_MARGIN), not supported (the interval on the other side, or a tie's excluding 0), else inconclusive;
-    pending while a side's runs are missing."""
+    pending while a side's runs are missing; not measured where params ladder.iterations lacks the claim's budget."""
     key = {"R": "err_R", "t": "err_t", "pi": "pi_inliers"}[claim.metric]
+    if any(r in data and str(claim.budget) not in data[r]["controls"]["uniform"] for r in (claim.a[0], claim.b[0])):
+        return {"verdict": "not measured", "diff": None, "seeds": 0}  # a profile without the claim's budget
     a, b = (_arrays(data, side, str(claim.budget), key) for side in (claim.a, claim.b))
     if a is None or b is None:
         return {"verdict": "pending", "diff": None, "seeds": 0}
