@@ -265,10 +265,10 @@ def train_rung(rung: Rung, seed: int, params: dict, c: dict, device: str = "cpu"
             labels = on_dev["inliers"] if rung.learner == "supervised" else None
             episodes = RedrawnPairs(train_task, pool_tensors(on_dev, dev), agent.actor, tc.episodes.points,
                                     tc.episodes.swap, labels=labels)
-        at_step(agent.actor, 0, 0, float(agent.log_alpha.exp()))
+        at_step(agent.actor, 0, 0, float(agent.log_alpha.detach().exp()))
         train_loop(agent, train_task, data, env_conf, 0, gen, log=lambda m, s: None,
                    validate=lambda step: at_step(agent.actor, step, int(agent.n_updates),
-                                                 float(agent.log_alpha.exp())), val_every=c["every"],
+                                                 float(agent.log_alpha.detach().exp())), val_every=c["every"],
                    episodes=episodes)
         actor = agent.actor.eval().cpu()
     out = actor_file(rung.name, seed)  # the measured actor (rung 3: the scale study's, copied)

@@ -357,14 +357,14 @@ def quoted_intervals(text: str) -> set[tuple[float, float, float]]:
 
 def generated_intervals(reports: Path) -> set[tuple[float, float, float]]:
     files = sorted(reports.glob("table*.md")) + [reports / f"{n}.md" for n in ("claims", "selection", "paper", "scale",
-                                                                            "positive_control", "tuning_budget")]
+                                                                            "positive_control", "tuning_budget", "learner")]
     return set().union(*(quoted_intervals(f.read_text()) for f in files if f.is_file()))
 
 
 @pytest.mark.parametrize("doc", QUOTING, ids=lambda p: p.name)
 def test_every_quoted_interval_is_one_of_the_generated_tables(doc):
     """A number the README or a hand-written report quotes with its 95% interval is one that `rlsac table` wrote
-    (reports/table*.md, claims.md, selection.md, paper.md, scale.md, positive_control.md): no interval computed by
+    (reports/table*.md, claims.md, selection.md, paper.md, scale.md, positive_control.md, learner.md): no interval computed by
     hand, none left from an earlier record."""
     stale = sorted(quoted_intervals(doc.read_text()) - generated_intervals(ROOT / "reports"))
     assert not stale, f"{doc.name}: {len(stale)} interval(s) in no generated table, e.g. {stale[:3]}"
@@ -381,7 +381,7 @@ def test_interval_check_finds_a_stale_quote(tmp_path):
 # (not part of a dotted address or version: 192.168.*, 1.2.345.6)
 POINT = re.compile(r"(?<![\w.])([+\-−]?)(\d+\.\d{3})(?!\d)(?!\.[\d*])")
 # files `rlsac table`, `rlsac calibrate-lines` and benchmarks/line_landscape.py write (the hand-written pages are not)
-GENERATED = ("table*.md", "claims.md", "selection.md", "paper.md", "scale.md", "positive_control.md",
+GENERATED = ("table*.md", "claims.md", "selection.md", "paper.md", "scale.md", "positive_control.md", "learner.md",
              "tuning_budget.md", "calibration_*.md", "*.csv", "metrics.json")
 
 

@@ -9,6 +9,7 @@ pairs (rlsac.metrics.seed_bootstrap_maa); pi(inliers) intervals the same way.
 from __future__ import annotations
 
 import math
+import textwrap
 from pathlib import Path
 from typing import Any
 
@@ -301,7 +302,7 @@ def figure(c: dict, data: dict[str, dict], order: list[str], why: dict[str, str]
         return
     cols = min(4, len(have))
     rows_n = math.ceil(len(have) / cols)
-    fig, axes = plt.subplots(rows_n, cols, figsize=(max(3.6 * cols, 8.0), 2.9 * rows_n + 0.6), squeeze=False,
+    fig, axes = plt.subplots(rows_n, cols, figsize=(max(3.6 * cols, 8.0), 3.2 * rows_n + 0.6), squeeze=False,
                              sharey=True)
     for ax, rung in zip(axes.ravel(), have, strict=False):
         d = data[rung]
@@ -315,7 +316,8 @@ def figure(c: dict, data: dict[str, dict], order: list[str], why: dict[str, str]
             g = d["controls"]["guided"][str(c["curve_iterations"])]
             ax.axhline(float(g["pi_inliers"].mean()), color="C0", ls=":", lw=1, label="guided π(inliers)")
             ax.axhline(mAA(g["err_R"], LIMIT), color="C1", ls=":", lw=1, label="guided mAA_R")
-        ax.set_title(f"{rung}: {why[rung]}", fontsize=8)
+        # the rung's name, then what it changes wrapped to the panel's width (long lines ran into the next panel)
+        ax.set_title(f"{rung}\n" + "\n".join(textwrap.wrap(why[rung], 52)), fontsize=7.5)
         ax.set_xlabel("training step", fontsize=8)
         ax.set_ylim(0, 1.02)
         ax.tick_params(labelsize=7)
