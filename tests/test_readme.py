@@ -264,7 +264,8 @@ def test_readme_starts_with_the_two_fresh_clone_commands():
     assert [c[0] for c in cmds] == ["python3", ".", "pip", "rlsac"]
     assert cmds[1] == [".", ".venv/bin/activate"]  # later bare rlsac/dvc/mlflow commands find the venv
     assert cmds[3] == ["rlsac", "quick"]
-    assert _commands(second) == [["python", "-m", "pytest", "-q", "-n", "auto"]] and second.startswith(".venv/bin/python")
+    assert _commands(second) == [["python", "-m", "pytest", "-q", "-n", "auto"]]
+    assert second.startswith(".venv/bin/python")
     for argv in cmds:
         check(argv, first)
     assert ci_runs_readme_blocks() == [first, second], ".ci/run runs the README's two commands as written"
@@ -356,16 +357,16 @@ def quoted_intervals(text: str) -> set[tuple[float, float, float]]:
 
 
 def generated_intervals(reports: Path) -> set[tuple[float, float, float]]:
-    files = sorted(reports.glob("table*.md")) + [reports / f"{n}.md" for n in ("claims", "selection", "paper", "scale",
-                                                                            "positive_control", "tuning_budget", "learner")]
+    names = ("claims", "selection", "paper", "scale", "positive_control", "tuning_budget", "learner")
+    files = sorted(reports.glob("table*.md")) + [reports / f"{n}.md" for n in names]
     return set().union(*(quoted_intervals(f.read_text()) for f in files if f.is_file()))
 
 
 @pytest.mark.parametrize("doc", QUOTING, ids=lambda p: p.name)
 def test_every_quoted_interval_is_one_of_the_generated_tables(doc):
     """A number the README or a hand-written report quotes with its 95% interval is one that `rlsac table` wrote
-    (reports/table*.md, claims.md, selection.md, paper.md, scale.md, positive_control.md, learner.md): no interval computed by
-    hand, none left from an earlier record."""
+    (reports/table*.md, claims.md, selection.md, paper.md, scale.md, positive_control.md, learner.md): no interval
+    computed by hand, none left from an earlier record."""
     stale = sorted(quoted_intervals(doc.read_text()) - generated_intervals(ROOT / "reports"))
     assert not stale, f"{doc.name}: {len(stale)} interval(s) in no generated table, e.g. {stale[:3]}"
 
