@@ -253,6 +253,8 @@ def train_rung(rung: Rung, seed: int, params: dict, c: dict, device: str = "cpu"
         sac = tc.sac
         if rung.learner == "supervised":  # every update's actor step is the cross-entropy to the labels
             sac = replace(sac, warm_start_updates=int(c["steps"]) * sac.updates_per_step)
+        if rung.entropy_target is not None:
+            sac = replace(sac, target_entropy_scale=float(rung.entropy_target))
         agent = SACAgent(in_channels(train_task), tc.policy, sac).to(dev).set_kernels(tc.kernels, tc.neighbour_max)
         on_dev = {k: (v.to(dev) if torch.is_tensor(v) else v) for k, v in train.items()}
         if rung.data == "synthetic":

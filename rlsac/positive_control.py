@@ -111,9 +111,23 @@ def _measure(agent: SACAgent, task, test: dict, iterations: int, seed: int, rows
     return {}
 
 
-def run(params: dict[str, Any], out: str | Path = "reports/positive_control") -> dict[str, Any]:
-    """Train and measure at every inlier ratio and seed; write <out>.md and <out>.json -> a summary."""
+def run(params: dict[str, Any], out: str | Path = "reports/positive_control", track: bool = False) -> dict[str, Any]:
+    """Train and measure at every inlier ratio and seed; write <out>.md and <out>.json -> a summary (an MLflow run
+    "positive control" in experiment ``scale`` with ``track``: a signal mid-training ends it KILLED)."""
+    from rlsac.tracking import check_store, start_run
+
     c = conf(params)
+    check_store(track, "scale")
+    with start_run("scale", "positive control", params={k: str(v) for k, v in c.items()},
+                   tags={"command": "scale", "benchmark": "positive_control"}, enabled=track) as mlrun:
+        summary = _train_and_measure(c, Path(out))
+        mlrun.metrics({f"pi_inliers_r{k}": v for k, v in summary["final"].items()})
+        for f in summary["files"]:
+            mlrun.artifact(f, "positive_control")
+    return summary
+
+
+def _train_and_measure(c: dict[str, Any], out: Path) -> dict[str, Any]:
     task = FundamentalTask()
     results = []
     for ratio in c["inlier_ratios"]:
@@ -132,7 +146,6 @@ def run(params: dict[str, Any], out: str | Path = "reports/positive_control") ->
                        val_every=c["every"])
             curves.append({"seed": int(seed), "rows": rows})  # no timings: a re-run must give the same bytes
         results.append({"inlier_ratio": ratio, "controls": controls(task, test, c["iterations"]), "curves": curves})
-    out = Path(out)
     with atomic_path(out.with_suffix(".json")) as tmp:
         tmp.write_text(json.dumps({"conf": c, "results": results}, indent=1) + "\n")
     with atomic_path(out.with_suffix(".md")) as tmp:

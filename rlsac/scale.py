@@ -57,7 +57,7 @@ def scale(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
         from rlsac.positive_control import run as control
 
         t0 = time.time()
-        return {"stage": stage, **control(params), "seconds": round(time.time() - t0, 1)}
+        return {"stage": stage, **control(params, track=track), "seconds": round(time.time() - t0, 1)}
     s = lay.protocol(params)
     p = for_task(protocol(params), params, "fundamental")
     if s["fold"] not in p["test"] or s["regime"] not in p["regimes"]:

@@ -227,3 +227,23 @@ def test_a_claim_at_a_budget_the_profile_lacks_is_not_measured():
     assert report.judge(claim, data)["verdict"] == "not measured"
     at_100 = {"controls": {s: {"100": m} for s in report.SAMPLERS}, "runs": {0: {"final": {"100": m}}}}
     assert report.judge(claim, {claim.a[0]: at_100, claim.b[0]: at_100})["verdict"] != "not measured"
+
+
+def test_the_entropy_arm_trains_with_the_target_at_zero(tmp_path, monkeypatch):
+    """The drift experiment (issue #61 item 1): the "entropy" rung is control-0.45 with SAC's per-point entropy target
+    at 0, so its temperature can only fall; every other rung keeps the recipe's target."""
+    import rlsac.sac
+
+    params = yaml.safe_load((ROOT / "params.yaml").read_text())
+    params["ladder"].update(steps=4, every=4, train_pairs=6, test_pairs=4, iterations=[10], curve_iterations=10)
+    c = ladder_layout.conf(params)
+    rungs = ladder_layout.rungs(c)
+    assert (rungs["entropy"].inlier_ratio, rungs["entropy"].controls) == (0.45, "control-0.45")
+    (tmp_path / "reports").mkdir()
+    (tmp_path / "reports" / "synthetic_fit.json").write_text((ROOT / "reports" / "synthetic_fit.json").read_text())
+    monkeypatch.chdir(tmp_path)
+    seen, real = [], rlsac.sac.SACAgent
+    monkeypatch.setattr(rlsac.sac, "SACAgent", lambda *a: seen.append(a[2]) or real(*a))
+    for name in ("entropy", "control-0.45"):
+        ladder.train_rung(rungs[name], 0, params, c)
+    assert [s.target_entropy_scale for s in seen] == [0.0, 0.5]

@@ -273,7 +273,7 @@ def markdown(c: dict, data: dict[str, dict], order: list[str], why: dict[str, st
                 [_ci(rl[f"d_{r['sampler']}_{k}"]) for k in ("pi", "R", "t")]
             lines.append(f"| {r['budget']} | {name} | {r['pi_inliers']:.3f} | {r['mAA_R']:.3f} | {r['mAA_t']:.3f} | "
                          + " | ".join(diffs) + " |")
-        if rung.startswith("control-") and d["runs"]:
+        if rung.startswith(("control-", "entropy")) and d["runs"]:
             lines += ["", f"Convergence (curve on the test pairs at {c['curve_iterations']} hypotheses, every "
                       f"{c['every']} steps): the first step where π(inliers) is within {PI_CLOSE} of guided's and "
                       f"mAA_R within {MAA_CLOSE} of guided's; the peak π and the drift after it (last − peak).", "",
@@ -312,7 +312,7 @@ def figure(c: dict, data: dict[str, dict], order: list[str], why: dict[str, str]
                     label="RLSAC π(inliers)" if seed == min(d["runs"]) else None)
             ax.plot(st, [row["mAA_R"] for row in r["curve"]], color="C1", lw=1, ls="--", alpha=0.8,
                     label="RLSAC mAA_R" if seed == min(d["runs"]) else None)
-        if rung.startswith(("control", "rung0", "rung1", "rung2")):  # curve pairs = the controls' test pairs
+        if rung.startswith(("control", "rung0", "rung1", "rung2", "entropy")):  # curve pairs = the controls' test pairs
             g = d["controls"]["guided"][str(c["curve_iterations"])]
             ax.axhline(float(g["pi_inliers"].mean()), color="C0", ls=":", lw=1, label="guided π(inliers)")
             ax.axhline(mAA(g["err_R"], LIMIT), color="C1", ls=":", lw=1, label="guided mAA_R")
