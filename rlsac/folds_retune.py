@@ -44,6 +44,10 @@ def retune_fold(p: dict, params: dict, regime: str, fold: str, o: dict) -> list[
     if not names or cheap != names:
         raise RlsacError(f"folds --stage retune needs --only with rows of folds.methods (no checkpoint: every grid "
                          f"point runs on validation and test), got {names or 'none'}")
+    bad = sorted(set(b["retune_iterations"]) - set(p["iterations"][regime]))
+    if bad:  # a re-tuned choice is tested where the tables test it, nowhere else
+        raise RlsacError(f"tuning_budget.retune_iterations {bad}: not test budgets of regime {regime!r} "
+                         f"(folds.iterations {p['iterations'][regime]})")
     train_scenes, test_scenes = (scene_list(s) for s in split_scenes(p, fold))
     d = data_dir(regime, fold)
     files = {}

@@ -32,6 +32,9 @@ DEFAULTS: dict[str, Any] = {
     "retune_draws": 200,
     "retune_seed": 0,
     "retune_iterations": [1000],
+    # a second regime's rows re-tuned the same way (their tables' choice, tested at ``retune_iterations``), so that
+    # the claims made in that regime carry their selection term too (issue #62: "not measured" otherwise)
+    "retune_also": {"regime": "easy", "methods": []},
     # learned rows (a checkpoint each, e.g. rlsac and its seed rows rlsac-s<k>) re-tuned at ``iterations`` in
     # ``learned_regimes``: their threshold alone, at the tables' pre-filter (their grid runs the network at every
     # point, ~0.3 s a pair at 1000 iterations; the pre-filter and the row's knobs stay the tables' choice)
@@ -71,10 +74,23 @@ def conf(params: dict[str, Any]) -> dict[str, Any]:
         if c["iterations"] not in p["iterations"][r]:
             raise RlsacError(f"tuning_budget.iterations {c['iterations']}: not a test budget of regime {r!r} "
                              f"(folds.iterations {p['iterations'][r]})")
-    bad = sorted(set(c["retune_iterations"]) - set(p["iterations"][c["retune_regime"]]))
+    also = c["retune_also"]
+    if not isinstance(also, dict) or sorted(also) != ["methods", "regime"] or not isinstance(also["methods"], list):
+        raise RlsacError(f"tuning_budget.retune_also must be {{regime: <a regime>, methods: [<rows>]}}, got {also!r}")
+    also = {"regime": check_value("tuning_budget.retune_also.regime", also["regime"], str),
+            "methods": [check_value("tuning_budget.retune_also.methods", v, str) for v in also["methods"]]}
+    if also["methods"] and (also["regime"] not in p["regimes"] or also["regime"] == c["retune_regime"]):
+        raise RlsacError(f"tuning_budget.retune_also.regime {also['regime']!r}: a regime of folds.regimes "
+                         f"{p['regimes']} other than retune_regime {c['retune_regime']!r}")
+    bad = sorted(set(also["methods"]) - set(p["methods"]))
     if bad:
-        raise RlsacError(f"tuning_budget.retune_iterations {bad}: not test budgets of regime "
-                         f"{c['retune_regime']!r} (folds.iterations {p['iterations'][c['retune_regime']]})")
+        raise RlsacError(f"tuning_budget.retune_also.methods {bad}: not methods of folds.methods {p['methods']}")
+    c["retune_also"] = also
+    for regime in [c["retune_regime"]] + ([also["regime"]] if also["methods"] else []):
+        bad = sorted(set(c["retune_iterations"]) - set(p["iterations"][regime]))
+        if bad:
+            raise RlsacError(f"tuning_budget.retune_iterations {bad}: not test budgets of regime "
+                             f"{regime!r} (folds.iterations {p['iterations'][regime]})")
     return c
 
 

@@ -98,6 +98,36 @@ def test_bad_input_is_one_line_at_exit_2(fold, tmp_path):
     assert r.exit_code == 2 and "unknown params key(s) tuning_budget.['draws']" in r.output
 
 
+TWO_REGIMES = {**PARAMS, "folds": {**PARAMS["folds"], "regimes": ["easy", "hard"], "pool": {"easy": 0, "hard": 1000},
+                                   "iterations": {"easy": [1000], "hard": [100, 1000]}}}
+
+
+@pytest.mark.parametrize("also, message", [
+    ({"regime": "easy", "methods": ["magsac"]}, None),
+    ({"regime": "hard", "methods": ["magsac"]}, "other than retune_regime 'hard'"),
+    ({"regime": "easy", "methods": ["ransac"]}, r"retune_also.methods \['ransac'\]: not methods"),
+    ({"regime": "easy"}, "must be {regime: <a regime>, methods: \\[<rows>\\]}"),
+    ({"regime": "easy", "methods": ["magsac"], "iterations": [1000]}, "must be {regime"),
+])
+def test_retune_also_is_a_second_regimes_rows_at_its_budgets(also, message):
+    """issue #62: the easy regime's claims get their selection term from a second set of re-tuning records."""
+    params = {**TWO_REGIMES, "tuning_budget": {**TWO_REGIMES["tuning_budget"], "retune_also": also}}
+    if message is None:
+        assert retune.conf(params)["retune_also"] == also
+        return
+    with pytest.raises(RlsacError, match=message):
+        retune.conf(params)
+
+
+def test_retune_also_budgets_are_that_regimes_test_budgets():
+    budgets = {**TWO_REGIMES["tuning_budget"], "retune_iterations": [100],
+               "retune_also": {"regime": "easy", "methods": ["magsac"]}}
+    with pytest.raises(RlsacError, match=r"retune_iterations \[100\]: not test budgets of regime 'easy'"):
+        retune.conf({**TWO_REGIMES, "tuning_budget": budgets})
+    assert retune.conf({**TWO_REGIMES, "tuning_budget": {**budgets, "retune_also": {"regime": "easy",
+                                                                                    "methods": []}}})
+
+
 # --------------------------------------------------------------------------------------------- re-selection
 
 

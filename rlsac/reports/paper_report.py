@@ -146,13 +146,15 @@ def check(claim: PaperClaim, regime: str, eval_root: Path, res: dict, selection:
         if got is None:
             return None
         s, c = got
-        how, seeds, pairs = c["how"], tuple(len(r[1]) for r in c["rows"]), len(c["strata"])
+        how, seeds, pairs = dict(c["how"]), tuple(len(r[1]) for r in c["rows"]), len(c["strata"])
         um, uc = pc.UNIFORM_OF.get(claim.model, claim.model), pc.UNIFORM_OF.get(claim.control, claim.control)
         if um != uc:  # the environment's share (uniform sets here − the control's) and the sampler's (the rest)
             env = boot([(1.0, um), (-1.0, uc)])
             smp = boot([(1.0, claim.model), (-1.0, um)] + ([(-1.0, claim.control), (1.0, uc)] if claim.control != uc
                                                            else []))
             shares = (env and env[0], smp and smp[0])
+            for part in (env, smp):  # the selection column names the shares' rows too (uniform sets in easy)
+                how.update({} if part is None else {k: v for k, v in part[1]["how"].items() if k not in how})
     old = s if term is None or claim.sub != "folds" or kind != "maa" else widen(s, term)
     m, side = pc.margin(claim.metric), pc.better_sign(claim.metric)
     claim_side = side if claim.paper is None or abs(claim.paper) <= m else (1 if claim.paper > 0 else -1)
@@ -188,12 +190,12 @@ draw takes one resample of the fold's validation pairs (one of the re-tuning rec
 every row) on which each re-tuned row takes the setting the tuning's rule re-chooses there (*the selection term*:
 what choosing settings on a few dozen validation pairs moves a difference by), then resamples each model's training
 seeds (`seeds`: model vs control) and the test instances within their test building, the same for every row.
-`pairs and seeds only`: the interval with every row at its tables' setting (the same draws). `selection`: how each
-row's settings were chosen: *re-selected* (a re-tuning record, reports/retune: the term is drawn), *learned* (a
-checkpoint whose threshold is tuned per training seed: the seed resampling counts that tuning once, no second term),
-*fixed* (no setting chosen on validation pairs), *not measured* (tuned on validation pairs, but no re-tuning record:
-that row's interval lacks its selection term, so its verdict may be too sure; `rlsac folds --stage retune` makes
-one). `model` / `control`: our values (seed means).
+`pairs and seeds only`: the interval with every row at its tables' setting (the same draws). `selection`: how the
+settings of each row of the claim and of its shares were chosen: *re-selected* (a re-tuning record, reports/retune:
+the term is drawn), *learned* (a checkpoint whose threshold is tuned per training seed: the seed resampling counts
+that tuning once, no second term), *fixed* (no setting chosen on validation pairs), *not measured* (tuned on
+validation pairs, but no re-tuning record: that row's interval lacks its selection term, so its verdict may be too
+sure; `rlsac folds --stage retune` makes one). `model` / `control`: our values (seed means).
 
 Whose gain (issue #62): for a claim against a baseline, the *environment's share* is uniform minimal sets in our
 environment (our RANSAC loop, same pre-filter, tuning and budget) − the control, the *sampler's share* RLSAC − uniform
