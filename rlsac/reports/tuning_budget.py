@@ -116,6 +116,8 @@ def check_inputs(params: dict[str, Any], eval_root: str | Path = "reports/eval",
                         read_record(out_dir / f"tuning{s}" / "fundamental" / regime / f / f"{name}.json")
     for m in c["retune_methods"]:
         load_retune(out_dir, c["retune_regime"], m)
+    for m in (c.get("retune_also") or {}).get("methods", []):
+        load_retune(out_dir, c["retune_also"]["regime"], m)
 
 
 def budget_rows(c: dict[str, Any], eval_root: Path, out_dir: Path) -> tuple[list[dict[str, Any]], list[str]]:
@@ -134,16 +136,18 @@ def retune_rows(c: dict[str, Any], out_dir: Path) -> tuple[list[dict[str, Any]],
     from rlsac.protocol import LIMIT
 
     rows, missing = [], []
-    for m in c["retune_methods"]:
-        recs = load_retune(out_dir, c["retune_regime"], m)
+    also = c.get("retune_also") or {}  # the second regime's rows (issue #62), after the main regime's
+    for regime, m in [(c["retune_regime"], m) for m in c["retune_methods"]] + \
+            [(also["regime"], m) for m in also.get("methods", [])]:
+        recs = load_retune(out_dir, regime, m)
         if not recs:
-            missing.append(f"{c['retune_regime']}/{m} (re-tuning)")
+            missing.append(f"{regime}/{m} (re-tuning)")
             continue
         for it in c["retune_iterations"]:
             if any(str(it) not in r["test"] for r in recs):
-                missing.append(f"{c['retune_regime']}/{m} at {it} (re-tuning)")
+                missing.append(f"{regime}/{m} at {it} (re-tuning)")
                 continue
-            row = {"regime": c["retune_regime"], "row": m, "iterations": it, "folds": len(recs),
+            row = {"regime": regime, "row": m, "iterations": it, "folds": len(recs),
                    "draws": len(recs[0]["choices"]),
                    # the rule replayed on all validation pairs must give the tables' record (same errors, same rule)
                    "all pairs = tables' record":
@@ -169,9 +173,9 @@ def decision(rows: list[dict[str, Any]], margin: float, term: dict[str, Any] | N
     sds = [r[f"_{n}"]["sd"] for r in rows for n in ("R", "t")]
     return (
         f"**Decision.** The re-tuning sd of one row ranges {min(sds):.3f}-{max(sds):.3f} (mean {np.mean(sds):.3f}; "
-        f"the largest: {term['row']}, mAA_{term['metric']} at {term['iterations']} iterations), so one term for every "
-        f"claim (its largest, {Z95}·√2·sd = ±{term['s']:.3f}, {term['s'] / margin:.0%} of the tie margin ±{margin}) "
-        "would be too wide for some comparisons and absent from none. Since issue #62 the claims carry the selection "
+        f"the largest: {term['regime']}/{term['row']}, mAA_{term['metric']} at {term['iterations']} iterations), so "
+        f"one term for every claim (its largest, {Z95}·√2·sd = ±{term['s']:.3f}, {term['s'] / margin:.0%} of the tie "
+        f"margin ±{margin}) would be too wide for some comparisons and absent from none. Since issue #62 the claims carry the selection "
         "term per comparison instead: claims.md and paper.md draw a nested, paired bootstrap in which every draw "
         "takes one of these records' validation resamples, re-chooses each re-tuned row's setting on it, then "
         "resamples seeds and test pairs (rlsac.metrics.contrast_bootstrap); a row with fixed settings gets no term, a "
