@@ -175,12 +175,12 @@ def decision(rows: list[dict[str, Any]], margin: float, term: dict[str, Any] | N
         f"**Decision.** The re-tuning sd of one row ranges {min(sds):.3f}-{max(sds):.3f} (mean {np.mean(sds):.3f}; "
         f"the largest: {term['regime']}/{term['row']}, mAA_{term['metric']} at {term['iterations']} iterations), so "
         f"one term for every claim (its largest, {Z95}·√2·sd = ±{term['s']:.3f}, {term['s'] / margin:.0%} of the tie "
-        f"margin ±{margin}) would be too wide for some comparisons and absent from none. Since issue #62 the claims carry the selection "
-        "term per comparison instead: claims.md and paper.md draw a nested, paired bootstrap in which every draw "
-        "takes one of these records' validation resamples, re-chooses each re-tuned row's setting on it, then "
-        "resamples seeds and test pairs (rlsac.metrics.contrast_bootstrap); a row with fixed settings gets no term, a "
-        "learned row's per-seed tuning is counted once (in its seed spread), and a tuned row without a record is "
-        "marked *not measured* there. paper.md lists the verdicts that moved.\n")
+        f"margin ±{margin}) would be too wide for some comparisons and absent from none. Since issue #62 the claims "
+        "carry the selection term per comparison instead: claims.md and paper.md draw a nested, paired bootstrap in "
+        "which every draw takes one of these records' validation resamples, re-chooses each re-tuned row's setting "
+        "on it, then resamples seeds and test pairs (rlsac.metrics.contrast_bootstrap); a row with fixed settings "
+        "gets no term, a learned row's per-seed tuning is counted once (in its seed spread), and a tuned row without "
+        "a record is marked *not measured* there. paper.md lists the verdicts that moved.\n")
 
 
 def build(params: dict[str, Any], eval_root: str | Path = "reports/eval", out_dir: str | Path = "reports",
