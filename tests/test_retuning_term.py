@@ -179,5 +179,5 @@ def test_one_claims_nested_interval_recomputed_from_the_raw_records():
     df = pd.read_csv(ROOT / "reports" / "paper.csv", dtype=str)
     committed = df[(df["key"] == "t2-magsac-maaR") & (df["regime"] == "hard")].iloc[0]
     assert row["ours"] == committed["ours"] == f"{diff:+.3f} [{lo:+.3f}, {hi:+.3f}]"
-    assert row["selection"] == "learned: rlsac; re-selected: magsac"
+    assert row["selection"] == "learned: rlsac; re-selected: magsac, uniform"  # uniform: the shares' row
     assert not math.isclose(lo, float(row["pairs and seeds only"].strip("[]").split(",")[0]), abs_tol=1e-3)
