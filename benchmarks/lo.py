@@ -20,7 +20,7 @@ from pathlib import Path
 import torch
 
 from rlsac.config import read_params, section
-from rlsac.evaluate import DEFAULTS, make_estimator
+from rlsac.evaluate import EvalOptions, make_estimator
 from rlsac.tasks import task_class
 
 DEFAULT_DATA = {"fundamental": "data/folds/hard/fountain/test.h5", "line": "data/lines/test_o0.5.h5"}
@@ -54,8 +54,8 @@ def main() -> None:
           f"{args.threads} thread(s), lo = {lo_options}")
     print(f"{'method':<12} {'ms/inst':>9} {'LO ms':>8} {'sampler ms':>11} {'LO/sampler':>11} {'calls':>6} {'fits':>6}")
     for method in [m for m in args.methods.split(",") if m]:
-        o = {**DEFAULTS, "task": task_name, "method": method, "iterations": iterations, "lo": lo_options,
-             "checkpoint": ckpt if method.startswith("rlsac") else None}
+        o = EvalOptions(task=task_name, method=method, data=str(data_path), iterations=iterations, lo=lo_options,
+                        checkpoint=str(ckpt) if method.startswith("rlsac") else None)
         if method.startswith("rlsac") and not Path(ckpt).is_file():
             print(f"{method:<12} skipped: no checkpoint {ckpt}")
             continue

@@ -278,8 +278,8 @@ def train(task: str, tracking: bool, params_path: str, sets: tuple[str, ...], **
 def evaluate(tracking: bool, params_path: str, **options) -> None:
     """Evaluate a method on a data file: errors CSV + summary JSON + MLflow run."""
     from rlsac.config import read_params, section
+    from rlsac.evaluate import check_options, format_summary
     from rlsac.evaluate import evaluate as run
-    from rlsac.evaluate import format_summary
 
     params = read_params(params_path)
     defaults = section(params, "evaluate", options["task"])
@@ -297,8 +297,9 @@ def evaluate(tracking: bool, params_path: str, **options) -> None:
         record_options(record, options["task"], options["method"], options["checkpoint"], defaults.get("lo"),
                        options["data"], params, options.get("iterations") or defaults.get("iterations"))
         defaults = {**defaults, **tuned}
-    options = {**defaults, **given}
-    click.echo(format_summary(run(options, track=tracking)))
+    # the one options object of this evaluation, checked here; read by attribute from here to the estimator
+    o = check_options({**defaults, **given})
+    click.echo(format_summary(run(o, track=tracking)))
 
 
 @cli.command()

@@ -1,7 +1,8 @@
 """Evaluate one method on one data file: per-instance errors CSV, summary JSON, one MLflow run.
 
-``evaluate(options)`` is what ``rlsac evaluate`` calls. Options (all but ``task``/``method``/``data``
-have defaults):
+``evaluate(options)`` is what ``rlsac evaluate`` calls, with one ``EvalOptions`` built and checked at the command
+line's edge (``check_options``; a mapping is checked into one the same way) and read by attribute down to the
+method's estimator. Its fields (all but ``task``/``method``/``data`` have defaults):
 
     task        a registered task (rlsac.tasks.TASKS: line, fundamental, essential)
     method      a registered method (rlsac.methods.METHODS: ransac, rlsac, uniform, guided, oracle, OpenCV's
@@ -21,10 +22,11 @@ reproducible for a given (seed, batch_size, device).
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any, Callable
 
@@ -57,38 +59,58 @@ from rlsac.tracking import check_store, start_run
 # 2-8x and our RANSAC 3-5x faster with one; benchmarks/line_rollout.py (32 line instances per call,
 # wall time, machine loaded by other jobs): RLSAC 78 vs 677 ms/instance, our RANSAC 1.4 vs 3.9 ms.
 THREADS = 1
-DEFAULTS: dict[str, Any] = {
-    "checkpoint": None,
-    "iterations": None,
-    "steps_per_episode": None,
-    "seed": 0,
-    "device": "auto",
-    "batch_size": 256,
-    "out_dir": None,
-    "sampling": "max",  # RLSAC test-time sampling: max (paper) or prob (ablation)
-    "tags": None,  # extra MLflow run tags, e.g. {"ablation": "sampling", "variant": "full"} (rlsac.ablate)
-    "threads": None,  # None = THREADS
+@dataclass(frozen=True)
+class EvalOptions:
+    """One evaluation's options: built and checked once (``check_options``: by ``rlsac evaluate`` at the command
+    line's edge, and by every command that runs evaluations before its first one), then read by attribute down to the
+    method's estimator (rlsac.methods, rlsac.tasks.task_for). Its fields are what config.json and the MLflow run
+    record (``recorded_options``)."""
+
+    task: str  # a registered task (rlsac.tasks.TASKS)
+    method: str  # a registered method (rlsac.methods.METHODS)
+    data: str  # the h5 file
+    checkpoint: str | None = None
+    iterations: int | None = None  # None: the task's default_iterations (check_options fills it)
+    steps_per_episode: int | None = None
+    seed: int = 0
+    device: str = "auto"
+    batch_size: int = 256
+    out_dir: str | None = None  # None: reports/eval/<run_name> (check_options fills it)
+    sampling: str = "max"  # RLSAC test-time sampling: max (paper) or prob (ablation)
+    tags: dict | None = None  # extra MLflow run tags, e.g. {"ablation": "sampling", "variant": "full"} (rlsac.ablate)
+    threads: int | None = None  # None = THREADS
     # guided: minimal sets drawn with probabilities ~ exp(-SNN / guide_temperature) in the RLSAC environment, a
     # hand-made sampler that uses the same side information as the policy (not in the paper). 0.1: the middle of
     # the tuning grid; the fold benchmark tunes T per fold on validation pairs (rlsac.tune)
-    "guide_temperature": 0.1,
-    "lo": None,  # *-lo methods: rlsac.lo.LOConf options (params.yaml evaluate.<task>.lo); ignored by the others
+    guide_temperature: float = 0.1
+    lo: dict | None = None  # *-lo methods: rlsac.lo.LOConf options (params.yaml evaluate.<task>.lo); ignored by others
     # RLSAC: recompute the policy's logits every this many steps (1 = every step, the paper; a speed lever of
     # issue #17 that changes the algorithm: reports/speed.md)
-    "policy_every": 1,
+    policy_every: int = 1
     # RLSAC and its uniform / guided controls (the environment; not in the paper, issue #17 speed levers,
     # reports/speed.md): minimal sets drawn and scored per episode step (1 = the paper), and the confidence of
     # RANSAC's termination bound at which an instance stops before its budget (0 = never, the paper)
-    "sets_per_step": 1,
-    "confidence": 0.0,
+    sets_per_step: int = 1
+    confidence: float = 0.0
     # the two settings the CVPR 2020 tutorial tunes per method on validation (rlsac.tune; None = off): the inlier
     # threshold in pixels for every method (ours: the task's residual unit, OpenCV: its threshold), and the SNN
     # pre-filter, matches whose SNN ratio is above it are dropped before the method sees the pair
-    "threshold_px": None,
-    "prefilter": None,
+    threshold_px: float | None = None
+    prefilter: float | None = None
     # our samplers' final refit on the inliers (None = the task's ``refit_output``); tuned on validation for Table E
-    "refit_output": None,
-}
+    refit_output: bool | None = None
+
+    def replace(self, **changes) -> EvalOptions:
+        return dataclasses.replace(self, **changes)
+
+    def as_dict(self) -> dict[str, Any]:
+        """Every field by name, in declaration order (shallow: ``lo`` and ``tags`` are the object's own)."""
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+
+REQUIRED = ("task", "method", "data")
+# the options with defaults, as a params.yaml evaluate.<task> section may set them (check_params) and tuning varies them
+DEFAULTS: dict[str, Any] = {f.name: f.default for f in fields(EvalOptions) if f.name not in REQUIRED}
 # sets_per_step's fixed cap (the data bound it further: check_sets_per_step). One step draws (R, 2k, N) random
 # numbers and remembers R k sets: 1024 keeps that near 200 MB for a batch of 256 line instances; the measured
 # levers used 8 and 12 (reports/speed.md). 10^9 used to allocate until the process died.
@@ -140,13 +162,15 @@ def sampler_options(section: dict[str, Any]) -> dict[str, Any]:
     return {k: section[k] for k in SAMPLER_OPTIONS if k in section}
 
 
-def check_options(options: dict[str, Any], checkpoint_later: bool = False) -> dict[str, Any]:
-    """Fill defaults and validate; -> a new, complete options dict. ``checkpoint_later``: the checkpoint may not
-    exist yet (a command that trains it first)."""
-    missing = [k for k in ("task", "method", "data") if not options.get(k)]
+def check_options(options: dict[str, Any] | EvalOptions, checkpoint_later: bool = False) -> EvalOptions:
+    """Fill defaults and validate -> the evaluation's ``EvalOptions`` (a mapping of options, or an ``EvalOptions`` to
+    check again). ``checkpoint_later``: the checkpoint may not exist yet (a command that trains it first)."""
+    if isinstance(options, EvalOptions):
+        options = options.as_dict()
+    missing = [k for k in REQUIRED if not options.get(k)]
     if missing:
         raise RlsacError(f"evaluate needs {', '.join(missing)}")
-    unknown = sorted(set(options) - set(DEFAULTS) - {"task", "method", "data"})
+    unknown = sorted(set(options) - set(DEFAULTS) - set(REQUIRED))
     if unknown:
         raise RlsacError(f"unknown evaluate option(s) {unknown}")
     o = {**DEFAULTS, **{k: v for k, v in options.items() if v is not None}}
@@ -201,9 +225,8 @@ def check_options(options: dict[str, Any], checkpoint_later: bool = False) -> di
             raise RlsacError(f"task '{o['task']}' has no match quality to pre-filter by")
     if not Path(o["data"]).is_file():
         raise RlsacError(f"{o['data']}: no such file")
-    if o["out_dir"] is None:
-        o["out_dir"] = str(Path("reports") / "eval" / run_name(o))
-    return o
+    out = EvalOptions(**{**o, **{k: str(o[k]) for k in ("data", "checkpoint", "out_dir") if o[k] is not None}})
+    return out if out.out_dir is not None else out.replace(out_dir=str(Path("reports") / "eval" / run_name(out)))
 
 
 def _checked(o: dict[str, Any], key: str) -> Any:
@@ -212,24 +235,24 @@ def _checked(o: dict[str, Any], key: str) -> Any:
     return check_value(key, o[key], TYPES[key], RANGES[key])
 
 
-def run_name(o: dict[str, Any]) -> str:
-    model = f"_{Path(o['checkpoint']).stem}" if o.get("checkpoint") else ""
-    return f"{o['task']}_{o['method']}{model}_{Path(o['data']).stem}_i{o['iterations']}_s{o['seed']}"
+def run_name(o: EvalOptions) -> str:
+    model = f"_{Path(o.checkpoint).stem}" if o.checkpoint else ""
+    return f"{o.task}_{o.method}{model}_{Path(o.data).stem}_i{o.iterations}_s{o.seed}"
 
 
-def mlflow_name(o: dict[str, Any]) -> str:
+def mlflow_name(o: EvalOptions) -> str:
     """The MLflow run's name: method, model, the data file with its folders (fold and regime), budget and seed
     (``evaluate rlsac rlsac folds/hard/entry/test i1000 s0``); ``run_name`` names the default output folder."""
     from rlsac.tracking import data_label
 
-    model = f" {Path(o['checkpoint']).stem}" if o.get("checkpoint") else ""
-    return f"evaluate {o['method']}{model} {data_label(o['data'])} i{o['iterations']} s{o['seed']}"
+    model = f" {Path(o.checkpoint).stem}" if o.checkpoint else ""
+    return f"evaluate {o.method}{model} {data_label(o.data)} i{o.iterations} s{o.seed}"
 
 
-def make_estimator(o: dict[str, Any], device: str) -> tuple[Task, Callable[[dict, torch.Generator], dict], dict]:
+def make_estimator(o: EvalOptions, device: str) -> tuple[Task, Callable[[dict, torch.Generator], dict], dict]:
     """-> (task, estimate(batch, generator) -> {hyp, valid, inliers} torch tensors, extra run params),
     built by the method's registered builder (rlsac.methods)."""
-    return METHODS[o["method"]].build(o, device, None)
+    return METHODS[o.method].build(o, device, None)
 
 
 def pair_seed(seed: int, scene: str, pair: str) -> int:
@@ -278,13 +301,13 @@ def run_method(task: Task, estimate: Callable, data: dict, to_batch: Callable, n
     return out, np.concatenate(counts)
 
 
-def score(o: dict[str, Any], data: dict, device: str) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+def score(o: EvalOptions, data: dict, device: str) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """Run the resolved options ``o`` (``check_options``) on ``data`` already read, nothing written or tracked
     -> (the task's summary of the errors, the per-instance errors): what tuning compares grid points by."""
     task, estimate, _ = make_estimator(o, device)
     n = _n_instances(data)
-    errors, _ = run_method(task, estimate, data, task_class(o["task"]).to_batch, n, o["seed"], device, o["batch_size"],
-                           desc=f"{o['method']} {Path(o['data']).name}", prefilter=o["prefilter"])
+    errors, _ = run_method(task, estimate, data, task_class(o.task).to_batch, n, o.seed, device, o.batch_size,
+                           desc=f"{o.method} {Path(o.data).name}", prefilter=o.prefilter)
     return summarize(task, errors), errors
 
 
@@ -307,7 +330,7 @@ def _n_instances(data: dict) -> int:
 class Prepared:
     """What ``prepare`` found and built before an evaluation's MLflow run: everything ``run`` needs."""
 
-    o: dict[str, Any]  # the checked options
+    o: EvalOptions  # the checked options
     device: str
     data: dict  # the task reader's arrays (usable instances only)
     attrs: dict  # the data file's attributes (with the reader's report of unusable instances, if any)
@@ -325,38 +348,39 @@ class Prepared:
         return n_unusable(self.attrs)
 
 
-def prepare(options: dict[str, Any], track: bool = True, read: Callable | None = None) -> Prepared:
+def prepare(options: dict[str, Any] | EvalOptions, track: bool = True, read: Callable | None = None) -> Prepared:
     """Every check of an evaluation, before its MLflow run and its first write: options, outputs, the tracking
     store, the data file (read and validated), the options the data bound, the method's estimator (its checkpoint
     loaded). ``read(task_cls, path) -> (arrays, attrs)``: a reader to use instead of the task's (a cache, when one
     command checks many evaluations of one file: ``check_all``)."""
-    o = check_options(options)
-    task_cls = task_class(o["task"])
+    o = options if isinstance(options, EvalOptions) else check_options(options)  # checked once
+    task_cls = task_class(o.task)
     check_outputs(o)  # before any work: an unwritable output fails now, not at the end
     check_store(track, task_cls.experiment)
-    device = resolve_device(o["device"])
-    data, attrs = (read or _read)(task_cls, o["data"])
+    device = resolve_device(o.device)
+    data, attrs = (read or _read)(task_cls, o.data)
     if _n_instances(data) == 0:
-        raise RlsacError(f"{o['data']}: no instances")
+        raise RlsacError(f"{o.data}: no instances")
     check_sets_per_step(o, data, task_cls)
     task, estimate, extra = make_estimator(o, device)
     check_prefilter(o, data, task_cls, task)
     return Prepared(o, device, data, attrs, task, estimate, extra)
 
 
-def check_prefilter(o: dict[str, Any], data: dict, task_cls, task: Task) -> None:
+def check_prefilter(o: EvalOptions, data: dict, task_cls, task: Task) -> None:
     """A pre-filter must leave some instance a minimal set (issue #64: --prefilter 1e-9 kept no point and scored
     every pair as a failure at exit 0). An instance it leaves short is scored as it comes, as the tables do."""
-    if o["prefilter"] is None:
+    if o.prefilter is None:
         return
     batch = task_cls.to_batch(data, slice(0, _n_instances(data)))
-    most = int(prefiltered(task, batch, o["prefilter"])["mask"].sum(-1).max())
+    most = int(prefiltered(task, batch, o.prefilter)["mask"].sum(-1).max())
     if most < task.sample_size:
-        raise RlsacError(f"prefilter {o['prefilter']:g} leaves fewer than a minimal set ({task.sample_size} points) "
-                         f"in every instance of {o['data']} (at most {most}): nothing could be estimated")
+        raise RlsacError(f"prefilter {o.prefilter:g} leaves fewer than a minimal set ({task.sample_size} points) "
+                         f"in every instance of {o.data} (at most {most}): nothing could be estimated")
 
 
-def check_all(options: list[dict[str, Any]], track: bool = True, built_later: set[str] = frozenset()) -> None:
+def check_all(options: list[dict[str, Any] | EvalOptions], track: bool = True,
+              built_later: set[str] = frozenset()) -> None:
     """``prepare`` every evaluation of a command that runs several (rlsac folds, rlsac ablate) before the first
     one starts, so that a bad data file, checkpoint or option of the last fails before the first writes anything.
     Each data file is read once. ``built_later``: checkpoints the command trains before evaluating (not loaded)."""
@@ -369,28 +393,29 @@ def check_all(options: list[dict[str, Any]], track: bool = True, built_later: se
         return cache[key]
 
     for opts in options:
-        if opts.get("checkpoint") and str(opts["checkpoint"]) in built_later:  # all but the checkpoint's contents
+        ckpt = opts.checkpoint if isinstance(opts, EvalOptions) else opts.get("checkpoint")
+        if ckpt and str(ckpt) in built_later:  # all but the checkpoint's contents
             o = check_options(opts, checkpoint_later=True)
             check_outputs(o)
-            check_sets_per_step(o, read(task_class(o["task"]), o["data"])[0], task_class(o["task"]))
+            check_sets_per_step(o, read(task_class(o.task), o.data)[0], task_class(o.task))
             continue
         prepare(opts, track, read)
 
 
-def check_outputs(o: dict[str, Any]) -> None:
-    """Every file an evaluation writes into ``o['out_dir']`` can be written (RlsacError otherwise)."""
+def check_outputs(o: EvalOptions) -> None:
+    """Every file an evaluation writes into ``o.out_dir`` can be written (RlsacError otherwise)."""
     for f in ("errors.csv", "summary.json", "config.json", TIMING_FILE):
-        check_writable(Path(o["out_dir"]) / f)
+        check_writable(Path(o.out_dir) / f)
 
 
 def _read(task_cls, path) -> tuple[dict, dict]:
     return task_cls.read(path)
 
 
-def check_sets_per_step(o: dict[str, Any], data: dict, task_cls) -> None:
+def check_sets_per_step(o: EvalOptions, data: dict, task_cls) -> None:
     """sets_per_step k within what the data allows: at most the number of distinct minimal sets of the instance
     with the fewest points, C(n, m) (the environment draws k distinct unused sets per step)."""
-    k = o["sets_per_step"]
+    k = o.sets_per_step
     if k == 1:
         return
     n_min = int(task_cls.to_batch(data, slice(0, _n_instances(data)))["mask"].sum(-1).min())
@@ -398,37 +423,38 @@ def check_sets_per_step(o: dict[str, Any], data: dict, task_cls) -> None:
     distinct = math.comb(n_min, m)
     if k > distinct:
         raise RlsacError(f"sets_per_step {k} is more than the {distinct} distinct minimal sets of {m} points that "
-                         f"the smallest instance of {o['data']} has ({n_min} points)")
+                         f"the smallest instance of {o.data} has ({n_min} points)")
 
 
-def evaluate(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
-    """Evaluate ``options['method']`` on ``options['data']``; write CSV + JSON; -> the summary dict."""
+def evaluate(options: dict[str, Any] | EvalOptions, track: bool = True) -> dict[str, Any]:
+    """Evaluate ``options.method`` on ``options.data`` (an ``EvalOptions``, or a mapping ``check_options`` makes one
+    of); write CSV + JSON; -> the summary dict."""
     return run(prepare(options, track), track)
 
 
 def run(p: Prepared, track: bool = True) -> dict[str, Any]:
     """The evaluation ``prepare`` checked: its MLflow run, the method over every usable instance, the outputs."""
     o, device, data, task, estimate, extra = p.o, p.device, p.data, p.task, p.estimate, p.extra
-    task_cls = task_class(o["task"])
+    task_cls = task_class(o.task)
     n = p.n
-    out_dir = Path(o["out_dir"])
+    out_dir = Path(o.out_dir)
     params = {**recorded_options(o), "device": device, "n_instances": n, **extra, "task_options": _task_options(task),
               "data_attrs": {k: _plain(v) for k, v in p.attrs.items()}}
-    tags = {"command": "evaluate", "method": o["method"], **{k: str(v) for k, v in (o["tags"] or {}).items()}}
+    tags = {"command": "evaluate", "method": o.method, **{k: str(v) for k, v in (o.tags or {}).items()}}
     with start_run(task_cls.experiment, mlflow_name(o), params=params, tags=tags, enabled=track) as mlrun:
         torch_threads = torch.get_num_threads()
-        if device == "cpu" and o["threads"] > 0:
-            torch.set_num_threads(o["threads"])
+        if device == "cpu" and o.threads > 0:
+            torch.set_num_threads(o.threads)
         try:
             t0 = time.perf_counter()
-            errors, counts = run_method(task, estimate, data, task_cls.to_batch, n, o["seed"], device, o["batch_size"],
-                                        desc=f"{o['method']} {Path(o['data']).name}", prefilter=o["prefilter"])
+            errors, counts = run_method(task, estimate, data, task_cls.to_batch, n, o.seed, device, o.batch_size,
+                                        desc=f"{o.method} {Path(o.data).name}", prefilter=o.prefilter)
             seconds = time.perf_counter() - t0
         finally:
             torch.set_num_threads(torch_threads)
         summary = summarize(task, errors)
-        summary.update(task=o["task"], method=o["method"], iterations=o["iterations"], data=str(o["data"]),
-                       checkpoint=o["checkpoint"], seed=o["seed"], device=device, n_instances=n, **extra)
+        summary.update(task=o.task, method=o.method, iterations=o.iterations, data=str(o.data),
+                       checkpoint=o.checkpoint, seed=o.seed, device=device, n_instances=n, **extra)
         if p.n_unusable:  # only then: a file without unusable instances keeps its summary's bytes
             summary["n_unusable"] = p.n_unusable
         timing = {"seconds": seconds, "seconds_per_instance": seconds / n}
@@ -456,11 +482,11 @@ def run(p: Prepared, track: bool = True) -> dict[str, Any]:
     return summary
 
 
-def recorded_options(o: dict[str, Any]) -> dict[str, Any]:
+def recorded_options(o: EvalOptions) -> dict[str, Any]:
     """The checked options ``o`` as an evaluation records them (config.json, MLflow params): all but its run tags and
     the options its method does not read (``NOT_RECORDED``)."""
-    skip = {"tags", *NOT_RECORDED.get(o["method"].removesuffix("-lo"), ())}
-    return {k: v for k, v in o.items() if k not in skip}
+    skip = {"tags", *NOT_RECORDED.get(o.method.removesuffix("-lo"), ())}
+    return {k: v for k, v in o.as_dict().items() if k not in skip}
 
 
 def format_summary(summary: dict[str, Any]) -> str:

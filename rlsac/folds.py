@@ -128,12 +128,18 @@ def for_task(p: dict[str, Any], params: dict[str, Any], task: str) -> dict[str, 
     """The benchmark of ``task`` on the fold data: the fundamental matrix's rows are params ``folds``'s; the
     essential matrix's (Table E) params ``essential``'s methods and its RLSAC model per fold (``rlsac``, trained by
     the essential_train stage, and ``rlsac-s<seed>`` for each of ``essential.seeds``), in its one regime."""
-    if task == "fundamental":
-        return {**p, "task": task}
-    if task != "essential":
-        raise RlsacError(f"folds --task must be fundamental or essential, got {task!r}")
-    e = check_essential(params)
-    return {**p, "task": task, "methods": list(e["methods"]), "models": ["rlsac"], "lo_models": [], "fast": [],
+    from rlsac.tasks import TASKS
+
+    benchmarked = [n for n, cls in TASKS.items() if cls.fold_rows]
+    if task not in benchmarked:
+        raise RlsacError(f"folds --task must be {' or '.join(benchmarked)}, got {task!r}")
+    cls = TASKS[task]
+    layout = {"task": task, "fold_stages": list(cls.fold_stages), "fold_checkpoint": cls.fold_checkpoint,
+              "sampler_knobs": list(cls.sampler_knobs)}
+    if cls.fold_rows == "folds":  # the protocol's own rows
+        return {**p, **layout}
+    e = check_essential(params)  # Table E's rows (params essential)
+    return {**p, **layout, "methods": list(e["methods"]), "models": ["rlsac"], "lo_models": [], "fast": [],
             "lo_methods": [], "variant_regimes": [e["regime"]], "ablation_models": [], "prob_models": [],
             "points": [], "points_models": [], "points_methods": [], "seeds": list(e["seeds"]),
             "seed_models": ["rlsac"], "select_models": [], "pool_models": [], "file_models": ["rlsac"],
@@ -161,10 +167,10 @@ def check_options(options: dict[str, Any], p: dict[str, Any] | None = None) -> d
         if o["regime"] not in p["regimes"]:
             raise RlsacError(f"unknown regime {o['regime']!r} (known: {', '.join(p['regimes'])})")
         split_scenes(p, o["fold"] or "")
-        if o["stage"] in ("data", "pool", "train", "select", "retune") and o["task"] != "fundamental":
-            raise RlsacError(f"folds --stage {o['stage']} is the fundamental benchmark's (--task essential has tune "
-                             "and evaluate only: it reads the fundamental folds' data, its models train with `rlsac "
-                             "train --task essential`)")
+        has = p.get("fold_stages", STAGES)  # the task's (for_task); a protocol without it: every stage
+        if o["stage"] not in has:
+            raise RlsacError(f"folds --stage {o['stage']}: --task {o['task']} has {' and '.join(has)} only (it reads "
+                             f"the fundamental folds' data, its models train with `rlsac train --task {o['task']}`)")
         if o["stage"] in ("train", "select") and o["regime"] != p["model_regime"]:
             raise RlsacError(f"models are trained on regime {p['model_regime']!r} only (folds.model_regime)")
         if o["stage"] == "select" and o["model"] not in select_runs(p):

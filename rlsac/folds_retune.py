@@ -35,8 +35,8 @@ def retune_fold(p: dict, params: dict, regime: str, fold: str, o: dict) -> list[
     from rlsac.results import read_record
     from rlsac.tasks import task_class
 
-    if p["task"] != "fundamental":
-        raise RlsacError("folds --stage retune is the fundamental benchmark's (--task fundamental)")
+    if "retune" not in p.get("fold_stages", ["retune"]):
+        raise RlsacError(f"folds --stage retune is not --task {p['task']}'s")
     c, b = tune.conf(params), retune.conf(params)
     table = rows(p, fold, regime)
     names = o.get("only") or []

@@ -1,10 +1,10 @@
 """The evaluation methods, each registered once with how to build its estimator (no heavy imports at
 module level: the CLI reads the names for --help; the builders import what they need).
 
-A method's builder takes the resolved evaluate options ``o``, the device and an optional LO conf and
-returns (task, estimate(batch, generator) -> {hyp, valid, inliers}, extra run params). ``needs`` names
-the task capability it requires (rlsac.tasks.Task: an optional method or a true class attribute), so
-evaluate rejects an unsupported (task, method) pair before any work, whatever the task.
+A method's builder takes the checked evaluate options ``o`` (rlsac.evaluate.EvalOptions, read by attribute),
+the device and an optional LO conf and returns (task, estimate(batch, generator) -> {hyp, valid, inliers}, extra
+run params). ``needs`` names the task capability it requires (rlsac.tasks.Task: an optional method or a true class
+attribute), so evaluate rejects an unsupported (task, method) pair before any work, whatever the task.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from typing import Any, Callable
 @dataclass(frozen=True)
 class Method:
     name: str
-    build: Callable[[dict, str, Any], tuple]
+    build: Callable[[Any, str, Any], tuple]  # (rlsac.evaluate.EvalOptions, device, LO conf)
     needs: str | None = None  # task capability: "match_quality", "opencv_fit", "true_inlier_data"
     checkpoint: bool = False  # needs --checkpoint
     lo: bool = False  # the *-lo variant of a base method (rlsac.lo), not in the paper
@@ -56,7 +56,7 @@ def _ransac(o, device, lo=None):
     from rlsac.tasks import task_for
 
     task = task_for(o)
-    return task, lambda batch, g: ransac(task, batch, o["iterations"], g, lo=lo), {}
+    return task, lambda batch, g: ransac(task, batch, o.iterations, g, lo=lo), {}
 
 
 @register_method("oracle", "Oracle (refit on the true inliers)", needs="true_inlier_data")
@@ -76,12 +76,12 @@ def _environment(o, lo, guide=None):
     from rlsac.tasks import task_for
 
     task = task_for(o)
-    env = with_lo(env_conf({}, o["steps_per_episode"]), lo)
+    env = with_lo(env_conf({}, o.steps_per_episode), lo)
 
     def estimate(batch, g):
-        return rlsac_estimate(task, batch, None, o["iterations"], env, generator=g,
+        return rlsac_estimate(task, batch, None, o.iterations, env, generator=g,
                               guide=None if guide is None else guide(task, batch),
-                              sets_per_step=o["sets_per_step"], confidence=o["confidence"])
+                              sets_per_step=o.sets_per_step, confidence=o.confidence)
     return task, estimate, {"steps_per_episode": env.steps_per_episode}
 
 
@@ -95,26 +95,26 @@ def _uniform(o, device, lo=None):
 def _guided(o, device, lo=None):
     """The same environment, sets drawn ~ exp(-quality / guide_temperature): a hand-made guided sampler
     with the policy's side information (not in the paper)."""
-    tau = o["guide_temperature"]
+    tau = o.guide_temperature
     task, estimate, extra = _environment(o, lo, lambda task, batch: -task.match_quality(batch) / tau)
     return task, estimate, {**extra, "guide_temperature": tau}
 
 
 @register_method("rlsac", "RLSAC", checkpoint=True)
 def _rlsac(o, device, lo=None):
-    """The learned sampler of ``o['checkpoint']`` in its own environment."""
+    """The learned sampler of ``o.checkpoint`` in its own environment."""
     from rlsac.checkpoint import check_reads, env_conf, load_actor, state_scales, task_options
     from rlsac.rollout import in_channels, rlsac_estimate, with_lo
     from rlsac.tasks import task_for
 
-    actor, ckpt_conf = load_actor(o["checkpoint"], device)
+    actor, ckpt_conf = load_actor(o.checkpoint, device)
     ckpt_conf = dict(ckpt_conf or {})
     task = task_for(o, task_options(ckpt_conf))
-    check_reads(o["checkpoint"], actor, in_channels(task), "rlsac")
-    env = with_lo(env_conf(ckpt_conf, o["steps_per_episode"]), lo)
+    check_reads(o.checkpoint, actor, in_channels(task), "rlsac")
+    env = with_lo(env_conf(ckpt_conf, o.steps_per_episode), lo)
     # the policy sees residuals in its training unit, whatever threshold this evaluation scores with (issue #46);
     # a checkpoint from before state_scales sees them at the evaluation threshold, as the record was made: said here
-    scales = state_scales(o["checkpoint"], device, unit=float(task.threshold))
+    scales = state_scales(o.checkpoint, device, unit=float(task.threshold))
     eps = None if scales is None else scales["residual_threshold"]
     noted = eps is not None  # the fallback said once, when the evaluation runs (after every check: no note
     # before a later check's one error line)
@@ -125,12 +125,12 @@ def _rlsac(o, device, lo=None):
             import sys
 
             noted = True
-            print(f"note: {o['checkpoint']} has no state_scales (written before them): its policy sees residuals at "
+            print(f"note: {o.checkpoint} has no state_scales (written before them): its policy sees residuals at "
                   f"the evaluation threshold {float(task.threshold):g}, as the record's models were evaluated",
                   file=sys.stderr)
-        return rlsac_estimate(task, batch, actor, o["iterations"], env, sampling=o["sampling"], generator=g,
-                              policy_every=o["policy_every"], sets_per_step=o["sets_per_step"],
-                              confidence=o["confidence"], state_threshold=eps)
+        return rlsac_estimate(task, batch, actor, o.iterations, env, sampling=o.sampling, generator=g,
+                              policy_every=o.policy_every, sets_per_step=o.sets_per_step,
+                              confidence=o.confidence, state_threshold=eps)
 
     extra = {"steps_per_episode": env.steps_per_episode}
     return task, estimate, extra if eps is None else {**extra, "state_threshold": eps}
@@ -138,15 +138,15 @@ def _rlsac(o, device, lo=None):
 
 @register_method("ngransac", "NG-RANSAC (ours, from the paper)", checkpoint=True)
 def _ngransac(o, device, lo=None):
-    """NG-RANSAC (rlsac.ngransac): our RANSAC with minimal sets drawn from the network of ``o['checkpoint']``."""
+    """NG-RANSAC (rlsac.ngransac): our RANSAC with minimal sets drawn from the network of ``o.checkpoint``."""
     from rlsac.checkpoint import check_reads, task_options
     from rlsac.ngransac import estimate, load
     from rlsac.tasks import task_for
 
-    net, ckpt_conf = load(o["checkpoint"], device)
+    net, ckpt_conf = load(o.checkpoint, device)
     task = task_for(o, task_options(dict(ckpt_conf or {})))
-    check_reads(o["checkpoint"], net, task.feature_dim, "ngransac")
-    return task, lambda batch, g: estimate(task, net, batch, o["iterations"], g, lo=lo), {}
+    check_reads(o.checkpoint, net, task.feature_dim, "ngransac")
+    return task, lambda batch, g: estimate(task, net, batch, o.iterations, g, lo=lo), {}
 
 
 # ------------------------------------------------------------------------------ OpenCV
@@ -164,7 +164,7 @@ def _opencv(flag: str):
         def estimate(batch, g):
             seed = int(torch.randint(0, 2**31 - 1, (1,), generator=g, device=g.device).item())
             quality = task.match_quality(batch) if flag.startswith("prosac") else None
-            return opencv_estimate(task, batch, flag, o["iterations"], threshold=thr, seed=seed, quality=quality)
+            return opencv_estimate(task, batch, flag, o.iterations, threshold=thr, seed=seed, quality=quality)
 
         return task, estimate, {}
     return build
@@ -196,7 +196,7 @@ def _peer(name: str):
 
         def estimate(batch, g):
             seed = int(torch.randint(0, 2**31 - 1, (1,), generator=g, device=g.device).item())
-            return peer_estimate(task, batch, name, o["iterations"], threshold=thr, seed=seed)
+            return peer_estimate(task, batch, name, o.iterations, threshold=thr, seed=seed)
 
         return task, estimate, {}
     return build
@@ -215,8 +215,8 @@ def _with_lo(base: str):
 
         from rlsac.lo import CountingEstimate, conf_for_method
 
-        lo = conf_for_method(f"{base}-lo", o["lo"])
-        task, estimate, extra = METHODS[base].build({**o, "method": base}, device, lo)
+        lo = conf_for_method(f"{base}-lo", o.lo)
+        task, estimate, extra = METHODS[base].build(o.replace(method=base), device, lo)
         return task, CountingEstimate(estimate), {**extra, "lo": asdict(lo)}
     return build
 

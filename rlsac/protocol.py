@@ -329,14 +329,14 @@ def split_points(row: str) -> tuple[str, int | None]:
     return (base, int(n)) if base and n.isdigit() else (row, None)
 
 
-def variants(out: dict[str, dict[str, Any]], p: dict[str, Any], fold: str, trained: str, task: str, run,
+def variants(out: dict[str, dict[str, Any]], p: dict[str, Any], fold: str, trained: str, layout: str, run,
              ablation: list[str]) -> None:
     """Add to ``out`` the variant rows of one training run of each model (``run``: a model's or a row's name -> the
     name of that run's, e.g. <name>-s<seed>): <model>-lo, <model>-fast, the ablation models, <model>-prob."""
     out.update({run(f"{m}-lo"): {"method": f"{model_method(p, m)}-lo",
-                                 "checkpoint": checkpoint(trained, fold, run(m), task)} for m in p["lo_models"]})
+                                 "checkpoint": checkpoint(trained, fold, run(m), layout)} for m in p["lo_models"]})
     out.update({run(f"{m}-fast"): {**out[run(m)], "fast": True} for m in p["fast"]})
-    out.update({run(m): {"method": model_method(p, m), "checkpoint": checkpoint(trained, fold, run(m), task)}
+    out.update({run(m): {"method": model_method(p, m), "checkpoint": checkpoint(trained, fold, run(m), layout)}
                 for m in ablation})
     out.update({run(f"{m}-prob"): {**out[run(m)], "sampling": "prob"} for m in p.get("prob_models", [])})
 
@@ -345,28 +345,29 @@ def rows(p: dict[str, Any], fold: str, regime: str | None = None) -> dict[str, d
     """Every row of the fold benchmark in ``regime`` (None: any) -> {method (evaluate's), checkpoint (RLSAC rows),
     fast (the -fast variant), knobs (the settings tuned after threshold x pre-filter, rlsac.tune)}; the variant rows
     (lo_methods, <model>-lo, <model>-fast) only in ``variant_regimes``."""
-    trained, task = p["model_regime"], p.get("task", "fundamental")  # every regime: the models of this one's data
+    trained = p["model_regime"]  # every regime: the models of this one's data
+    layout = p.get("fold_checkpoint", FOLD_CHECKPOINT)  # the task's (rlsac.folds.for_task)
     out = {m: {"method": m, "checkpoint": None} for m in p["methods"]}
-    out.update({m: {"method": model_method(p, m), "checkpoint": checkpoint(trained, fold, m, task)}
+    out.update({m: {"method": model_method(p, m), "checkpoint": checkpoint(trained, fold, m, layout)}
                 for m in p["models"]})
     out.update({seed_name(m, s): {"method": model_method(p, m), "checkpoint": checkpoint(
-        trained, fold, seed_name(m, s), task)} for s in p.get("seeds", []) for m in p.get("seed_models", [])})
+        trained, fold, seed_name(m, s), layout)} for s in p.get("seeds", []) for m in p.get("seed_models", [])})
     if regime is None or regime in p.get("variant_regimes", p["regimes"]):
         out.update({m: {"method": m, "checkpoint": None} for m in p.get("lo_methods", [])})
-        variants(out, p, fold, trained, task, lambda m: m, p.get("ablation_models", []))
+        variants(out, p, fold, trained, layout, lambda m: m, p.get("ablation_models", []))
         for n in p.get("points", []):  # Table 3 (c): each row on the data with N points, a model trained on it
             out.update({points_name(r, n): {**out[r], "points": int(n), "checkpoint": checkpoint(
-                trained, fold, points_name(r, n), task) if out[r]["checkpoint"] else None}
+                trained, fold, points_name(r, n), layout) if out[r]["checkpoint"] else None}
                 for r in p.get("points_methods", []) + p.get("points_models", [])})
         for s in p.get("seeds", []):  # issue #27: every variant row of a model (all seeded), per training seed
-            variants(out, p, fold, trained, task, lambda m, s=s: seed_name(m, s), p.get("seed_ablation_models", []))
+            variants(out, p, fold, trained, layout, lambda m, s=s: seed_name(m, s), p.get("seed_ablation_models", []))
     for r in out.values():
         r.setdefault("fast", False)
         r.setdefault("points", None)
         r["knobs"] = (["guide_temperature"] if r["method"] in ("guided", "guided-lo") else []) + (
             ["lo_sigma_scale"] if r["method"].endswith("-lo") else []) + (
             ["sets_per_step", "confidence"] if r["fast"] else []) + (
-            ["refit_output"] if task == "essential" and r["method"] in OUR_SAMPLERS else [])
+            list(p.get("sampler_knobs", ())) if r["method"] in OUR_SAMPLERS else [])
     return out
 
 
@@ -456,11 +457,13 @@ def data_dir(regime: str, fold: str, points: int | None = None) -> Path:
     return Path("data") / "folds" / data_regime(regime, points) / fold
 
 
-def checkpoint(regime: str, fold: str, model: str, task: str = "fundamental") -> Path:
-    if task == "essential":  # one model per fold (essential_train), and one per other training seed
-        seed = split_seed(model)[1]
-        return Path("checkpoints") / "essential" / regime / (f"{fold}.pt" if seed is None else f"{fold}-s{seed}.pt")
-    return Path("checkpoints") / "folds" / regime / fold / f"{model}.pt"
+FOLD_CHECKPOINT = "checkpoints/folds/{regime}/{fold}/{model}.pt"  # the fundamental task's (its fold_checkpoint)
+
+
+def checkpoint(regime: str, fold: str, model: str, layout: str = FOLD_CHECKPOINT) -> Path:
+    """Where a fold's model lives: ``layout`` is the task's ``fold_checkpoint`` (a protocol's "fold_checkpoint")."""
+    seed = split_seed(model)[1]
+    return Path(layout.format(regime=regime, fold=fold, model=model, seed="" if seed is None else f"-s{seed}"))
 
 
 def checkpoint_model(path: str | Path) -> str | None:

@@ -619,7 +619,13 @@ def test_a_models_cell_must_hold_the_checkpoint_its_folder_names(tmp_path, row, 
     sampling = "prob" if "-prob" in row else "max"
     (cell / "config.json").write_text(json.dumps({"method": method, "iterations": 100, "checkpoint": ckpt,
                                                   "sampling": sampling}))
-    assert folds.checkpoint_model(folds.checkpoint("hard", "fountain", "rlsac-s3", "essential")) == "rlsac-s3"
+    from rlsac.tasks.essential import EssentialTask
+
+    essential = folds.checkpoint("hard", "fountain", "rlsac-s3", EssentialTask.fold_checkpoint)
+    assert essential == Path("checkpoints/essential/hard/fountain-s3.pt")
+    assert folds.checkpoint_model(essential) == "rlsac-s3"
+    assert folds.checkpoint("hard", "fountain", "rlsac", EssentialTask.fold_checkpoint) == Path(
+        "checkpoints/essential/hard/fountain.pt")
     assert folds.checkpoint_model(folds.checkpoint("hard", "fountain", "rlsac-nosnn")) == "rlsac-nosnn"
     assert folds.checkpoint_model("scratch/ess.pt") is None
     if ok:
@@ -896,3 +902,31 @@ def test_the_train_summary_says_which_actor_was_kept():
                         "steps": 10000}}}
     assert folds.format_summary(s) == ("folds train hard/castle (1.0 s): rlsac -> a.pt (best inlier_ratio 0.425 at "
                                        "step 200); rlsac-scale -> b.pt (the last actor, step 10000)")
+
+
+def test_the_tasks_part_in_the_fold_benchmark_is_the_tasks_not_a_branch_on_its_name():
+    """Issue #65 item 3: Table E's rows, stages, checkpoints and knobs come from EssentialTask's attributes (for_task
+    puts them into the protocol), the fundamental benchmark's from FundamentalTask's; the line task has none."""
+    from rlsac.tasks.essential import EssentialTask
+
+    params = {"essential": {"seeds": [2]}}
+    p = folds.for_task(folds.protocol({}), params, "essential")
+    assert p["fold_stages"] == ["tune", "evaluate"] and p["sampler_knobs"] == ["refit_output"]
+    table = folds.rows(p, "fountain")
+    assert table["rlsac"]["checkpoint"] == Path("checkpoints/essential") / p["model_regime"] / "fountain.pt"
+    assert table["rlsac-s2"]["checkpoint"] == Path("checkpoints/essential") / p["model_regime"] / "fountain-s2.pt"
+    assert "refit_output" in table["rlsac"]["knobs"]
+    assert all("refit_output" not in r["knobs"] for r in table.values() if r["method"] not in folds.OUR_SAMPLERS)
+    f = folds.for_task(folds.protocol({}), params, "fundamental")
+    assert "refit_output" not in folds.rows(f, "fountain")["rlsac"]["knobs"]
+    assert folds.rows(f, "fountain")["rlsac"]["checkpoint"] == Path("checkpoints/folds") / f["model_regime"] / \
+        "fountain/rlsac.pt"
+    with pytest.raises(RlsacError, match="folds --task must be fundamental or essential, got 'line'"):
+        folds.for_task(folds.protocol({}), params, "line")
+    try:  # a task whose fold stages leave out `retune` is refused there, whatever its name
+        EssentialTask.fold_stages = ("tune",)
+        with pytest.raises(RlsacError, match="--stage evaluate: --task essential has tune only"):
+            folds.check_options({"stage": "evaluate", "task": "essential", "fold": "fountain", "regime": "hard"},
+                                folds.for_task(folds.protocol({}), params, "essential"))
+    finally:
+        EssentialTask.fold_stages = ("tune", "evaluate")

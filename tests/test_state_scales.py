@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from rlsac import checkpoint
-from rlsac.evaluate import DEFAULTS
+from rlsac.evaluate import EvalOptions
 from rlsac.methods import METHODS
 from rlsac.policy import Actor, PolicyConf
 from rlsac.rollout import in_channels
@@ -40,8 +40,8 @@ def _first_memories(path, threshold_px, monkeypatch):
         return forward(self, prep, memory)
 
     monkeypatch.setattr(Actor, "forward_memory", spy)
-    o = {**DEFAULTS, "task": "fundamental", "method": "rlsac", "checkpoint": str(path), "iterations": 30,
-         "threshold_px": threshold_px, "steps_per_episode": 15}
+    o = EvalOptions(task="fundamental", method="rlsac", data="", checkpoint=str(path), iterations=30,
+                    threshold_px=threshold_px, steps_per_episode=15)
     task, estimate, extra = METHODS["rlsac"].build(o, "cpu")
     estimate(two_view_batch(2, N=60, seed=3), torch.Generator().manual_seed(7))
     return task, extra, seen[0]

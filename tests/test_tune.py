@@ -3,6 +3,7 @@ pre-filter that evaluate applies, and the guards that keep test pairs out of tun
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -11,7 +12,7 @@ import torch
 
 from rlsac import tune
 from rlsac.errors import RlsacError
-from rlsac.evaluate import check_options
+from rlsac.evaluate import EvalOptions, check_options, run_name
 from rlsac.tasks import get_task, opencv_threshold, prefiltered, task_for
 
 
@@ -24,10 +25,11 @@ def test_px_thresholds_in_each_task_unit():
     assert get_task("fundamental", residual="sampson").px_thresholds(1.5) == (1.5, 1.5)
     t, cv = get_task("essential").px_thresholds(0.92)  # f = 920 px: normalised units
     assert t == pytest.approx(0.001) and cv == pytest.approx(0.001)
-    o = {"task": "fundamental", "threshold_px": 0.5}
+    o = EvalOptions(task="fundamental", method="ransac", data="", threshold_px=0.5)
     assert task_for(o).threshold == 0.25
     assert opencv_threshold(o, task_for(o)) == 0.5
-    assert opencv_threshold({"task": "fundamental"}, task_for({"task": "fundamental"})) == 0.75  # tutorial default
+    plain = o.replace(threshold_px=None)
+    assert opencv_threshold(plain, task_for(plain)) == 0.75  # the tutorial's default
 
 
 def test_prefilter_clears_the_mask_above_the_ratio():
@@ -41,7 +43,10 @@ def test_prefilter_clears_the_mask_above_the_ratio():
 
 def test_evaluate_options_check_the_new_settings():
     base = {"task": "fundamental", "method": "ransac", "data": __file__}
-    assert check_options({**base, "threshold_px": "0.5", "prefilter": 0.8})["threshold_px"] == 0.5
+    o = check_options({**base, "threshold_px": "0.5", "prefilter": 0.8})
+    assert (o.threshold_px, o.prefilter, o.iterations, o.out_dir) == (0.5, 0.8, 1000, f"reports/eval/{run_name(o)}")
+    with pytest.raises(dataclasses.FrozenInstanceError):  # one object, checked once: nobody changes it after
+        o.threshold_px = 1e300
     for bad in ({"threshold_px": 0}, {"prefilter": 1.5}, {"prefilter": 0}):
         with pytest.raises(RlsacError):
             check_options({**base, **bad})
@@ -144,10 +149,11 @@ def test_opencv_hypotheses_bound_follows_the_stopping_rule():
 
 
 def test_refit_output_option_reaches_the_task_and_only_where_it_exists():
-    assert task_for({"task": "essential", "refit_output": True}).refit_output is True
-    assert task_for({"task": "essential"}).refit_output is False  # the task's default
+    essential = EvalOptions(task="essential", method="ransac", data="")
+    assert task_for(essential.replace(refit_output=True)).refit_output is True
+    assert task_for(essential).refit_output is False  # the task's default
     with pytest.raises(RlsacError, match="no refit_output"):
-        task_for({"task": "fundamental", "refit_output": True})
+        task_for(essential.replace(task="fundamental", refit_output=True))
     assert tune.conf({"tuning": {"refit_output": [True, False]}})["refit_output"] == [True, False]
     for bad in ([], ["true"], True):
         with pytest.raises(RlsacError):

@@ -35,6 +35,12 @@ class EssentialTask(FundamentalTask):
     default_iterations: ClassVar[int] = 1000  # the fundamental task's budget (Table 2), for Table E beside it
     residual_dof: ClassVar[int] = 4
     opencv_threshold: ClassVar[float] = 0.75 / STRECHA_FOCAL
+    # Table E: params essential's rows on the fundamental folds' data (their data stages are the fundamental task's),
+    # one model per fold trained by `rlsac train --task essential` (stage essential_train) and one per other seed
+    fold_rows: ClassVar[str] = "essential"
+    fold_stages: ClassVar[tuple[str, ...]] = ("tune", "evaluate")
+    fold_checkpoint: ClassVar[str] = "checkpoints/essential/{regime}/{fold}{seed}.pt"
+    sampler_knobs: ClassVar[tuple[str, ...]] = ("refit_output",)  # the refit of the output (tuning.refit_output)
 
     # Sampson distance in normalised image coordinates: 0.75 px at f = 920 px, the OpenCV rows' untuned default (the
     # tutorial's starter value); the fold benchmark tunes it per fold and row on validation pairs (rlsac.tune)

@@ -27,6 +27,7 @@ class LineTask:
     residual_dof: ClassVar[int] = 2
     true_inlier_data: ClassVar[bool] = True  # the generator stores the inlier mask (method oracle)
     hypothesis_shape: ClassVar[tuple[int, ...]] = (3,)
+    fold_rows: ClassVar[str] = ""  # no fold benchmark: Table 1 is synthetic (rlsac.ablate, rlsac synth-lines)
     read = staticmethod(lines.read)
     to_batch = staticmethod(lines.to_batch)
 

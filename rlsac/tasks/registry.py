@@ -112,24 +112,25 @@ def task_from(name: str, options: dict[str, Any] | None = None) -> Task:
         raise RlsacError(f"bad options for task '{name}': {e}") from None
 
 
-def task_for(o: dict[str, Any], options: dict[str, Any] | None = None) -> Task:
-    """The task of the resolved evaluate options ``o`` (with ``options``, e.g. a checkpoint's), its inlier
-    threshold set from ``o['threshold_px']`` and its final refit from ``o['refit_output']`` when given."""
+def task_for(o: Any, options: dict[str, Any] | None = None) -> Task:
+    """The task of the checked evaluate options ``o`` (rlsac.evaluate.EvalOptions: its task, threshold_px and
+    refit_output are read; with ``options``, e.g. a checkpoint's), its inlier
+    threshold set from ``o.threshold_px`` and its final refit from ``o.refit_output`` when given."""
     import dataclasses
 
-    task = task_from(o["task"], options)
-    if o.get("threshold_px") is not None:
-        task = dataclasses.replace(task, threshold=task.px_thresholds(o["threshold_px"])[0])
-    if o.get("refit_output") is not None:
+    task = task_from(o.task, options)
+    if o.threshold_px is not None:
+        task = dataclasses.replace(task, threshold=task.px_thresholds(o.threshold_px)[0])
+    if o.refit_output is not None:
         if not hasattr(task, "refit_output"):
             raise RlsacError(f"task '{task.name}' has no refit_output option")
-        task = dataclasses.replace(task, refit_output=bool(o["refit_output"]))
+        task = dataclasses.replace(task, refit_output=bool(o.refit_output))
     return task
 
 
-def opencv_threshold(o: dict[str, Any], task: Task) -> float:
-    """OpenCV's threshold for ``o``: the task's default, or ``o['threshold_px']`` in OpenCV's unit."""
-    return task.opencv_threshold if o.get("threshold_px") is None else task.px_thresholds(o["threshold_px"])[1]
+def opencv_threshold(o: Any, task: Task) -> float:
+    """OpenCV's threshold for ``o``: the task's default, or ``o.threshold_px`` in OpenCV's unit."""
+    return task.opencv_threshold if o.threshold_px is None else task.px_thresholds(o.threshold_px)[1]
 
 
 def prefiltered(task: Task, batch: dict, prefilter: float | torch.Tensor | None, keep_short: bool = False) -> dict:
