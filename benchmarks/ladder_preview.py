@@ -1,7 +1,6 @@
 """A preview of the learner's ladder (issue #61) on an accelerator: every synthetic rung and seed side by side, each
 process training on the device and measuring on CPU copies of its actor (rlsac.experiments.ladder, device="cuda"). Not
-the
-record: the committed runs are CPU-made (`rlsac scale --stage ladder`); this confirms them, never replaces them.
+the record: the committed runs are CPU-made (`rlsac scale --stage ladder`); this confirms them, never replaces them.
 
     python benchmarks/ladder_preview.py OUT_DIR [--device cuda] [--steps N] [--rungs a,b] [--seeds 0,1,2]
 """

@@ -325,8 +325,7 @@ def evaluate(tracking: bool, params_path: str, **options) -> None:
 @tracking_option
 def ablate(tracking: bool, sets: tuple[str, ...], **options) -> None:
     """Run one ablation study of Table 3 and print its table (rlsac.experiments.ablate): by default, quickly, on one
-    fold with the
-    committed models (rlsac.experiments.quick); --full at the record's size."""
+    fold with the committed models (rlsac.experiments.quick); --full at the record's size."""
     from rlsac.config import parse_sets
     from rlsac.experiments.ablate import ablate as run
     from rlsac.experiments.ablate import format_summary

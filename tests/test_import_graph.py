@@ -16,8 +16,8 @@ PKG = Path(__file__).resolve().parents[1] / "rlsac"
 
 # the runners: modules that run a protocol's stages (train, tune, evaluate, select) and write results; the reports
 # read what they wrote (rlsac.evaluation.results, rlsac.layout.protocol) and never call them. rlsac.rl.ngransac
-# holds NG-RANSAC's network and sampler since issue #48 (its training is the learner rlsac.learners.ngransac); no
-# report needs it either
+# holds NG-RANSAC's network and sampler since issue #48 (its training is the learner rlsac.learners.ngransac); no report
+# needs it either
 RUNNERS = (
     "rlsac.experiments.folds",
     "rlsac.experiments.folds_retune",

@@ -1,6 +1,5 @@
 """The learner's ladder (issue #61, rlsac.experiments.ladder): the oracle sampler, the supervised loss, each rung's
-generator
-against its target statistics, the records' checks, and one tiny run of the commands end to end."""
+generator against its target statistics, the records' checks, and one tiny run of the commands end to end."""
 
 from __future__ import annotations
 

@@ -1,6 +1,5 @@
 """A stage that fails or is interrupted leaves its outputs as they were (rlsac.runners.dvc_stage.set_aside / restore):
-DVC
-deletes a stage's outputs before its command, so a failed or cancelled stage of `rlsac pipeline` deleted committed
+DVC deletes a stage's outputs before its command, so a failed or cancelled stage of `rlsac pipeline` deleted committed
 files (seen: an interrupted `fold_data_points` stage took two tracked reports/folds/data JSON files with it)."""
 
 from __future__ import annotations

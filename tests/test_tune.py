@@ -1,6 +1,5 @@
 """Issue #26: settings chosen per fold on validation pairs only (rlsac.evaluation.tune), the pixel thresholds and the
-SNN
-pre-filter that evaluate applies, and the guards that keep test pairs out of tuning."""
+SNN pre-filter that evaluate applies, and the guards that keep test pairs out of tuning."""
 
 from __future__ import annotations
 

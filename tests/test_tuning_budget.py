@@ -1,6 +1,6 @@
 """Issue #47 item 7: rows tuned at the test budget (``rlsac folds --tune-iterations``), the re-selection of settings on
-bootstrap resamples of the validation pairs (rlsac.evaluation.retune) and the report reports/tuning_budget.md built
-from them."""
+bootstrap resamples of the validation pairs (rlsac.evaluation.retune) and the report reports/tuning_budget.md built from
+them."""
 
 from __future__ import annotations
 
@@ -45,8 +45,8 @@ def fold(tmp_path, monkeypatch):
 
     def score(o, data, device):
         calls.append(o)
-        best = 1.0 if o["iterations"] == 1000 else 0.5
-        v = 1.0 - abs(o["threshold_px"] - best)
+        best = 1.0 if o.iterations == 1000 else 0.5  # o: the checked EvalOptions
+        v = 1.0 - abs(o.threshold_px - best)
         return {"mAA": v, "mAA_R": v, "mAA_t": v}, {}
 
     monkeypatch.setattr("rlsac.evaluation.evaluate.score", score)
@@ -65,7 +65,7 @@ def test_tune_iterations_tunes_at_that_budget_beside_the_tables_record(fold, tmp
     at = json.loads((tmp_path / "reports/tuning_at1000/fundamental/hard/castle/magsac.json").read_text())
     assert (tables["iterations"], tables["chosen"]["threshold_px"]) == (100, 0.5)
     assert (at["iterations"], at["chosen"]["threshold_px"]) == (1000, 1.0)
-    assert {o["iterations"] for o in fold} == {100, 1000} and len(fold) == 4  # two grid points at each budget
+    assert {o.iterations for o in fold} == {100, 1000} and len(fold) == 4  # two grid points at each budget
 
 
 def test_evaluate_at_the_tuned_budget_reads_its_record_and_tests_at_it_alone(fold, tmp_path, monkeypatch):

@@ -64,8 +64,7 @@ class EvalOptions:
     """One evaluation's options: built and checked once (``check_options``: by ``rlsac evaluate`` at the command
     line's edge, and by every command that runs evaluations before its first one), then read by attribute down to the
     method's estimator (rlsac.evaluation.methods, rlsac.tasks.task_for). Its fields are what config.json and the MLflow
-    run
-    record (``recorded_options``)."""
+    run record (``recorded_options``)."""
 
     task: str  # a registered task (rlsac.tasks.TASKS)
     method: str  # a registered method (rlsac.evaluation.methods.METHODS)
@@ -96,8 +95,7 @@ class EvalOptions:
     sets_per_step: int = 1
     confidence: float = 0.0
     # the two settings the CVPR 2020 tutorial tunes per method on validation (rlsac.evaluation.tune; None = off): the
-    # inlier
-    # threshold in pixels for every method (ours: the task's residual unit, OpenCV: its threshold), and the SNN
+    # inlier threshold in pixels for every method (ours: the task's residual unit, OpenCV: its threshold), and the SNN
     # pre-filter, matches whose SNN ratio is above it are dropped before the method sees the pair
     threshold_px: float | None = None
     prefilter: float | None = None

@@ -7,8 +7,7 @@ table shows an absent cell as "–" but never a number made from text, NaN or a 
 values to NaN printed a wrong "+0.701" at exit 0).
 
 Below the runners and the reports (it imports the protocol's names, rlsac.layout.protocol, and the method registry to
-check
-a cell's configuration): the runners (folds, selection, tune) and every report module read through it, so there is
+check a cell's configuration): the runners (folds, selection, tune) and every report module read through it, so there is
 one definition of a valid result file, and a report never needs a runner.
 """
 

@@ -8,8 +8,7 @@ re-selection of a row's settings on bootstrap resamples of its validation pairs.
 (b) The intervals resample test pairs with each row's settings fixed; the settings were chosen on a few dozen
     validation pairs, which are a sample too. ``retune_*``: the rows whose choice is replayed on ``retune_draws``
     stratified resamples of the validation pairs with the tuning's own rule (rlsac.evaluation.tune.search), each
-    re-selected
-    setting tested on the fold's test pairs at ``retune_iterations`` (``rlsac folds --stage retune``,
+    re-selected setting tested on the fold's test pairs at ``retune_iterations`` (``rlsac folds --stage retune``,
     reports/retune/).
 
 Pure functions only (no runner, no files): the runner rlsac.experiments.folds_retune and the report
@@ -100,8 +99,7 @@ def draws(strata, n: int, seed: int) -> np.ndarray:
 def reselect(errors: Callable[[dict[str, Any]], tuple[np.ndarray, np.ndarray]], strata, c: dict[str, Any],
              knobs: list[str], n: int, seed: int, limit: float) -> tuple[dict[str, Any], list[dict[str, Any]]]:
     """The tuning's rule (rlsac.evaluation.tune.search with grid ``c``, params ``tuning``) run on all validation pairs,
-    then on
-    each of ``n`` stratified resamples of them (``draws``).
+    then on each of ``n`` stratified resamples of them (``draws``).
 
     errors(settings) -> (err_R, err_t) on every validation pair, in the order of ``strata`` (the caller caches: the
     rule visits a point once per draw). -> (the choice on all pairs, the choice of each draw)."""

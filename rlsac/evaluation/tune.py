@@ -128,8 +128,8 @@ def search(run, base: dict[str, Any], c: dict[str, Any], knobs: list[str],
     run(options) -> summary dict with ``CRITERION``; ``knobs``: the row's own settings after the threshold x
     pre-filter grid (keys of ``c``). -> (chosen settings, every grid point as {settings, mAA, mAA_R, mAA_t}).
     ``on_settings``: run gets the grid point's settings themselves (rlsac.evaluation.retune replays the rule on stored
-    errors,
-    keyed by settings). The rule is this function's alone: the re-tuning study re-selects with it, never a copy."""
+    errors, keyed by settings). The rule is this function's alone: the re-tuning study re-selects with it, never a
+    copy."""
     points: list[dict] = []
     cache: dict[tuple, dict] = {}
 

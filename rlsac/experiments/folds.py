@@ -34,8 +34,7 @@ from rlsac.evaluation.tune import tuned_settings  # noqa: F401
 from rlsac.io import check_writable, write_json
 
 # the benchmark's vocabulary (rlsac.layout.protocol), and the tuned settings' reader (rlsac.evaluation.tune); also
-# re-exported for the
-# callers of rlsac.experiments.folds (rlsac.experiments.scale, the tests)
+# re-exported for the callers of rlsac.experiments.folds (rlsac.experiments.scale, the tests)
 from rlsac.layout.protocol import (  # noqa: F401
     DEFAULTS,
     OUR_SAMPLERS,

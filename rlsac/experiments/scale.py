@@ -10,8 +10,8 @@ Stages (params.yaml ``scale``, rlsac.layout.scale_layout):
             ``pretrain`` first ``pretrain.steps`` steps on the synthetic pairs, then redraw's from those networks;
   fit       the synthetic generator's statistics fitted to the fold's training pairs, beside its own pairs';
   synthetic the pretrain arm's synthetic pairs (``pretrain.pairs``, drawn with those statistics);
-  control   the learner's positive control on synthetic pairs (rlsac.experiments.positive_control, params
-  positive_control);
+  control   the learner's positive control on synthetic pairs (rlsac.experiments.positive_control,
+            params positive_control);
   validate  every kept actor on the fold's validation pairs at ``iterations``, with the settings below: what
             chooses the recipe to carry forward (the pre-filter arm sees the pre-filter it would be tested with);
   evaluate  every kept actor on the fold's test pairs at ``iterations`` (``evaluate-final``: the actors of

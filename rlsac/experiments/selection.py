@@ -4,10 +4,10 @@ the choice is worth on the fold's test pairs.
 A fold model's checkpoint holds one actor: the validated one with the best score of its selection rule (the paper's
 unsupervised validation inlier ratio). The others are gone, so ``select_fold`` replays the training with the same
 options and seed (rlsac.evaluation.train is deterministic on the CPU; the replay must give the kept actor bit for bit,
-or the
-stage fails) and keeps every validated actor. Each is evaluated on the fold's test pairs at ``folds.select_iterations``
-with the settings tuned for the kept actor (its tuning record: chosen on validation pairs only); the kept actor's
-errors are read from its own evaluation (fold_eval*), which the replay just showed is the same actor's.
+or the stage fails) and keeps every validated actor. Each is evaluated on the fold's test pairs at
+``folds.select_iterations`` with the settings tuned for the kept actor (its tuning record: chosen on validation pairs
+only); the kept actor's errors are read from its own evaluation (fold_eval*), which the replay just showed is the same
+actor's.
 
 Outputs, per (regime, fold, model) under reports/selection/: ``<model>.csv`` (step, iterations, pair, err_R, err_t of
 every validated actor) and ``<model>.json`` (the validation history, the kept and the last step, each step's test

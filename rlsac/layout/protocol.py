@@ -1,6 +1,6 @@
 """The protocol's vocabulary: the fold benchmark's rows, names and result paths, and how results are compared, shared
-by its runners (rlsac.experiments.folds, rlsac.experiments.selection, rlsac.experiments.scale) and the reports that
-read their results.
+by its runners (rlsac.experiments.folds, rlsac.experiments.selection, rlsac.experiments.scale) and the reports that read
+their results.
 
 params.yaml ``folds`` read and checked (``read``); its rows, models and training seeds and their names (<model>-s<seed>,
 <row>-n<N>); where each stage writes (data, checkpoints, evaluations, tuning records); the mAA limits and bootstrap
@@ -75,9 +75,8 @@ DEFAULTS: dict[str, Any] = {
     # confidence tuned on validation: rows <model>-fast (not in the paper; the plain rows are the paper's algorithm)
     "fast": [],
     # checkpoint selection measured (issue #27, item 3; rlsac.experiments.selection): these models (of seed_models:
-    # every training
-    # seed) replayed, each validated actor tested at these budgets of the model regime; validation scores within
-    # select_tie of the kept one's count as a tie
+    # every training seed) replayed, each validated actor tested at these budgets of the model regime; validation scores
+    # within select_tie of the kept one's count as a tie
     "select_models": [],
     "select_iterations": [1000],
     "select_tie": 0.01,
@@ -88,8 +87,7 @@ def read(params: dict[str, Any], methods: Mapping[str, Any] | None = None,
          train_conf: Callable[[dict[str, Any], str], Any] | None = None) -> dict[str, Any]:
     """``DEFAULTS`` with each key replaced by params.yaml ``folds``'s, checked for consistency. ``methods`` (the
     evaluate methods' registry, rlsac.evaluation.methods.METHODS) and ``train_conf`` (a training recipe and its name ->
-    its
-    TrainConf, checked) add the checks of the rows' methods and recipes: rlsac.experiments.folds.protocol passes
+    its TrainConf, checked) add the checks of the rows' methods and recipes: rlsac.experiments.folds.protocol passes
     both."""
     from rlsac.config import over_defaults, section
 
@@ -349,8 +347,7 @@ def variants(out: dict[str, dict[str, Any]], p: dict[str, Any], fold: str, train
 def rows(p: dict[str, Any], fold: str, regime: str | None = None) -> dict[str, dict[str, Any]]:
     """Every row of the fold benchmark in ``regime`` (None: any) -> {method (evaluate's), checkpoint (RLSAC rows),
     fast (the -fast variant), knobs (the settings tuned after threshold x pre-filter, rlsac.evaluation.tune)}; the
-    variant rows
-    (lo_methods, <model>-lo, <model>-fast) only in ``variant_regimes``."""
+    variant rows (lo_methods, <model>-lo, <model>-fast) only in ``variant_regimes``."""
     trained = p["model_regime"]  # every regime: the models of this one's data
     layout = p.get("fold_checkpoint", FOLD_CHECKPOINT)  # the task's (rlsac.experiments.folds.for_task)
     out = {m: {"method": m, "checkpoint": None} for m in p["methods"]}

@@ -87,9 +87,8 @@ class TrainConf:
     # faster on CPU under the portable pins, other last bits (not in the paper: an implementation choice)
     kernels: str = "aten"
     # the SAC update's EdgeConv neighbour max (rlsac.rl.kernels): "eager", the record's; "compiled", torch.compile's
-    # fused
-    # kernels (a C++ compiler at run time), the same bytes, 1.37x faster per update (reports/speed_training.json); a
-    # speed setting, so a state trained with one resumes with the other
+    # fused kernels (a C++ compiler at run time), the same bytes, 1.37x faster per update (reports/speed_training.json);
+    # a speed setting, so a state trained with one resumes with the other
     neighbour_max: str = "eager"
     # not in the paper (issue #46, the pretraining arm): a training state (<out>.state.pt of another run) whose networks
     # (actor, critics, targets, temperature) start this run; its optimisers, replay buffer and step are not carried

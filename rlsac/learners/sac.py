@@ -49,8 +49,7 @@ def train(conf: TrainConf, track: bool = True, snapshots: list | None = None) ->
     """RLSAC's training: ``conf`` a checked TrainConf (rlsac.learners.harness.check; method "rlsac"); train, keep the
     selected actor in ``out``; -> a summary. ``snapshots``: a list that receives the checkpoint payload of every
     validated actor, kept or not (rlsac.experiments.selection replays a fold model's training to measure the choice;
-    nothing of
-    the run itself changes)."""
+    nothing of the run itself changes)."""
     out, state_path = Path(conf.out), Path(conf.out).with_suffix(".state.pt")
     if conf.threads > 0:
         torch.set_num_threads(conf.threads)

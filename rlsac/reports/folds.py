@@ -28,8 +28,7 @@ from rlsac.layout.protocol import LIMIT, N_BOOT  # mAA@10 deg, the bootstrap's d
 from rlsac.maths.metrics import mAA, paired_bootstrap_maa
 
 # row labels: each registered method's (rlsac.evaluation.methods), the fold models' (RLSAC variants of folds.models)
-# here;
-# rows follow ROW_ORDER, then any other method or model alphabetically
+# here; rows follow ROW_ORDER, then any other method or model alphabetically
 MODEL_NAMES = {"rlsac": "RLSAC (paper recipe and algorithm)",
                "rlsac-nodesc": "RLSAC without descriptors (Table 3 a)",
                "rlsac-trainmax": "RLSAC, max sampling in training (Table 3 b)",

@@ -3,8 +3,7 @@
 Reads the ladder's run records (experiments/ladder/<rung>/s<seed>.json: a run's curve and per-pair test errors) and
 each rung's controls (…/controls.json: uniform, guided and oracle sets in the same environment); nothing is run
 here (rlsac.experiments.ladder makes them). Comparisons are paired on each rung's test pairs and resample training
-seeds, then
-pairs (rlsac.maths.metrics.seed_bootstrap_maa); pi(inliers) intervals the same way.
+seeds, then pairs (rlsac.maths.metrics.seed_bootstrap_maa); pi(inliers) intervals the same way.
 """
 
 from __future__ import annotations

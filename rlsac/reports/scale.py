@@ -33,8 +33,7 @@ LIMIT = 10.0  # mAA@10 deg, Table 2's
 
 def _errors(path: Path, keys: pd.Index | None) -> tuple[np.ndarray, np.ndarray, pd.Index]:
     """An evaluation folder's errors (rlsac.evaluation.results' refusing reader: finite, one row per counted pair) ->
-    err_R,
-    err_t and the pairs' keys, which must be ``keys`` where given (the same test pairs in the same order)."""
+    err_R, err_t and the pairs' keys, which must be ``keys`` where given (the same test pairs in the same order)."""
     df = read_errors(path / "errors.csv", ("err_R", "err_t"))
     if df is None or not {"scene", "pair"} <= set(df.columns):
         raise RlsacError(f"{path}: no errors.csv with the pairs' scene and pair columns")

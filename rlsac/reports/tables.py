@@ -67,9 +67,8 @@ F_HEADERS = {"mAA_R": "mAA@10° R", "mAA_t": "mAA@10° t", "median_R": "median �
 
 
 def read_errors(path: Path, column: str = "err_deg"):
-    """Column ``column`` of an evaluation's errors.csv (rlsac.evaluation.results: a corrupt file is an error naming
-    it), None
-    when the file is absent."""
+    """Column ``column`` of an evaluation's errors.csv (rlsac.evaluation.results: a corrupt file is an error naming it),
+    None when the file is absent."""
     return read_errors_column(path, column)
 
 
@@ -534,8 +533,7 @@ def build(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
 
     # the selection term's records (issue #62), every re-tuning record read and checked
     # (rlsac.evaluation.results.read_retune_record) before the run, for the builders that use it (issue #64: a corrupt
-    # record
-    # failed inside the run)
+    # record failed inside the run)
     term: retuning.Selection | None | retuning.Compute = retuning.COMPUTE
     if which in ("claims", "paper", "tuning-budget", "all"):
         term = retuning.Selection(out_dir)

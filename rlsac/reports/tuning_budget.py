@@ -47,8 +47,7 @@ def _budget_row(c: dict[str, Any], eval_root: Path, out_dir: Path, regime: str, 
                 ) -> dict[str, Any] | str:
     """Part (a) for one row over its training seeds ``names`` (a library row: one name): tuned@N against the tables'
     cell, paired on the same test pairs, the seeds resampled too (rlsac.maths.metrics.seed_bootstrap_maa) -> the
-    report's
-    row, or the reason it is missing."""
+    report's row, or the reason it is missing."""
     from rlsac.evaluation.results import pair_key, read_record
     from rlsac.layout.protocol import LIMIT, N_BOOT, at_suffix
     from rlsac.maths.metrics import seed_bootstrap_maa
@@ -177,8 +176,7 @@ def decision(rows: list[dict[str, Any]], margin: float, term: dict[str, Any] | N
         "takes one of these records' validation resamples, re-chooses each re-tuned row's setting on it, then "
         "resamples seeds and test pairs (rlsac.maths.metrics.contrast_bootstrap); a row with fixed settings gets no "
         "term, a learned row's per-seed tuning is counted once (in its seed spread), and a tuned row without a record "
-        "is "
-        "marked *not measured* there. paper.md lists the verdicts that moved.\n")
+        "is marked *not measured* there. paper.md lists the verdicts that moved.\n")
 
 
 def build(params: dict[str, Any], eval_root: str | Path = "reports/eval", out_dir: str | Path = "reports",
@@ -225,8 +223,8 @@ def build(params: dict[str, Any], eval_root: str | Path = "reports/eval", out_di
         "the choice on all validation pairs (the tables' cell); `tables' ±`: the half-width of that cell's own 95% "
         "interval over test pairs; `all pairs = tables' record`: folds where the rule on all validation pairs gives "
         "the tables' record (it must); `settings chosen`: distinct choices per fold; `draws ≠ tables' choice`: the "
-        "share of "
-        f"draws (mean over folds) that chose another setting. The claims' tie margin is ±{TIE_MARGIN}.\n\n")
+        "share of draws (mean over folds) that chose another setting. The claims' tie margin is "
+        f"±{TIE_MARGIN}.\n\n")
     df_b = pd.DataFrame([{k: v for k, v in r.items() if not k.startswith("_")} for r in b_rows])
     if b_rows:
         sec_b += df_b.to_markdown(index=False, disable_numparse=True) + "\n\n"

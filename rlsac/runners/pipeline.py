@@ -2,8 +2,7 @@
 
 The plan comes from DVC's stage graph (``Repo.index.graph``) and DVC's rules on dvc.lock with each file hashed once
 (rlsac.runners.stage_status: ``Stage.changed`` per stage took minutes), once: a stage runs when it changed or when a
-stage it
-depends on runs; frozen stages and stages without a command never run. Each stage is one Ray task
+stage it depends on runs; frozen stages and stages without a command never run. Each stage is one Ray task
 (``num_cpus=1``; ``num_gpus`` for the stages matching ``gpu_stages`` when ``gpus_per_train`` > 0). With the direct
 runner (the default, issue #50) the task runs the stage's own command as DVC would and computes its lock entry with
 DVC's code, and this process, the one writer, merges the entries into ``dvc.lock`` by an atomic rename
@@ -85,11 +84,10 @@ def load_plan(repo_dir: str | os.PathLike, names: str | None = None, runner: str
     """-> {"root", "order" (every runnable stage, dependencies first), "deps" {address: [addresses it needs]},
     "todo" (addresses to run, in order), "selected" (addresses considered), "specs" and "writer"}. With ``runner``
     "direct", "specs" {address: what a task needs to run it, rlsac.runners.dvc_stage.stage_spec} (a ``.dvc`` file's
-    stage
-    has none: it keeps ``dvc repro -s``) and "writer" (the lock files' one writer, rlsac.runners.dvc_stage.LockWriter),
-    made
-    while the repository lock is held; else {} and None. Raises RlsacError on a path that is not a DVC repository,
-    an unreadable pipeline, a lock file not laid out as DVC writes it, or a name that matches no stage. With
+    stage has none: it keeps ``dvc repro -s``) and "writer" (the lock files' one writer,
+    rlsac.runners.dvc_stage.LockWriter), made while the repository lock is held; else {} and None. Raises RlsacError on
+    a path that is not a DVC repository, an unreadable pipeline, a lock file not laid out as DVC writes it, or a name
+    that matches no stage. With
     ``remote`` (nodes share no disk), "paths" {address: its dependencies that travel,
     rlsac.runners.transfer.stage_paths},
     and RlsacError for a stage to run that only ``dvc repro -s`` runs (a ``.dvc`` file's)."""
@@ -193,10 +191,9 @@ CHANGED, UPSTREAM, REGENERATE, AFTER_DATA, UP_TO_DATE = ("changed", "upstream ch
 def _reasons(repo, runnable: list, addr: dict, deps: dict) -> tuple[dict[str, str], str]:
     """({address: one of the reasons above}, how the files were checked), in dependency order, by DVC's rules on
     dvc.lock and the files' md5s (rlsac.runners.stage_status: each file hashed once, kept by size and time across
-    plans). A
-    missing input counts as a change unless a stage that only re-makes missing outputs makes it: it is one of their
-    outputs or lies inside one (``fold_data`` records the folder data/folds/<regime>/<fold>, later stages read files
-    in it)."""
+    plans). A missing input counts as a change unless a stage that only re-makes missing outputs makes it: it is one of
+    their outputs or lies inside one (``fold_data`` records the folder data/folds/<regime>/<fold>, later stages read
+    files in it)."""
     from rlsac.runners.stage_status import Status
 
     status = Status(repo)
@@ -878,9 +875,8 @@ def _end_session(session: str) -> int:
 def recover(repo: str | os.PathLike = ".", required: bool = False) -> dict:
     """What a SIGKILLed driver of this repository left, repaired: its local Ray cluster's processes that outlived it
     ended, then the outputs its stages had set aside put back (rlsac.runners.dvc_stage.recover). ``repo``: the
-    repository or
-    a folder in it (``required``: else an error; not: nothing to do). -> {"processes": how many were ended,
-    "outputs": the paths restored, from the root}."""
+    repository or a folder in it (``required``: else an error; not: nothing to do). -> {"processes": how many were
+    ended, "outputs": the paths restored, from the root}."""
     from rlsac.runners.dvc_stage import _alive
     from rlsac.runners.dvc_stage import recover as recover_outputs
 
@@ -920,8 +916,7 @@ def format_recovery(r: dict) -> str | None:
 
 def _restore_interrupted(plan: dict, addresses) -> None:
     """The outputs of the stages an interruption stopped, as they were before them (rlsac.runners.dvc_stage.restore,
-    once
-    each stage's guard has ended its command): a cancelled worker cannot do it, and DVC's way (outputs deleted
+    once each stage's guard has ended its command): a cancelled worker cannot do it, and DVC's way (outputs deleted
     before the command) would leave committed files deleted. A --remote stage's outputs are on its node."""
     if plan.get("remote") is not None:
         return

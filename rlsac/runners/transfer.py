@@ -399,9 +399,8 @@ def _tree_dir(store: Store, oid: str) -> Path:
     """The code tree, fetched and unpacked once per node (a rename makes it appear whole): each stage's folder is a
     copy of it by hard links (the quick profile's tree is 9,300 files, 85 MB packed; unpacking it for every stage
     cost seconds a stage). Safe because a stage never writes into a file of the tree in place: its outputs are
-    removed before its command runs (rlsac.runners.dvc_stage.run), so what it writes are new files, and DVC's
-    .gitignore edits
-    are recorded, not made (rlsac.runners.dvc_stage)."""
+    removed before its command runs (rlsac.runners.dvc_stage.run), so what it writes are new files, and DVC's .gitignore
+    edits are recorded, not made (rlsac.runners.dvc_stage)."""
     path = _node_dir() / "trees" / oid
     if not path.is_dir():
         path.parent.mkdir(parents=True, exist_ok=True)

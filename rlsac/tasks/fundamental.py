@@ -35,9 +35,8 @@ class FundamentalTask:
     residual_dof: ClassVar[int] = 4  # as OpenCV's MAGSAC++ for F
     true_inlier_data: ClassVar[bool] = False
     # its part in the fold benchmark (rlsac.experiments.folds puts these into the protocol it runs, so that no module
-    # branches
-    # on a task's name): the params section naming its rows, the `folds` stages it has, where a fold's models live
-    # ({model} the row's model, {seed} "-s<seed>" or ""), and what its rows of our samplers tune after threshold x
+    # branches on a task's name): the params section naming its rows, the `folds` stages it has, where a fold's models
+    # live ({model} the row's model, {seed} "-s<seed>" or ""), and what its rows of our samplers tune after threshold x
     # pre-filter
     fold_rows: ClassVar[str] = "folds"
     fold_stages: ClassVar[tuple[str, ...]] = ("data", "pool", "train", "tune", "evaluate", "select", "retune")
