@@ -218,7 +218,7 @@ def main_run(data: Path, out: Path, device: str, workers: int, iterations: dict)
         walls[("train",) + key] = wall
         checks.expect(rc == 0 and ck.is_file(), f"train {' '.join(key)}: exit {rc}, {wall:.1f} s {last}")
         if rc == 0:
-            from rlsac.checkpoint import load_actor
+            from rlsac.rl.checkpoint import load_actor
 
             try:
                 load_actor(ck, "cpu", kind="ngransac" if key[1] == "ngransac" else "rlsac")

@@ -41,11 +41,11 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 from timing import Clocks, Split, add_sampler_args, format_split, opencv_hypotheses, sampler_args  # noqa: E402
 
-from rlsac import checkpoint  # noqa: E402
-from rlsac.baselines import opencv_estimate, ransac  # noqa: E402
-from rlsac.evaluate import pair_seed, resolve_device, task_from  # noqa: E402
-from rlsac.policy import Actor, PolicyConf  # noqa: E402
-from rlsac.rollout import in_channels, rlsac_estimate  # noqa: E402
+from rlsac.estimation.baselines import opencv_estimate, ransac  # noqa: E402
+from rlsac.evaluation.evaluate import pair_seed, resolve_device, task_from  # noqa: E402
+from rlsac.rl import checkpoint  # noqa: E402
+from rlsac.rl.policy import Actor, PolicyConf  # noqa: E402
+from rlsac.rl.rollout import in_channels, rlsac_estimate  # noqa: E402
 from rlsac.tasks.fundamental import FundamentalTask  # noqa: E402
 
 

@@ -14,8 +14,8 @@ import time
 import numpy as np
 import torch
 
-from rlsac.baselines import opencv_estimate, ransac
-from rlsac.sampling import gather_points, uniform_minimal_sets
+from rlsac.estimation.baselines import opencv_estimate, ransac
+from rlsac.estimation.sampling import gather_points, uniform_minimal_sets
 from rlsac.tasks.fundamental import FundamentalTask
 
 

@@ -1,6 +1,6 @@
 """A preview of the learner's ladder (issue #61) on an accelerator: every synthetic rung and seed side by side, each
-process training on the device and measuring on CPU copies of its actor (rlsac.ladder, device="cuda"). Not the
-record: the committed runs are CPU-made (`rlsac scale --stage ladder`); this confirms them, never replaces them.
+process training on the device and measuring on CPU copies of its actor (rlsac.experiments.ladder, device="cuda"). Not
+the record: the committed runs are CPU-made (`rlsac scale --stage ladder`); this confirms them, never replaces them.
 
     python benchmarks/ladder_preview.py OUT_DIR [--device cuda] [--steps N] [--rungs a,b] [--seeds 0,1,2]
 """
@@ -16,7 +16,7 @@ from pathlib import Path
 
 import yaml
 
-ONE = ("import json, sys, yaml; from rlsac.ladder import run; p = yaml.safe_load(open('params.yaml')); "
+ONE = ("import json, sys, yaml; from rlsac.experiments.ladder import run; p = yaml.safe_load(open('params.yaml')); "
        "p['ladder'].update(json.loads(sys.argv[1])); print(run(p, sys.argv[2], int(sys.argv[3]), 1, sys.argv[4]))")
 
 

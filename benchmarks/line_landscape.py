@@ -26,7 +26,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from rlsac import line_calibration as lc  # noqa: E402
+from rlsac.experiments import line_calibration as lc  # noqa: E402
 from rlsac.io import atomic_path, write_text  # noqa: E402
 
 UNIFORM_BANDS = [0.03, 0.035, 0.04, 0.045, 0.05, 0.06, 0.07, 0.0825, 0.1]

@@ -12,7 +12,7 @@
    paper setting's) and our batched RANSAC at the same budget; ms per instance and the ratios.
    Then where RLSAC's time goes (model / selection / solver+scoring / state / refinement / other) at
    the smallest and largest batch, and RLSAC after / RANSAC at each of ``--compare-threads``.
-2. Training: ``rlsac.sac.train_loop`` for ``--train-steps`` vector-env steps with an update every step
+2. Training: ``rlsac.rl.sac.train_loop`` for ``--train-steps`` vector-env steps with an update every step
    (lines: 32 envs, SAC batch 64; fundamental: synthetic pairs, N = 150, 264 channels, 16 envs, batch
    32, as in params.yaml), once with the networks' original forward pass (``reference_forward``) and
    once with the current one: steps per CPU second before and after.
@@ -34,14 +34,14 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 from timing import CLOCK, Clocks, Split, add_sampler_args, format_split, sampler_args  # noqa: E402
 
-from rlsac import checkpoint  # noqa: E402
-from rlsac.baselines import ransac  # noqa: E402
 from rlsac.data import lines  # noqa: E402
-from rlsac.env import EnvConf  # noqa: E402
-from rlsac.evaluate import resolve_device  # noqa: E402
-from rlsac.policy import Actor, PointNet, PolicyConf  # noqa: E402
-from rlsac.rollout import in_channels, rlsac_estimate  # noqa: E402
-from rlsac.sac import SACAgent, SACConf, train_loop  # noqa: E402
+from rlsac.estimation.baselines import ransac  # noqa: E402
+from rlsac.evaluation.evaluate import resolve_device  # noqa: E402
+from rlsac.rl import checkpoint  # noqa: E402
+from rlsac.rl.env import EnvConf  # noqa: E402
+from rlsac.rl.policy import Actor, PointNet, PolicyConf  # noqa: E402
+from rlsac.rl.rollout import in_channels, rlsac_estimate  # noqa: E402
+from rlsac.rl.sac import SACAgent, SACConf, train_loop  # noqa: E402
 from rlsac.tasks.fundamental import FundamentalTask  # noqa: E402
 from rlsac.tasks.line import LineTask  # noqa: E402
 

@@ -1,12 +1,12 @@
-"""Cost of the local-optimisation step (rlsac.lo) relative to the sampler's own time, in the same run.
+"""Cost of the local-optimisation step (rlsac.estimation.lo) relative to the sampler's own time, in the same run.
 
     python benchmarks/lo.py [--task fundamental|line] [--data FILE] [--methods ransac-lo,uniform-lo,rlsac-lo]
                             [--iterations 1000] [--checkpoint CKPT] [--pairs 30] [--threads 1] [--params params.yaml]
 
-Each method runs as ``rlsac evaluate`` would (``rlsac.evaluate.make_estimator``, LO options from
+Each method runs as ``rlsac evaluate`` would (``rlsac.evaluation.evaluate.make_estimator``, LO options from
 params.yaml ``evaluate.<task>.lo``): fundamental pairs one at a time (batch 1, the evaluation's layout),
 lines in one batch of ``--pairs`` instances. For every method: wall time per instance, the part spent
-inside the LO steps (timed inside ``rlsac.lo.update_best`` / ``finish``), the sampler's own time (the
+inside the LO steps (timed inside ``rlsac.estimation.lo.update_best`` / ``finish``), the sampler's own time (the
 rest: minimal sets, solver, scoring, policy) and the ratio LO / sampler; LO calls and non-minimal fits per
 instance. CPU only (the LO timers do not synchronise a GPU). No timing is asserted anywhere.
 """
@@ -20,7 +20,7 @@ from pathlib import Path
 import torch
 
 from rlsac.config import read_params, section
-from rlsac.evaluate import EvalOptions, make_estimator
+from rlsac.evaluation.evaluate import EvalOptions, make_estimator
 from rlsac.tasks import task_class
 
 DEFAULT_DATA = {"fundamental": "data/folds/hard/fountain/test.h5", "line": "data/lines/test_o0.5.h5"}

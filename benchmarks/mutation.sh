@@ -1,11 +1,11 @@
 #!/usr/bin/env bash
-# Mutation testing of the learning core (issue #13) with mutmut 3: every mutant of rlsac/sac.py,
-# rlsac/policy.py and rlsac/rollout.py (SAC update, replay buffer, training loop, EdgeConv networks,
+# Mutation testing of the learning core (issue #13) with mutmut 3: every mutant of rlsac/rl/sac.py,
+# rlsac/rl/policy.py and rlsac/rl/rollout.py (SAC update, replay buffer, training loop, EdgeConv networks,
 # test-time rollout) against the fast learning-core tests. Not part of CI.
 #
 #   .venv/bin/pip install 'mutmut>=3.8'      # once; deliberately not a project dependency
 #   OMP_NUM_THREADS=1 bash benchmarks/mutation.sh [MAX_CHILDREN [MUTANT_PATTERN ...]]
-#   e.g. bash benchmarks/mutation.sh 2 'rlsac.sac*' 'rlsac.rollout*'     (default: 2 workers, every mutant)
+#   e.g. bash benchmarks/mutation.sh 2 'rlsac.rl.sac*' 'rlsac.rl.rollout*'     (default: 2 workers, every mutant)
 #   SAMPLE=300 SEED=0 bash benchmarks/mutation.sh 2   # a uniform random sample of 300 of the mutants
 #
 # Runs in a temporary copy of the repository (the working tree is never touched; MUTATION_DIR keeps
@@ -33,9 +33,9 @@ cat > "$WORK/setup.cfg" <<'EOF'
 [mutmut]
 source_paths = rlsac
 only_mutate =
-    rlsac/sac.py
-    rlsac/policy.py
-    rlsac/rollout.py
+    rlsac/rl/sac.py
+    rlsac/rl/policy.py
+    rlsac/rl/rollout.py
 pytest_add_cli_args_test_selection =
     tests/test_sac.py
     tests/test_policy.py

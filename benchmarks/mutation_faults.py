@@ -26,39 +26,39 @@ ALL = [*FAST, "tests/test_learning.py"]
 # name: (file, original text, faulty text, test files to run)
 FAULTS = {
     "actor loss sign flipped": (
-        "rlsac/sac.py", "actor_loss = (p * (alpha * logp - qmin)).sum(-1).mean()",
+        "rlsac/rl/sac.py", "actor_loss = (p * (alpha * logp - qmin)).sum(-1).mean()",
         "actor_loss = -(p * (alpha * logp - qmin)).sum(-1).mean()", ALL),
     "critic target ignores done": (
-        "rlsac/sac.py", "target = reward + c.gamma * (1.0 - done) * v2", "target = reward + c.gamma * v2", ALL),
+        "rlsac/rl/sac.py", "target = reward + c.gamma * (1.0 - done) * v2", "target = reward + c.gamma * v2", ALL),
     "temperature loss sign flipped": (
-        "rlsac/sac.py", "alpha_loss = (self.log_alpha.exp() * (entropy - target_h)).mean()",
+        "rlsac/rl/sac.py", "alpha_loss = (self.log_alpha.exp() * (entropy - target_h)).mean()",
         "alpha_loss = -(self.log_alpha.exp() * (entropy - target_h)).mean()", ALL),
     "stored next state = current state": (
-        "rlsac/sac.py", "buffer.add(inst[act], mem[act], env.memory()[act],",
+        "rlsac/rl/sac.py", "buffer.add(inst[act], mem[act], env.memory()[act],",
         "buffer.add(inst[act], mem[act], mem[act],", ALL),
     "no Polyak update of the target critics": (
-        "rlsac/sac.py", "tp.lerp_(p_, c.tau)", "pass", ALL),
+        "rlsac/rl/sac.py", "tp.lerp_(p_, c.tau)", "pass", ALL),
     "EdgeConv ignores neighbours (training forward)": (
-        "rlsac/policy.py", "nb = _NeighbourMax.apply(b, flat, k).view(R, N, -1)", "nb = b.view(R, N, -1)", ALL),
+        "rlsac/rl/policy.py", "nb = _NeighbourMax.apply(b, flat, k).view(R, N, -1)", "nb = b.view(R, N, -1)", ALL),
     "EdgeConv ignores neighbours (rollout forward_memory)": (
-        "rlsac/policy.py", "a.view(b.shape).add_(nb)", "a.view(b.shape).add_(b)", ALL),
+        "rlsac/rl/policy.py", "a.view(b.shape).add_(nb)", "a.view(b.shape).add_(b)", ALL),
     "EdgeConv ignores neighbours (EdgeConv.forward, reference path)": (
-        "rlsac/policy.py", "nb = b.reshape(R * N, -1).index_select(0, flat).view(R, N, k, -1).amax(dim=2)",
+        "rlsac/rl/policy.py", "nb = b.reshape(R * N, -1).index_select(0, flat).view(R, N, k, -1).amax(dim=2)",
         "nb = b", ALL),
     "test time: max sampling replaced by probabilistic": (
-        "rlsac/rollout.py", "env.step(select_lazily(env, logits, sample=sampling == \"prob\"))",
+        "rlsac/rl/rollout.py", "env.step(select_lazily(env, logits, sample=sampling == \"prob\"))",
         "env.step(select_lazily(env, logits, sample=True))", ALL),
     "test time: memory channels zeroed": (
-        "rlsac/rollout.py", "logits = actor.forward_memory(prepared, env.memory())",
+        "rlsac/rl/rollout.py", "logits = actor.forward_memory(prepared, env.memory())",
         "logits = actor.forward_memory(prepared, torch.zeros_like(env.memory()))", ALL),
     "test time: uniform sets instead of the policy": (
-        "rlsac/rollout.py", "env.step(select_lazily(env, logits, sample=sampling == \"prob\"))",
+        "rlsac/rl/rollout.py", "env.step(select_lazily(env, logits, sample=sampling == \"prob\"))",
         "env.step(env.select(env.action, random=True))", ALL),
     "best-validation selection keeps the worst": (
-        "rlsac/train.py", 'if conf.selection != "last" and score > best["score"]:',
+        "rlsac/evaluation/train.py", 'if conf.selection != "last" and score > best["score"]:',
         'if conf.selection != "last" and (score < best["score"] or best["score"] < 0):', ALL),
     "best-validation selection keeps the latest": (
-        "rlsac/train.py", 'if conf.selection != "last" and score > best["score"]:',
+        "rlsac/evaluation/train.py", 'if conf.selection != "last" and score > best["score"]:',
         'if conf.selection != "last":', ALL),
 }
 

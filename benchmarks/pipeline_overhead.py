@@ -59,7 +59,7 @@ def make_repo(path: Path, n_stages: int, pad: int) -> Path:
 
 
 def run_once(template: Path, work: Path, runner: str, workers: int) -> tuple[float, dict]:
-    from rlsac.pipeline import pipeline
+    from rlsac.runners.pipeline import pipeline
 
     repo = work / runner
     shutil.rmtree(repo, ignore_errors=True)

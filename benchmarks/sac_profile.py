@@ -1,6 +1,6 @@
 """Where a SAC training step's CPU time goes (issue #46, item 3): collection vs update, fixed vs redrawn episodes.
 
-One step of ``rlsac.sac.train_loop`` = one vector-env step of ``num_envs`` episodes (policy forward, minimal-set
+One step of ``rlsac.rl.sac.train_loop`` = one vector-env step of ``num_envs`` episodes (policy forward, minimal-set
 selection, 8-point solves, scoring) + ``updates_per_step`` SAC updates of ``batch_size`` transitions (six network
 passes: actor and target critics on s', critics and actor on s, three backward). Printed as CPU seconds per step and as
 ratios to the update, all measured in this run, on one thread.
@@ -18,11 +18,11 @@ import time
 
 import torch
 
-from rlsac.env import EnvConf, SampleConsensusEnv
-from rlsac.episodes import FixedPairs, RedrawnPairs, pool_tensors
-from rlsac.policy import PolicyConf
-from rlsac.rollout import in_channels
-from rlsac.sac import ReplayBuffer, SACAgent, SACConf, seed_everything
+from rlsac.rl.env import EnvConf, SampleConsensusEnv
+from rlsac.rl.episodes import FixedPairs, RedrawnPairs, pool_tensors
+from rlsac.rl.policy import PolicyConf
+from rlsac.rl.rollout import in_channels
+from rlsac.rl.sac import ReplayBuffer, SACAgent, SACConf, seed_everything
 from rlsac.tasks import read_batch
 from rlsac.tasks.fundamental import FundamentalTask
 

@@ -2,7 +2,7 @@
 
 Agents with the same weights take the same batches (real transitions of the castle fold's training pairs, or random
 states where the file is missing). The reference is the record's kernels (``aten`` products, ``eager`` neighbour
-max: the update as the issue found it); the arms: ``onednn`` products (rlsac.kernels), the ``compiled`` neighbour
+max: the update as the issue found it); the arms: ``onednn`` products (rlsac.rl.kernels), the ``compiled`` neighbour
 max with the record's products, and both. Timed alternately, one update each in turn, so a busy machine slows all
 alike; CPU time of this process, one thread. Before timing, the checks: on the same batches every arm computes the
 reference's losses (to float32 rounding); a ``compiled`` arm leaves the very bytes of its eager twin's weights.
@@ -31,10 +31,10 @@ from pathlib import Path
 
 import torch
 
-from rlsac.kernels import linear_for
-from rlsac.policy import PolicyConf, knn
-from rlsac.rollout import in_channels
-from rlsac.sac import SACAgent, SACConf
+from rlsac.rl.kernels import linear_for
+from rlsac.rl.policy import PolicyConf, knn
+from rlsac.rl.rollout import in_channels
+from rlsac.rl.sac import SACAgent, SACConf
 from rlsac.tasks.fundamental import FundamentalTask
 
 B, N = 32, 150  # the fold recipe's batch of transitions and points per pair

@@ -19,8 +19,8 @@ from contextlib import contextmanager
 
 import numpy as np
 
-import rlsac.rollout as rollout
-from rlsac.env import SampleConsensusEnv
+import rlsac.rl.rollout as rollout
+from rlsac.rl.env import SampleConsensusEnv
 
 BUCKETS = ("model", "selection", "solver+scoring", "state", "refine", "other")
 
@@ -39,7 +39,7 @@ def sampler_args(args, task: str) -> None:
     """Fill ``args.sets_per_step`` / ``args.confidence`` left unset from params.yaml evaluate.<task>, as
     ``rlsac evaluate`` does (1 and 0, the paper, without a params file)."""
     from rlsac.config import read_params, section
-    from rlsac.evaluate import sampler_options
+    from rlsac.evaluation.evaluate import sampler_options
 
     params = read_params("params.yaml")
     given = {"sets_per_step": 1, "confidence": 0.0, **sampler_options(section(params, "evaluate", task))}

@@ -13,8 +13,8 @@ import click
 
 from rlsac import numerics
 from rlsac.errors import RlsacError
-from rlsac.methods import METHODS
-from rlsac.scale import STAGES as SCALE_STAGES  # light: the study's code loads when a stage runs
+from rlsac.evaluation.methods import METHODS
+from rlsac.experiments.scale import STAGES as SCALE_STAGES  # light: the study's code loads when a stage runs
 
 
 class _UserError(click.ClickException):
@@ -218,7 +218,7 @@ def prepare_cvpr2020(tracking: bool, sets: tuple[str, ...], **options) -> None:
 @click.option("--val-data", type=click.Path(dir_okay=False), help="Validation h5.")
 @click.option("--out", type=click.Path(dir_okay=False), help="Checkpoint path, e.g. checkpoints/NAME.pt.")
 @click.option("--method", type=click.Choice(["rlsac", "ngransac"]),
-              help="rlsac = SAC-Discrete (the paper); ngransac = NG-RANSAC's network and training (rlsac.ngransac, "
+              help="rlsac = SAC-Discrete (the paper); ngransac = NG-RANSAC's network and training (rlsac.rl.ngransac, "
                    "options ngransac.*) [default: params.yaml, else rlsac].")
 @click.option("--resume", is_flag=True, default=None, help="Resume from --out if it exists (rlsac only).")
 @click.option("--seed", type=int)
@@ -229,7 +229,7 @@ def prepare_cvpr2020(tracking: bool, sets: tuple[str, ...], **options) -> None:
               help="Override a TrainConf field, e.g. --set sac.actor_lr=1e-4.")
 @tracking_option
 def train(task: str, tracking: bool, params_path: str, sets: tuple[str, ...], **flags) -> None:
-    """Train an RLSAC policy (rlsac.train) or an NG-RANSAC network (--method ngransac)."""
+    """Train an RLSAC policy (rlsac.evaluation.train) or an NG-RANSAC network (--method ngransac)."""
     from rlsac.commands import train as run
     from rlsac.commands import train_options
 
@@ -269,7 +269,7 @@ def train(task: str, tracking: bool, params_path: str, sets: tuple[str, ...], **
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--batch-size", type=int, default=256, show_default=True)
 @click.option("--threads", type=int, help="torch CPU threads on cpu, 0 = torch's default [default: 1, the fastest "
-                                          "here: rlsac.evaluate.THREADS].")
+                                          "here: rlsac.evaluation.evaluate.THREADS].")
 @click.option("--out-dir", type=click.Path(file_okay=False), help="[default: reports/eval/<name>]")
 @click.option("--params", "params_path", default="params.yaml", show_default=True,
               help="params.yaml; its evaluate.<task> section gives the defaults.")
@@ -278,15 +278,15 @@ def train(task: str, tracking: bool, params_path: str, sets: tuple[str, ...], **
 def evaluate(tracking: bool, params_path: str, **options) -> None:
     """Evaluate a method on a data file: errors CSV + summary JSON + MLflow run."""
     from rlsac.config import read_params, section
-    from rlsac.evaluate import check_options, format_summary
-    from rlsac.evaluate import evaluate as run
+    from rlsac.evaluation.evaluate import check_options, format_summary
+    from rlsac.evaluation.evaluate import evaluate as run
 
     params = read_params(params_path)
     defaults = section(params, "evaluate", options["task"])
     record = options.pop("tuning")
     given = {k: v for k, v in options.items() if v is not None}
     if record is not None:
-        from rlsac.tune import record_options
+        from rlsac.evaluation.tune import record_options
 
         tuned = record_options(record, options["task"], options["method"], options["checkpoint"], defaults.get("lo"))
         both = sorted(k for k in tuned if k in given and k in ("threshold_px", "prefilter"))
@@ -324,11 +324,11 @@ def evaluate(tracking: bool, params_path: str, **options) -> None:
 @device_option
 @tracking_option
 def ablate(tracking: bool, sets: tuple[str, ...], **options) -> None:
-    """Run one ablation study of Table 3 and print its table (rlsac.ablate): by default, quickly, on one fold with the
-    committed models (rlsac.quick); --full at the record's size."""
-    from rlsac.ablate import ablate as run
-    from rlsac.ablate import format_summary
+    """Run one ablation study of Table 3 and print its table (rlsac.experiments.ablate): by default, quickly, on one
+    fold with the committed models (rlsac.experiments.quick); --full at the record's size."""
     from rlsac.config import parse_sets
+    from rlsac.experiments.ablate import ablate as run
+    from rlsac.experiments.ablate import format_summary
 
     click.echo(format_summary(run({**options, **parse_sets(sets)}, track=tracking)))
 
@@ -365,9 +365,10 @@ def ablate(tracking: bool, sets: tuple[str, ...], **options) -> None:
 @device_option
 @tracking_option
 def folds(tracking: bool, **options) -> None:
-    """Leave-one-building-out benchmark (fundamental or essential matrix), one stage of one fold (rlsac.folds)."""
-    from rlsac.folds import folds as run
-    from rlsac.folds import format_summary
+    """Leave-one-building-out benchmark (fundamental or essential matrix), one stage of one fold
+    (rlsac.experiments.folds)."""
+    from rlsac.experiments.folds import folds as run
+    from rlsac.experiments.folds import format_summary
 
     click.echo(format_summary(run(options, track=tracking)))
 
@@ -377,13 +378,13 @@ def folds(tracking: bool, **options) -> None:
 @click.option("--stage", type=click.Choice(SCALE_STAGES), required=True,
               help="pool: the fold's training pairs with the pool's points each (data/scale/<fold>/pool.h5); train: "
                    "one run of an arm and seed with its step snapshots; evaluate: every snapshot on the fold's test "
-                   "pairs at scale.iterations (evaluate-final: those of scale.final_steps at "
-                   "scale.final_iterations; validate: every snapshot on the fold's validation pairs, what chooses "
-                   "the recipe); control: the learner's positive control on synthetic pairs; fit: the "
-                   "synthetic generator's statistics fitted to the fold's training pairs, beside its own "
-                   "(reports/synthetic_fit.json); synthetic: the pretrain arm's synthetic pairs "
-                   "(data/scale/<fold>/synthetic.h5); ladder: one run of the learner's ladder (issue #61, "
-                   "rlsac.ladder: --arm the rung, --seed a seed of params ladder.seeds; without --seed the rung's "
+                   "pairs at scale.iterations (evaluate-final: those of scale.final_steps at scale.final_iterations; "
+                   "validate: every snapshot on the fold's validation pairs, what chooses the recipe); control: the "
+                   "learner's positive control on synthetic pairs; fit: the synthetic generator's statistics fitted "
+                   "to the fold's training pairs, beside its own (reports/synthetic_fit.json); synthetic: the "
+                   "pretrain arm's synthetic pairs (data/scale/<fold>/synthetic.h5); ladder: one run of the learner's "
+                   "ladder (issue #61, rlsac.experiments.ladder: --arm the rung, --seed a seed of params "
+                   "ladder.seeds; without --seed the rung's "
                    "uniform, guided and oracle samplers).")
 @click.option("--arm", help="With train / evaluate: fixed (the training file's points), redraw (a fresh draw of the "
                             "pool per episode, images swapped at random), pretrain (synthetic pairs first, then "
@@ -395,9 +396,10 @@ def folds(tracking: bool, **options) -> None:
 @device_option
 @tracking_option
 def scale(tracking: bool, **options) -> None:
-    """The training-scale study (issue #46): one fold trained at growing scale, four data arms (rlsac.scale)."""
-    from rlsac.scale import format_summary
-    from rlsac.scale import scale as run
+    """The training-scale study (issue #46): one fold trained at growing scale, four data arms
+    (rlsac.experiments.scale)."""
+    from rlsac.experiments.scale import format_summary
+    from rlsac.experiments.scale import scale as run
 
     click.echo(format_summary(run(options, track=tracking)))
 
@@ -417,9 +419,10 @@ def scale(tracking: bool, **options) -> None:
 @device_option
 @tracking_option
 def select(tracking: bool, params_path: str, **options) -> None:
-    """Checkpoint selection measured: replay a model's training and test every validated actor (rlsac.selection)."""
+    """Checkpoint selection measured: replay a model's training and test every validated actor
+    (rlsac.experiments.selection)."""
     from rlsac.config import read_params
-    from rlsac.selection import select_checkpoint
+    from rlsac.experiments.selection import select_checkpoint
 
     s = select_checkpoint(options, read_params(params_path), track=tracking)
     tests = ", ".join(f"{k}: {v.get('mAA', float('nan')):.4f}" for k, v in s["test"].items())
@@ -513,8 +516,8 @@ def ui(host: str, port: int, links_only: bool) -> None:
 @tracking_option
 def quick_cmd(tracking: bool, **options) -> None:
     """The workbench's answer in minutes: the committed RLSAC model against uniform sets, OpenCV's RANSAC and
-    MAGSAC++ on one fold's test pairs, a table with paired intervals (rlsac.quick)."""
-    from rlsac.quick import format_summary, quick
+    MAGSAC++ on one fold's test pairs, a table with paired intervals (rlsac.experiments.quick)."""
+    from rlsac.experiments.quick import format_summary, quick
 
     click.echo(format_summary(quick(options, track=tracking)))
 
@@ -559,9 +562,9 @@ def calibrate_lines(tracking: bool, params_path: str, **options) -> None:
 @tracking_option
 def verify(tracking: bool, platform_only: bool, **options) -> None:
     """Re-run committed pipeline stages in a scratch copy and compare every output byte for byte
-    (rlsac.verify); exit 1 when one differs or fails (or, with --tolerance, is not even close)."""
-    from rlsac.verify import format_summary
-    from rlsac.verify import verify as run
+    (rlsac.runners.verify); exit 1 when one differs or fails (or, with --tolerance, is not even close)."""
+    from rlsac.runners.verify import format_summary
+    from rlsac.runners.verify import verify as run
 
     if platform_only:
         given = [k for k in ("stages", "sample", "tolerance", "scratch") if options.get(k) is not None] + [
@@ -614,13 +617,13 @@ def verify(tracking: bool, platform_only: bool, **options) -> None:
 def pipeline(tracking: bool, stages: tuple[str, ...], recover: bool, **options) -> None:
     """Run the DVC pipeline's out-of-date stages (or STAGES: names, foreach groups or patterns, with what they
     need) as Ray tasks in dependency order, each its own command, recorded in dvc.lock as `dvc repro` records it
-    (rlsac.pipeline, rlsac.dvc_stage); exit 1 when one fails."""
+    (rlsac.runners.pipeline, rlsac.runners.dvc_stage); exit 1 when one fails."""
     from rlsac.errors import Interrupted
-    from rlsac.pipeline import format_recovery, format_summary
-    from rlsac.pipeline import pipeline as run
+    from rlsac.runners.pipeline import format_recovery, format_summary
+    from rlsac.runners.pipeline import pipeline as run
 
     if recover:
-        from rlsac.pipeline import recover as repair
+        from rlsac.runners.pipeline import recover as repair
 
         if stages or options["dry_run"]:
             raise RlsacError(f"--recover only repairs a killed run; it takes no {'STAGES' if stages else '--dry-run'}")

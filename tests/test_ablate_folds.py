@@ -11,8 +11,8 @@ import pytest
 from click.testing import CliRunner
 from dvc.cli import parse_args
 
-from rlsac import ablate
 from rlsac.cli import cli
+from rlsac.experiments import ablate
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -93,7 +93,7 @@ def test_a_bad_fold_is_refused_before_any_work(tmp_path, monkeypatch):
 def test_full_runs_exactly_the_studys_stages_then_its_table(tmp_path, monkeypatch):
     """--full: `rlsac pipeline` on the study's fold stages only (not `tables`, which needs every stage of the record),
     then Table 3 (folds) from reports/eval under --out: on the committed results, the committed table's bytes."""
-    import rlsac.pipeline
+    import rlsac.runners.pipeline
 
     asked = []
 
@@ -101,7 +101,7 @@ def test_full_runs_exactly_the_studys_stages_then_its_table(tmp_path, monkeypatc
         asked.append(options)
         return {"results": {}, "counts": {"skipped": 0}}
 
-    monkeypatch.setattr(rlsac.pipeline, "pipeline", pipeline)
+    monkeypatch.setattr(rlsac.runners.pipeline, "pipeline", pipeline)
     monkeypatch.chdir(ROOT)
     r = CliRunner().invoke(cli, ["ablate", "--what", "sampling", "--full", "--workers", "2", "--out", str(tmp_path),
                                  "--no-tracking"], catch_exceptions=False)

@@ -14,10 +14,10 @@ from rlsac.reports import claims
 
 
 def _maa(errs) -> float:
-    """A summary's mAA for the errors (rlsac.results requires one in every summary.json)."""
+    """A summary's mAA for the errors (rlsac.evaluation.results requires one in every summary.json)."""
     import numpy as np
 
-    from rlsac.metrics import mAA
+    from rlsac.maths.metrics import mAA
 
     return mAA(np.asarray(errs, float), 0.5)
 

@@ -16,7 +16,7 @@ from click.testing import CliRunner
 from rlsac import commands
 from rlsac.cli import cli
 from rlsac.errors import RlsacError
-from rlsac.evaluate import evaluate, task_from
+from rlsac.evaluation.evaluate import evaluate, task_from
 
 COMMANDS = ["synth-lines", "import-scenes", "prepare-cvpr2020", "train", "evaluate", "ablate", "plot",
             "calibrate-lines", "pipeline"]
@@ -50,8 +50,8 @@ def test_help_lists_all_subcommands():
 
 
 def test_evaluate_offers_every_registered_method():
-    """The CLI's --method choices are rlsac.methods.METHODS, the list evaluate builds estimators for."""
-    from rlsac.methods import METHODS
+    """The CLI's --method choices are rlsac.evaluation.methods.METHODS, the list evaluate builds estimators for."""
+    from rlsac.evaluation.methods import METHODS
 
     choices = next(p for p in cli.commands["evaluate"].params if p.name == "method").type.choices
     assert list(choices) == list(METHODS) and {"guided", "prosac", "uniform"} <= set(choices)
@@ -193,7 +193,7 @@ def test_usage_error_keeps_clicks_exit_code(workdir):
 
 def test_evaluate_rlsac_uses_the_checkpoint_task_options(workdir, monkeypatch):
     """The rlsac method against the checkpoint's and rollout's contracts, with a fake rollout running RANSAC."""
-    from rlsac.baselines import ransac
+    from rlsac.estimation.baselines import ransac
 
     seen = {}
 
@@ -209,7 +209,7 @@ def test_evaluate_rlsac_uses_the_checkpoint_task_options(workdir, monkeypatch):
                     sets_per_step=sets_per_step, confidence=confidence, state_threshold=state_threshold)
         return ransac(task, batch, iterations, generator)
 
-    from rlsac import checkpoint, rollout
+    from rlsac.rl import checkpoint, rollout
 
     monkeypatch.setattr(checkpoint, "load_actor", load_actor)
     monkeypatch.setattr(checkpoint, "state_scales", lambda path, device, unit=None: {"residual_threshold": 0.3})
@@ -235,14 +235,14 @@ def test_task_from():
 
 
 def test_train_builds_options_from_params_flags_and_sets(workdir, monkeypatch):
-    import rlsac.train as real
+    import rlsac.evaluation.train as real
 
     got = {}
-    fake = types.ModuleType("rlsac.train")
+    fake = types.ModuleType("rlsac.evaluation.train")
     fake.train = lambda options, track=True: got.update(options=options, track=track) or {"out": "ck.pt"}
     fake.check_params = real.check_params  # params.yaml's train section is checked when the file is read
     fake.OWN_SECTIONS = real.OWN_SECTIONS  # which method reads which section (a --set of the other's is refused)
-    monkeypatch.setitem(sys.modules, "rlsac.train", fake)
+    monkeypatch.setitem(sys.modules, "rlsac.evaluation.train", fake)
     (workdir / "params.yaml").write_text("train:\n  line:\n    seed: 3\n    sac: {actor_lr: 0.1, batch_size: 8}\n")
     r = invoke("train", "--task", "line", "--data", "t.h5", "--out", "ck.pt", "--set", "sac.actor_lr=1e-4",
                "--set", "env.steps_per_episode=7", "--no-tracking")

@@ -11,8 +11,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
 
-from rlsac import checkpoint  # noqa: E402
 from rlsac.reports import figfile  # noqa: E402
+from rlsac.rl import checkpoint  # noqa: E402
 
 
 def _payload() -> dict:

@@ -2,7 +2,7 @@
 
 import torch
 
-from rlsac.env import EnvConf, SampleConsensusEnv
+from rlsac.rl.env import EnvConf, SampleConsensusEnv
 from rlsac.tasks.line import LineTask
 
 # four points on y = 0, three off it; threshold 0.1

@@ -1,4 +1,4 @@
-"""What a training episode sees (rlsac.episodes, issue #46): fixed pairs, or a fresh draw of the pool with the images
+"""What a training episode sees (rlsac.rl.episodes, issue #46): fixed pairs, or a fresh draw of the pool with the images
 swapped at random; the replay buffer rebuilds each transition's input from what it stored."""
 
 from __future__ import annotations
@@ -6,13 +6,13 @@ from __future__ import annotations
 import pytest
 import torch
 
-from rlsac import geometry
-from rlsac.episodes import FixedPairs, RedrawnPairs, _swap_features, pool_tensors
-from rlsac.policy import Actor, PolicyConf
-from rlsac.rollout import in_channels
-from rlsac.sac import ReplayBuffer
+from rlsac.evaluation.train import LATER_DEFAULTS, TrainConf, stored_conf
+from rlsac.maths import geometry
+from rlsac.rl.episodes import FixedPairs, RedrawnPairs, _swap_features, pool_tensors
+from rlsac.rl.policy import Actor, PolicyConf
+from rlsac.rl.rollout import in_channels
+from rlsac.rl.sac import ReplayBuffer
 from rlsac.tasks.fundamental import FundamentalTask
-from rlsac.train import LATER_DEFAULTS, TrainConf, stored_conf
 from tests.test_speed_equivalence import two_view_batch
 
 POLICY = PolicyConf(k=6, widths=[8], global_width=8, head_width=8, graph_dims=4)

@@ -12,12 +12,12 @@ import torch
 from click.testing import CliRunner
 from test_fundamental import K, make_batch  # tests/ is on sys.path (pytest prepend mode)
 
-from rlsac import geometry
-from rlsac.baselines import opencv_estimate, ransac
 from rlsac.cli import cli
 from rlsac.data.fundamental import KIND
 from rlsac.data.tutorial import write
-from rlsac.lo import score_sets
+from rlsac.estimation.baselines import opencv_estimate, ransac
+from rlsac.estimation.lo import score_sets
+from rlsac.maths import geometry
 from rlsac.tasks import get_task
 from rlsac.tasks.essential import EssentialTask
 from rlsac.tasks.line import LineTask
@@ -238,7 +238,7 @@ def test_essential_through_train_and_evaluate(workdir):
 
 
 def test_the_output_is_the_best_minimal_model_without_refit(noisy):
-    from rlsac.baselines import finalize
+    from rlsac.estimation.baselines import finalize
 
     E = gt_essential({k: noisy[k] for k in ("dR", "dT")}).float()
     E = E + 1e-3 * torch.randn(E.shape, generator=torch.Generator().manual_seed(0))  # off the manifold

@@ -12,7 +12,7 @@ from click.testing import CliRunner
 
 from rlsac.cli import cli
 from rlsac.errors import RlsacError
-from rlsac.tune import record_options
+from rlsac.evaluation.tune import record_options
 
 RECORD = {"task": "fundamental", "method": "magsac", "row": "magsac", "regime": "hard", "fold": "castle",
           "checkpoint": None, "chosen": {"prefilter": 0.8, "threshold_px": 0.25}, "val_scenes": ["entry-P10"]}

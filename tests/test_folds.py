@@ -15,15 +15,16 @@ import torch
 import yaml
 from click.testing import CliRunner
 
-from rlsac import folds, results
 from rlsac.cli import cli
 from rlsac.config import load_params
 from rlsac.data import fundamental
 from rlsac.data.scenes import ImportConf, import_scenes
 from rlsac.data.tutorial import PrepareConf, prepare
 from rlsac.errors import RlsacError
-from rlsac.evaluate import evaluate, pair_seed
-from rlsac.metrics import mAA
+from rlsac.evaluation import results
+from rlsac.evaluation.evaluate import evaluate, pair_seed
+from rlsac.experiments import folds
+from rlsac.maths.metrics import mAA
 from rlsac.reports import folds as fold_table
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -221,8 +222,8 @@ def test_pool_draws_from_lower_ranked_matches_with_the_pairs_own_seed(imported, 
 def test_pool_stage_prepares_the_folds_training_pairs_with_the_pool_size(imported, tmp_path, monkeypatch):
     """`rlsac folds --stage pool`: the fold's training pairs (the train holdout of the other buildings) with the model
     regime's pool size as points per pair, the matches the training file's points were drawn from; the scale study's
-    pool (rlsac.scale.make_pool) is the same preparation. A pool model refuses to train without it."""
-    from rlsac import scale
+    pool (rlsac.experiments.scale.make_pool) is the same preparation. A pool model refuses to train without it."""
+    from rlsac.experiments import scale
 
     monkeypatch.chdir(tmp_path)
     params = {"fundamental": {"raw": str(imported), "n_points": 40, "max_pairs_per_scene": 8},
@@ -271,8 +272,8 @@ def test_a_pairs_result_does_not_depend_on_the_other_pairs(imported, tmp_path):
 
 def test_uniform_control_uses_the_rlsac_environment(imported, tmp_path):
     """actor=None: the environment's episodes and de-duplication with uniform sets; no set is used twice."""
-    from rlsac.rollout import rlsac_estimate
-    from rlsac.sampling import set_keys
+    from rlsac.estimation.sampling import set_keys
+    from rlsac.rl.rollout import rlsac_estimate
     from rlsac.tasks.fundamental import FundamentalTask
 
     d = _prep(imported, tmp_path, "u", scenes="fountain-P11")
@@ -288,8 +289,8 @@ def test_uniform_control_uses_the_rlsac_environment(imported, tmp_path):
 def test_guided_control_draws_by_match_quality_in_the_same_environment(imported, tmp_path):
     """guide logits: the environment's de-duplication holds, and low-SNN matches are drawn far more often than
     high-SNN ones (a cold temperature all but restricts the sets to the best matches)."""
-    from rlsac.rollout import rlsac_estimate
-    from rlsac.sampling import set_keys
+    from rlsac.estimation.sampling import set_keys
+    from rlsac.rl.rollout import rlsac_estimate
     from rlsac.tasks.fundamental import FundamentalTask
 
     task = FundamentalTask()
@@ -320,7 +321,7 @@ def test_guided_control_draws_by_match_quality_in_the_same_environment(imported,
 def test_prosac_receives_the_matches_best_first(imported, tmp_path, monkeypatch):
     import cv2
 
-    from rlsac.baselines import opencv_estimate
+    from rlsac.estimation.baselines import opencv_estimate
     from rlsac.tasks.fundamental import FundamentalTask
 
     d = _prep(imported, tmp_path, "p", scenes="fountain-P11", pool=400)
@@ -860,8 +861,8 @@ def test_a_fold_model_stopped_part_way_resumes_its_own_state(tmp_path, monkeypat
     import torch
 
     import rlsac.data.fundamental as fundamental
-    import rlsac.folds as folds
-    import rlsac.train as train_mod
+    import rlsac.evaluation.train as train_mod
+    import rlsac.experiments.folds as folds
     from rlsac.config import build
 
     for split in ("train", "val"):

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from rlsac import geometry
-from rlsac.baselines import opencv_estimate, ransac
 from rlsac.errors import RlsacError
+from rlsac.estimation.baselines import opencv_estimate, ransac
+from rlsac.maths import geometry
 from rlsac.tasks import get_task
 from rlsac.tasks.fundamental import FundamentalTask
 

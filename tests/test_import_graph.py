@@ -15,48 +15,46 @@ from pathlib import Path
 PKG = Path(__file__).resolve().parents[1] / "rlsac"
 
 # the runners: modules that run a protocol's stages (train, tune, evaluate, select) and write results; the reports
-# read what they wrote (rlsac.results, rlsac.protocol) and never call them. rlsac.ngransac holds NG-RANSAC's network
-# and sampler since issue #48 (its training is the learner rlsac.learners.ngransac); no report needs it either
+# read what they wrote (rlsac.evaluation.results, rlsac.layout.protocol) and never call them. rlsac.rl.ngransac
+# holds NG-RANSAC's network and sampler since issue #48 (its training is the learner rlsac.learners.ngransac); no report
+# needs it either
 RUNNERS = (
-    "rlsac.folds",
-    "rlsac.folds_retune",
-    "rlsac.selection",
-    "rlsac.train",
-    "rlsac.evaluate",
-    "rlsac.ngransac",
+    "rlsac.experiments.folds",
+    "rlsac.experiments.folds_retune",
+    "rlsac.experiments.selection",
+    "rlsac.evaluation.train",
+    "rlsac.evaluation.evaluate",
+    "rlsac.rl.ngransac",
     "rlsac.learners",
-    "rlsac.ablate",
-    "rlsac.scale",
-    "rlsac.ladder",
-    "rlsac.pipeline",
-    "rlsac.quick",
+    "rlsac.experiments.ablate",
+    "rlsac.experiments.scale",
+    "rlsac.experiments.ladder",
+    "rlsac.runners.pipeline",
+    "rlsac.experiments.quick",
 )
 
-# the layers of the package, lowest first: a file imports files of its own layer or of lower ones, never of a higher
-# one (a name ending in "*" covers the package and everything in it). The layout of README.md's "Layout" section
+# the layers of the package, lowest first, by package (issue #65): a file imports files of its own layer or of lower
+# ones, never of a higher one (a name ending in "*" covers the package and everything in it). docs/layout.md draws it
 LAYERS = (
-    # foundations: errors, numeric modes, configs and params, files, devices, signals, MLflow, maths, the network
+    # the core: errors, numeric modes, configs and params, files, devices, progress bars, signals, MLflow
     ("rlsac", "rlsac.errors", "rlsac.numerics", "rlsac.config", "rlsac.io", "rlsac.devices", "rlsac.progress",
-     "rlsac.signals", "rlsac.tracking", "rlsac.geometry", "rlsac.metrics", "rlsac.sampling", "rlsac.policy",
-     "rlsac.kernels"),
+     "rlsac.signals", "rlsac.tracking"),
+    # the maths of two views and of the scores
+    ("rlsac.maths*",),
     # the protocol's vocabulary (names, paths, budgets) and the data files
-    ("rlsac.protocol", "rlsac.scale_layout", "rlsac.ladder_layout", "rlsac.data*"),
+    ("rlsac.layout*", "rlsac.data*"),
     # the estimation problems
     ("rlsac.tasks*",),
-    # sampling, scoring, the environment (in its parts), SAC and its episodes (they pre-filter as the task does), the
-    # checkpoint format, NG-RANSAC's network
-    ("rlsac.lo", "rlsac.baselines", "rlsac.env", "rlsac.env_state", "rlsac.env_bookkeeping", "rlsac.env_scoring",
-     "rlsac.rollout", "rlsac.sac", "rlsac.episodes", "rlsac.checkpoint", "rlsac.ngransac"),
-    # the registries over them (methods, learners on their harness), evaluation, tuning, the result readers
-    ("rlsac.methods", "rlsac.learners*", "rlsac.train", "rlsac.evaluate", "rlsac.tune", "rlsac.retune",
-     "rlsac.results"),
+    # our RANSAC loop's parts and the classical estimators
+    ("rlsac.estimation*",),
+    # the learned samplers: RLSAC's environment, policy and agent, NG-RANSAC's network, the checkpoint format
+    ("rlsac.rl*",),
+    # one method or learner run once: the registries, evaluate, train, tuning, the result readers
+    ("rlsac.evaluation*", "rlsac.learners*"),
     # the reports: tables and figures from the results
     ("rlsac.reports*",),
-    # the runners: a protocol's stages, the studies, the pipeline
-    ("rlsac.folds", "rlsac.folds_retune", "rlsac.selection", "rlsac.ablate", "rlsac.scale", "rlsac.positive_control",
-     "rlsac.ladder",
-     "rlsac.commands", "rlsac.line_calibration", "rlsac.verify", "rlsac.dvc_stage", "rlsac.transfer", "rlsac.pipeline",
-     "rlsac.stage_status", "rlsac.quick"),
+    # the studies and what runs their stages
+    ("rlsac.experiments*", "rlsac.runners*", "rlsac.commands"),
     # the command line
     ("rlsac.cli",),
 )
@@ -226,7 +224,7 @@ def test_no_import_runs_back_up():
 
 
 def test_protocol_imports_nothing_above_config():
-    assert import_graph()["rlsac.protocol"] <= {"rlsac.errors", "rlsac.config"}
+    assert import_graph()["rlsac.layout.protocol"] <= {"rlsac.errors", "rlsac.config"}
 
 
 def _reach(graph: dict[str, set[str]], start: str) -> set[str]:
@@ -254,3 +252,20 @@ def test_train_methods_are_the_learner_registry():
 
     option = next(p for p in cli.commands["train"].params if p.name == "method")
     assert list(option.type.choices) == list(LEARNERS) == list(OWN_SECTIONS) == ["rlsac", "ngransac"]
+
+
+# the modules directly in rlsac/ (issue #65: about a dozen): the core, the small commands and the command line
+ROOT_MODULES = {"__init__", "cli", "commands", "config", "devices", "errors", "io", "numerics", "progress", "signals",
+                "tracking"}
+
+
+def test_the_root_holds_the_core_and_every_package_says_what_lives_there():
+    assert {p.stem for p in PKG.glob("*.py")} == ROOT_MODULES
+    layout = (PKG.parent / "docs" / "layout.md").read_text()
+    for init in sorted(PKG.glob("*/__init__.py")):
+        doc = ast.get_docstring(ast.parse(init.read_text()))
+        assert doc, f"{init}: a package's __init__ says what lives there"
+        assert f"  {init.parent.name}/" in layout, f"docs/layout.md does not describe {init.parent.name}/"
+    # every package is in a layer of its own name (no module of a package placed by a name of the flat root)
+    for pkg in sorted(p.parent.name for p in PKG.glob("*/__init__.py")):
+        assert any(f"rlsac.{pkg}*" in layer for layer in LAYERS), f"rlsac.{pkg} has no layer"

@@ -1,4 +1,4 @@
-"""The SAC update's dense products (rlsac.kernels): oneDNN's compute ATen's function, forward and backward, and an
+"""The SAC update's dense products (rlsac.rl.kernels): oneDNN's compute ATen's function, forward and backward, and an
 update with them the same losses on the same batch; the option is stored only when it departs from the record's."""
 
 import copy
@@ -8,10 +8,10 @@ import torch
 import torch.nn.functional as F
 
 from rlsac.errors import RlsacError
-from rlsac.kernels import linear_for, onednn_linear
-from rlsac.policy import PolicyConf, knn
-from rlsac.sac import SACAgent, SACConf
-from rlsac.train import TrainConf, check, stored_conf
+from rlsac.evaluation.train import TrainConf, check, stored_conf
+from rlsac.rl.kernels import linear_for, onednn_linear
+from rlsac.rl.policy import PolicyConf, knn
+from rlsac.rl.sac import SACAgent, SACConf
 
 
 def test_onednn_linear_is_atens_linear_forward_and_backward():
@@ -70,7 +70,7 @@ def test_the_option_is_stored_only_off_its_default_and_checked(tmp_path):
 
 def test_the_compiled_neighbour_max_has_the_eager_ones_bytes_forward_and_backward():
     """The same values and the same gradient bytes, a tied maximum's gradient to its first neighbour included."""
-    from rlsac.kernels import neighbour_max_for
+    from rlsac.rl.kernels import neighbour_max_for
 
     eager, compiled = neighbour_max_for("eager"), neighbour_max_for("compiled")
     g = torch.Generator().manual_seed(0)

@@ -1,5 +1,5 @@
-"""The learner's ladder (issue #61, rlsac.ladder): the oracle sampler, the supervised loss, each rung's generator
-against its target statistics, the records' checks, and one tiny run of the commands end to end."""
+"""The learner's ladder (issue #61, rlsac.experiments.ladder): the oracle sampler, the supervised loss, each rung's
+generator against its target statistics, the records' checks, and one tiny run of the commands end to end."""
 
 from __future__ import annotations
 
@@ -13,12 +13,13 @@ import pytest
 import torch
 import yaml
 
-from rlsac import ladder, ladder_layout
 from rlsac.data import match_statistics as ms
 from rlsac.errors import RlsacError
-from rlsac.policy import PolicyConf
-from rlsac.rollout import in_channels, rlsac_estimate
-from rlsac.sac import SACAgent, SACConf, masked_policy
+from rlsac.experiments import ladder
+from rlsac.layout import ladder_layout
+from rlsac.rl.policy import PolicyConf
+from rlsac.rl.rollout import in_channels, rlsac_estimate
+from rlsac.rl.sac import SACAgent, SACConf, masked_policy
 from rlsac.tasks.fundamental import FundamentalTask
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -92,7 +93,7 @@ def test_supervised_loss_moves_mass_to_the_labelled_inliers():
 
 def test_redrawn_pairs_labels_follow_the_drawn_points():
     """A supervised run on redrawn episodes reads the pool's labels of the points each episode drew."""
-    from rlsac.episodes import RedrawnPairs
+    from rlsac.rl.episodes import RedrawnPairs
 
     task = FundamentalTask()
     b = ladder.synthetic_pairs(ladder.rungs(C)["rung1"], 5, 6)
@@ -232,7 +233,7 @@ def test_a_claim_at_a_budget_the_profile_lacks_is_not_measured():
 def test_the_entropy_arm_trains_with_the_target_at_zero(tmp_path, monkeypatch):
     """The drift experiment (issue #61 item 1): the "entropy" rung is control-0.45 with SAC's per-point entropy target
     at 0, so its temperature can only fall; every other rung keeps the recipe's target."""
-    import rlsac.sac
+    import rlsac.rl.sac
 
     params = yaml.safe_load((ROOT / "params.yaml").read_text())
     params["ladder"].update(steps=4, every=4, train_pairs=6, test_pairs=4, iterations=[10], curve_iterations=10)
@@ -242,8 +243,8 @@ def test_the_entropy_arm_trains_with_the_target_at_zero(tmp_path, monkeypatch):
     (tmp_path / "reports").mkdir()
     (tmp_path / "reports" / "synthetic_fit.json").write_text((ROOT / "reports" / "synthetic_fit.json").read_text())
     monkeypatch.chdir(tmp_path)
-    seen, real = [], rlsac.sac.SACAgent
-    monkeypatch.setattr(rlsac.sac, "SACAgent", lambda *a: seen.append(a[2]) or real(*a))
+    seen, real = [], rlsac.rl.sac.SACAgent
+    monkeypatch.setattr(rlsac.rl.sac, "SACAgent", lambda *a: seen.append(a[2]) or real(*a))
     for name in ("entropy", "control-0.45"):
         ladder.train_rung(rungs[name], 0, params, c)
     assert [s.target_entropy_scale for s in seen] == [0.0, 0.5]

@@ -9,9 +9,9 @@ from pathlib import Path
 import pytest
 import yaml
 
-from rlsac import checkpoint
-from rlsac.ladder_layout import ROOT as LADDER
-from rlsac.ladder_layout import actor_file, conf, rungs
+from rlsac.layout.ladder_layout import ROOT as LADDER
+from rlsac.layout.ladder_layout import actor_file, conf, rungs
+from rlsac.rl import checkpoint
 
 REPO = Path(__file__).resolve().parents[1]
 C = conf(yaml.safe_load((REPO / "params.yaml").read_text()))

@@ -9,16 +9,16 @@ import numpy as np
 import pytest
 import torch
 
-from rlsac.checkpoint import env_conf, load_actor
 from rlsac.data.lines import LineDataConf, generate, write
-from rlsac.env import EnvConf
+from rlsac.evaluation.train import train
 from rlsac.learners.sac import validation_metrics
-from rlsac.policy import PolicyConf
-from rlsac.rollout import rlsac_estimate
-from rlsac.sac import SACAgent, SACConf, train_loop
+from rlsac.rl.checkpoint import env_conf, load_actor
+from rlsac.rl.env import EnvConf
+from rlsac.rl.policy import PolicyConf
+from rlsac.rl.rollout import rlsac_estimate
+from rlsac.rl.sac import SACAgent, SACConf, train_loop
 from rlsac.tasks import load
 from rlsac.tasks.line import LineTask
-from rlsac.train import train
 
 SEL = {"inlier_ratio": "charts/val_inlier_ratio", "val_mAA": "charts/val_mAA"}
 

@@ -5,13 +5,13 @@ import pandas as pd
 import pytest
 import torch
 
-from rlsac import line_calibration
-from rlsac.baselines import oracle, ransac
 from rlsac.config import build
 from rlsac.data import lines
 from rlsac.data.lines import LineDataConf
 from rlsac.errors import RlsacError
-from rlsac.metrics import line_angle_deg
+from rlsac.estimation.baselines import oracle, ransac
+from rlsac.experiments import line_calibration
+from rlsac.maths.metrics import line_angle_deg
 from rlsac.tasks import get_task
 
 

@@ -1,4 +1,4 @@
-"""Local optimisation and scoring (rlsac.lo) on synthetic data with known answers."""
+"""Local optimisation and scoring (rlsac.estimation.lo) on synthetic data with known answers."""
 
 import math
 
@@ -6,14 +6,12 @@ import numpy as np
 import pytest
 import torch
 
-from rlsac import geometry
-from rlsac.baselines import finalize, ransac
 from rlsac.config import build
 from rlsac.data import lines
 from rlsac.data.lines import LineDataConf
-from rlsac.env import EnvConf
 from rlsac.errors import RlsacError
-from rlsac.lo import (
+from rlsac.estimation.baselines import finalize, ransac
+from rlsac.estimation.lo import (
     SCORES,
     Best,
     LOConf,
@@ -24,8 +22,10 @@ from rlsac.lo import (
     score,
     update_best,
 )
-from rlsac.rollout import rlsac_estimate
-from rlsac.sampling import gather_points, uniform_minimal_sets
+from rlsac.estimation.sampling import gather_points, uniform_minimal_sets
+from rlsac.maths import geometry
+from rlsac.rl.env import EnvConf
+from rlsac.rl.rollout import rlsac_estimate
 from rlsac.tasks import get_task
 
 LINE = get_task("line")
@@ -123,7 +123,7 @@ def test_lo_off_is_the_plain_ransac_loop_bit_for_bit():
     _, b = line_batch(rate=0.6, n=30, seed=3)
     coords, mask = b["coords"], b["mask"]
     g = torch.Generator().manual_seed(5)
-    # the loop as it was before rlsac.lo existed (chunks of 64 here, so the best is folded across chunks)
+    # the loop as it was before rlsac.estimation.lo existed (chunks of 64 here, so the best is folded across chunks)
     best_h, best_c = None, torch.full((30,), -1, dtype=torch.long)
     for start in range(0, 150, 64):
         k = min(64, 150 - start)
@@ -255,7 +255,7 @@ def test_table1_lo_rows_gap_and_pairs(workdir):
 
 
 def test_evaluate_lo_methods_report_their_budget(workdir):
-    from rlsac.evaluate import evaluate
+    from rlsac.evaluation.evaluate import evaluate
 
     d = lines.generate(build(LineDataConf, {"n_instances": 12, "seed": 4, "outlier_rate": 0.5}))
     path = lines.write(workdir / "l.h5", d, build(LineDataConf, {"n_instances": 12, "seed": 4}))

@@ -3,7 +3,7 @@ import math
 import numpy as np
 import pytest
 
-from rlsac import metrics
+from rlsac.maths import metrics
 
 
 def test_thresholds():

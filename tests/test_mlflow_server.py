@@ -14,7 +14,7 @@ import urllib.request
 import pytest
 
 from rlsac import commands
-from rlsac.evaluate import evaluate
+from rlsac.evaluation.evaluate import evaluate
 from rlsac.tracking import mlflow_server
 
 

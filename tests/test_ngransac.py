@@ -1,4 +1,4 @@
-"""NG-RANSAC (rlsac.ngransac): its gradient on a toy problem with a known optimum, a short training run that beats
+"""NG-RANSAC (rlsac.rl.ngransac): its gradient on a toy problem with a known optimum, a short training run that beats
 its own untrained network on held-out lines, sampling that follows the network, the same seed -> the same
 checkpoint bytes, the supervised signal, and the CLI (train + evaluate, and the one-line errors)."""
 
@@ -14,15 +14,16 @@ from click.testing import CliRunner
 from test_cli import assert_user_error  # tests/ is on sys.path (pytest prepend mode)
 from test_fundamental import make_batch
 
-from rlsac import baselines, checkpoint, ngransac
 from rlsac.cli import cli
 from rlsac.config import build
 from rlsac.data.lines import LineDataConf, generate, write
-from rlsac.policy import Actor, PolicyConf
-from rlsac.sampling import set_log_prob, weighted_minimal_sets
+from rlsac.estimation import baselines
+from rlsac.estimation.sampling import set_log_prob, weighted_minimal_sets
+from rlsac.evaluation.train import train
+from rlsac.rl import checkpoint, ngransac
+from rlsac.rl.policy import Actor, PolicyConf
 from rlsac.tasks import get_task
 from rlsac.tasks.line import LineTask
-from rlsac.train import train
 
 SMALL_NET = {"k": 8, "widths": [16, 16], "global_width": 16, "head_width": 16}
 
@@ -292,7 +293,7 @@ def test_cli_errors_before_any_work(workdir):
 def test_rlsac_checkpoints_keep_their_conf(tmp_path):
     """An RLSAC checkpoint (and its training state) stores the conf it stored before NG-RANSAC (no method / ngransac
     keys: retrained committed checkpoints keep their bytes); an NG-RANSAC one its own sections (no env / sac)."""
-    from rlsac.train import TrainConf, stored_conf
+    from rlsac.evaluation.train import TrainConf, stored_conf
 
     rl, ng = stored_conf(build(TrainConf, {})), stored_conf(build(TrainConf, {"method": "ngransac"}))
     assert not {"method", "ngransac"} & set(rl) and {"env", "sac"} <= set(rl)
@@ -311,7 +312,7 @@ def test_fold_models_of_method_ngransac():
     with the ngransac methods; the RLSAC-only rows (-fast, -prob) refuse it."""
     from rlsac.config import load_params
     from rlsac.errors import RlsacError
-    from rlsac.folds import protocol, rows
+    from rlsac.experiments.folds import protocol, rows
 
     params = load_params(Path(__file__).parents[1] / "experiments" / "quick" / "params.yaml")
     p = protocol(params)

@@ -68,7 +68,7 @@ def _line(root: Path, row: str, rate: str, err, iterations: int = 150):
     d = root / "lines" / row / f"o{rate}"
     d.mkdir(parents=True)
     pd.DataFrame({"instance": range(len(err)), "err_deg": err}).to_csv(d / "errors.csv", index=False)
-    # a summary the strict reader (rlsac.results) accepts: its mAA and instance count beside the iterations
+    # a summary the strict reader (rlsac.evaluation.results) accepts: its mAA and instance count beside the iterations
     (d / "summary.json").write_text(json.dumps({"iterations": iterations, "mAA": 0.5, "n_instances": len(err)}))
 
 

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 import torch
 
-from rlsac.baselines import PEERS, peer_estimate
 from rlsac.errors import RlsacError
-from rlsac.methods import METHODS
+from rlsac.estimation.baselines import PEERS, peer_estimate
+from rlsac.evaluation.methods import METHODS
 from rlsac.tasks import TASKS, get_task
 
 K = np.array([[800.0, 0.0, 320.0], [0.0, 800.0, 240.0], [0.0, 0.0, 1.0]])

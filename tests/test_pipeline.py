@@ -14,10 +14,10 @@ import pytest
 import yaml
 from dvc import repo as dvc_repo
 
-from rlsac import ablate
 from rlsac.cli import cli
 from rlsac.config import build, check_params
-from rlsac.train import TrainConf
+from rlsac.evaluation.train import TrainConf
+from rlsac.experiments import ablate
 
 ROOT = Path(__file__).resolve().parents[1]
 PROFILES = {"paper": ROOT, "quick": ROOT / "experiments" / "quick"}

@@ -12,10 +12,10 @@ import pytest
 import torch
 from click.testing import CliRunner
 
-from rlsac import metrics
 from rlsac.cli import cli
 from rlsac.errors import RlsacError
-from rlsac.evaluate import evaluate
+from rlsac.evaluation.evaluate import evaluate
+from rlsac.maths import metrics
 from rlsac.tasks import TASKS, register_task
 
 

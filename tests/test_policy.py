@@ -10,16 +10,16 @@ import numpy as np
 import pytest
 import torch
 
-from rlsac.checkpoint import env_conf, load_actor
 from rlsac.config import build, to_dict
 from rlsac.data.lines import LineDataConf, generate, to_batch, write
 from rlsac.errors import RlsacError
-from rlsac.evaluate import evaluate
-from rlsac.policy import Actor, Critic, EdgeConv, PolicyConf, knn
-from rlsac.rollout import rlsac_estimate
-from rlsac.sampling import set_keys
+from rlsac.estimation.sampling import set_keys
+from rlsac.evaluation.evaluate import evaluate
+from rlsac.evaluation.train import TrainConf
+from rlsac.rl.checkpoint import env_conf, load_actor
+from rlsac.rl.policy import Actor, Critic, EdgeConv, PolicyConf, knn
+from rlsac.rl.rollout import rlsac_estimate
 from rlsac.tasks.line import LineTask
-from rlsac.train import TrainConf
 
 PCONF = PolicyConf(k=4, widths=[8, 8], global_width=8, head_width=8)
 
@@ -370,7 +370,7 @@ def test_rollout_draws_only_from_its_generator(sampling):
 def test_rollout_forward_one_neighbour_at_a_time_is_the_same_network(monkeypatch):
     """The large-chunk path of the rollout's neighbour max (k gathers into scratch buffers, taken when a gather
     exceeds GATHER_AT_ONCE floats) computes what the one-gather path does."""
-    from rlsac import policy
+    from rlsac.rl import policy
 
     torch.manual_seed(0)
     net = Actor(5, PCONF)
@@ -388,7 +388,7 @@ def test_rollout_forward_one_neighbour_at_a_time_is_the_same_network(monkeypatch
 def test_neighbour_max_gradient_goes_to_the_winning_neighbour():
     """NeighbourMax's backward equals autograd through gather + amax when there are no ties, and gives a
     tied maximum's whole gradient to the first neighbour (in neighbour order) that reaches it."""
-    from rlsac.kernels import NeighbourMax
+    from rlsac.rl.kernels import NeighbourMax
 
     g = torch.Generator().manual_seed(0)
     P, C, k = 7, 3, 4

@@ -1,5 +1,5 @@
 """`rlsac quick`, the README's main job (issue #63 item 6): the committed RLSAC model against uniform sets, OpenCV's
-RANSAC and MAGSAC++ on one fold's test pairs, from the clone alone (rlsac.quick)."""
+RANSAC and MAGSAC++ on one fold's test pairs, from the clone alone (rlsac.experiments.quick)."""
 
 from __future__ import annotations
 

@@ -204,7 +204,7 @@ def test_killed_worker_is_reported_and_a_second_run_completes(tmp_path):
 def test_a_killed_workers_stage_is_run_again_and_recorded_once(tmp_path, monkeypatch):
     """A stage whose Ray worker died is run again (--retries, default 2): the run completes, the summary says the
     stage was retried, its lock entry is written once and the lock is a serial `dvc repro`'s, byte for byte."""
-    from rlsac.dvc_stage import LockWriter
+    from rlsac.runners.dvc_stage import LockWriter
 
     script = tmp_path / "killer.py"
     script.write_text(KILLER)
@@ -275,7 +275,7 @@ class FakeRay:
 
 
 def _fake_plan(tmp_path, deps: dict[str, list[str]], seconds: dict[str, float] | None = None) -> dict:
-    from rlsac.pipeline import bottom_levels
+    from rlsac.runners.pipeline import bottom_levels
 
     return {"root": tmp_path, "todo": sorted(deps), "deps": deps, "priority": bottom_levels(deps, seconds or {})}
 
@@ -284,7 +284,7 @@ OPTIONS = {"gpus_per_train": 0.0, "gpu_stages": "*train*", "retries": 2}
 
 
 def test_the_ready_stage_with_the_longest_path_ahead_starts_first(tmp_path):
-    from rlsac.pipeline import bottom_levels, schedule
+    from rlsac.runners.pipeline import bottom_levels, schedule
 
     # a chain z1 -> z2 -> z3 and five short stages on their own: their names come first, their paths are shorter
     deps = {"z1": [], "z2": ["z1"], "z3": ["z2"], **{f"a{i}": [] for i in range(5)}}
@@ -302,7 +302,7 @@ def test_the_ready_stage_with_the_longest_path_ahead_starts_first(tmp_path):
 
 
 def test_expected_seconds_are_measured_else_the_groups_mean_else_one():
-    from rlsac.pipeline import expected_seconds
+    from rlsac.runners.pipeline import expected_seconds
 
     measured = {"train@1": 100.0, "train@2": 300.0, "plot": 5.0}
     assert expected_seconds(["train@1", "train@3", "plot", "tables"], measured) == {
@@ -314,7 +314,7 @@ def test_the_order_takes_the_stage_times_earlier_runs_of_the_repository_logged(t
     (another repository's runs are left out); with tracking off every stage counts 1."""
     import mlflow
 
-    from rlsac.pipeline import _priorities, stage_metric
+    from rlsac.runners.pipeline import _priorities, stage_metric
 
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
@@ -333,7 +333,7 @@ def test_the_order_takes_the_stage_times_earlier_runs_of_the_repository_logged(t
 
 
 def test_a_stage_prefers_the_node_of_its_parent_with_the_most_output_bytes():
-    from rlsac.pipeline import _main_parent
+    from rlsac.runners.pipeline import _main_parent
 
     plan = {"deps": {"c": ["a", "b", "x"], "d": ["x"]}}
     placed = {"a": ("node-1", 10), "b": ("node-2", 500)}  # x ran in an earlier run (or not on a node): no preference
@@ -345,7 +345,7 @@ class WorkerCrashedError(Exception):  # as Ray names a dead worker's error
 
 
 def test_only_a_lost_worker_is_retried_not_a_failed_task(tmp_path):
-    from rlsac.pipeline import schedule
+    from rlsac.runners.pipeline import schedule
 
     deps = {"k": [], "f": [], "after_k": ["k"]}
     fake = FakeRay(cpus=1, fail={"k": [WorkerCrashedError("died"), WorkerCrashedError("died")],
@@ -494,7 +494,7 @@ def test_an_interrupted_run_keeps_the_times_of_the_stages_it_finished(tmp_path, 
     after one stage (a long record stopped at the end of a sitting) still has that stage's time in its run."""
     import mlflow
 
-    from rlsac import pipeline as pipeline_module
+    from rlsac.runners import pipeline as pipeline_module
 
     repo = make_repo(tmp_path / "repo", {"a": TOY["a"], "b": TOY["b"]})
 
@@ -635,7 +635,7 @@ def test_both_runners_record_the_same_entries(tmp_path):
 
 KILLED_WRITER = """
 import sys
-from rlsac.dvc_stage import write_atomic
+from rlsac.runners.dvc_stage import write_atomic
 texts = [open(sys.argv[2]).read(), open(sys.argv[3]).read()]
 i = 0
 while True:  # the SIGKILL lands somewhere in here
@@ -672,7 +672,7 @@ def test_a_sigkill_of_the_writer_leaves_a_whole_lock(tmp_path):
 
 
 def test_the_lock_writer_keeps_old_entries_in_place_and_adds_new_ones_in_dvc_order(tmp_path):
-    from rlsac.dvc_stage import LockFile, render_entry
+    from rlsac.runners.dvc_stage import LockFile, render_entry
 
     old = "schema: '2.0'\nstages:\n" + render_entry("b", {"cmd": "b"}) + render_entry("a", {"cmd": "a"})
     path = tmp_path / "dvc.lock"
@@ -697,7 +697,7 @@ def test_the_lock_writer_keeps_old_entries_in_place_and_adds_new_ones_in_dvc_ord
 def test_a_cluster_needs_an_http_tracking_server(tmp_path, monkeypatch):
     """--address without an http(s) MLFLOW_TRACKING_URI: every node would log into its own sqlite file. One error
     line, exit 2, before Ray or MLflow is touched."""
-    from rlsac import pipeline as pipeline_module
+    from rlsac.runners import pipeline as pipeline_module
 
     repo = make_repo(tmp_path / "repo", TOY)
     monkeypatch.chdir(tmp_path)

@@ -18,15 +18,15 @@ import pytest
 from dvc import repo as dvc_repo
 from dvc.cli import DvcParserError, parse_args
 
-from rlsac import ablate as ablate_mod
 from rlsac.cli import cli
 from rlsac.commands import train_options
 from rlsac.config import build, parse_sets
 from rlsac.data.lines import LineDataConf
 from rlsac.data.scenes import ImportConf
 from rlsac.data.tutorial import PrepareConf
+from rlsac.evaluation.train import TrainConf
+from rlsac.experiments import ablate as ablate_mod
 from rlsac.reports import figures
-from rlsac.train import TrainConf
 
 ROOT = Path(__file__).resolve().parents[1]
 PAGES = sorted((ROOT / "docs").glob("*.md"))  # the README's reference pages (issue #47)

@@ -10,10 +10,10 @@ from pathlib import Path
 
 import pytest
 
-from rlsac import folds
-from rlsac.checkpoint import read
 from rlsac.config import load_params
+from rlsac.experiments import folds
 from rlsac.learners.harness import check, stored_conf
+from rlsac.rl.checkpoint import read
 
 ROOT = Path(__file__).resolve().parents[1]
 RECORDED = ("rlsac-scale",)  # the models whose training stages were recorded with `dvc commit`

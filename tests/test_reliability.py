@@ -23,8 +23,8 @@ from rlsac import config
 from rlsac.cli import cli
 from rlsac.data.lines import LineDataConf, generate, write
 from rlsac.errors import RlsacError
-from rlsac.sac import SACConf
-from rlsac.train import TrainConf
+from rlsac.evaluation.train import TrainConf
+from rlsac.rl.sac import SACConf
 
 PROC = "/proc/rlsac-no-such-dir"  # cannot be created, not even by root
 
@@ -675,8 +675,8 @@ def test_strecha_numbers_pass_the_geometry_checks():
 def _tiny_checkpoint(path: Path, task_name: str = "fundamental") -> Path:
     import torch
 
-    from rlsac.policy import Actor, PolicyConf
-    from rlsac.rollout import in_channels
+    from rlsac.rl.policy import Actor, PolicyConf
+    from rlsac.rl.rollout import in_channels
     from rlsac.tasks import get_task
 
     task = get_task(task_name)
@@ -901,7 +901,7 @@ def test_build_coerces_and_checks_every_field():
 def test_lo_options_are_checked_whatever_the_method():
     """evaluate.<task>.lo is checked when params.yaml is read and by evaluate's own options (a library caller,
     rlsac folds), also for a method without LO that ignores it (issue #28, item 3)."""
-    from rlsac import evaluate as ev
+    from rlsac.evaluation import evaluate as ev
 
     with pytest.raises(RlsacError, match="LO inner_samples and iterations must be >= 0"):
         ev.check_params({"evaluate": {"line": {"lo": {"iterations": -1}}}})
@@ -921,8 +921,8 @@ def test_every_range_names_a_field():
     from rlsac.data.lines import LineDataConf
     from rlsac.data.scenes import ImportConf
     from rlsac.data.tutorial import PrepareConf
-    from rlsac.env import EnvConf
-    from rlsac.policy import PolicyConf
+    from rlsac.rl.env import EnvConf
+    from rlsac.rl.policy import PolicyConf
 
     for cls in (TrainConf, SACConf, EnvConf, PolicyConf, LineDataConf, ImportConf, PrepareConf):
         names = {f.name for f in dataclasses.fields(cls)}
@@ -1307,7 +1307,7 @@ def _network_as_actor(path: Path, task_name: str = "fundamental") -> Path:
     actor, whose sampler feeds it the environment's memory channels too."""
     import torch
 
-    from rlsac.policy import Actor, PolicyConf
+    from rlsac.rl.policy import Actor, PolicyConf
     from rlsac.tasks import get_task
 
     _tiny_checkpoint(path, task_name)
@@ -1419,7 +1419,7 @@ def test_config_records_only_the_options_the_method_reads(workdir, inputs, metho
     policy_every (issue #49: recorded though ignored); RLSAC, which reads them, still records them."""
     import torch
 
-    from rlsac.evaluate import NOT_RECORDED
+    from rlsac.evaluation.evaluate import NOT_RECORDED
 
     net = _network_as_actor(workdir / "ng.pt", "line")
     ckpt = torch.load(net, weights_only=False)
@@ -1438,7 +1438,7 @@ def test_config_records_only_the_options_the_method_reads(workdir, inputs, metho
 
 def test_committed_configs_record_only_the_options_their_method_reads():
     """The committed NG-RANSAC results were rewritten once (issue #49) as evaluate now writes them."""
-    from rlsac.evaluate import NOT_RECORDED
+    from rlsac.evaluation.evaluate import NOT_RECORDED
 
     root = Path(__file__).resolve().parents[1] / "reports/eval"
     seen = 0
@@ -1595,7 +1595,7 @@ def test_absent_result_is_a_dash_and_counted(workdir):
 
 
 def test_readers_accept_every_committed_result():
-    from rlsac import results
+    from rlsac.evaluation import results
 
     root = Path(__file__).resolve().parents[1] / "reports"
     for f in root.glob("eval/**/summary.json"):
@@ -1793,8 +1793,8 @@ def _check_recovered(repo: Path) -> None:
     `rlsac pipeline --recover` puts the one back and ends the other (found by the session the driver noted)."""
     import psutil
 
-    from rlsac.dvc_stage import ASIDE
-    from rlsac.pipeline import DRIVERS
+    from rlsac.runners.dvc_stage import ASIDE
+    from rlsac.runners.pipeline import DRIVERS
 
     (note,) = (repo / DRIVERS).glob("*.json")
     session = json.loads(note.read_text())["session"]
@@ -1883,7 +1883,7 @@ def test_positive_control_accepts_an_inlier_ratio_of_one():
     """(0, 1] includes 1 (issue #64: the integer 1 was refused by a message that said (0, 1])."""
     import yaml
 
-    from rlsac.positive_control import conf
+    from rlsac.experiments.positive_control import conf
 
     pc = yaml.safe_load(PARAMS.read_text())["positive_control"]
     assert conf({"positive_control": {**pc, "inlier_ratios": [1]}})["inlier_ratios"] == [1.0]

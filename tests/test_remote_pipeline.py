@@ -223,7 +223,7 @@ def test_a_chain_on_one_node_reads_its_inputs_from_the_nodes_cache(tmp_path, s3,
     """a -> b -> c with --remote: b and c run where their parent ran (one node here; on a cluster Ray is asked for
     the parent's node, softly) and find their inputs in the node's cache of objects, not in the bucket; the
     results and the lock are a serial `dvc repro`'s."""
-    from rlsac.pipeline import pipeline
+    from rlsac.runners.pipeline import pipeline
 
     seq, par = make_repo(tmp_path / "seq", CHAIN), make_repo(tmp_path / "par", CHAIN)
     assert dvc(seq, "repro").returncode == 0

@@ -14,11 +14,11 @@ from click.testing import CliRunner
 from rlsac import config
 from rlsac.cli import cli
 from rlsac.data import lines
-from rlsac.policy import Actor, PolicyConf
+from rlsac.evaluation.train import TrainConf
 from rlsac.reports import figures, paper, tables
-from rlsac.rollout import in_channels
+from rlsac.rl.policy import Actor, PolicyConf
+from rlsac.rl.rollout import in_channels
 from rlsac.tasks.line import LineTask
-from rlsac.train import TrainConf
 
 torch.set_num_threads(1)
 

@@ -1,4 +1,5 @@
-"""The selection term of the claims' intervals (issue #62, rlsac.reports.retuning, rlsac.metrics.contrast_bootstrap):
+"""The selection term of the claims' intervals (issue #62, rlsac.reports.retuning,
+rlsac.maths.metrics.contrast_bootstrap):
 a nested, paired bootstrap that re-chooses each re-tuned row's setting on a resample of the validation pairs in every
 draw; recomputed here from the committed records, and shown to vanish when the re-selection is broken. The global
 term of before (halfwidth, widen) stays as tuning_budget.md's measurement."""
@@ -146,8 +147,8 @@ def test_one_claims_nested_interval_recomputed_from_the_raw_records():
     """paper.md's RLSAC − MAGSAC++ in mAA R (hard, 1k) recomputed by hand from reports/eval's errors.csv and the
     reports/retune records: 2000 draws; in each, validation draw v (a second stream seeded [0, 1]) gives MAGSAC++'s
     setting on every fold, test pairs resampled within their building and RLSAC's five seeds with replacement."""
-    from rlsac.metrics import accuracy_per_instance, stratified_draws
-    from rlsac.protocol import LIMIT
+    from rlsac.layout.protocol import LIMIT
+    from rlsac.maths.metrics import accuracy_per_instance, stratified_draws
 
     ev, rt = ROOT / "reports" / "eval" / "folds" / "hard", ROOT / "reports" / "retune" / "fundamental" / "hard"
     if not (rt / "castle" / "magsac.json").is_file():
@@ -170,8 +171,8 @@ def test_one_claims_nested_interval_recomputed_from_the_raw_records():
     boot = [rl[pick_a[i]][:, idx[i]].mean(axis=1).mean() - draws[v[i], idx[i]].mean() for i in range(2000)]
     lo, hi = np.percentile(boot, [2.5, 97.5])
     diff = rl.mean() - full.mean()
+    from rlsac.evaluation.results import collect
     from rlsac.reports.paper_claims import CLAIMS
-    from rlsac.results import collect
 
     claim = next(c for c in CLAIMS if c.key == "t2-magsac-maaR")
     row = paper_report.check(claim, "hard", ROOT / "reports" / "eval", collect(ROOT / "reports" / "eval", "folds"),

@@ -14,9 +14,9 @@ import pytest
 import torch
 
 from rlsac.data.lines import LineDataConf, generate, to_batch
-from rlsac.env import EnvConf
-from rlsac.policy import PolicyConf
-from rlsac.sac import ReplayBuffer, SACAgent, SACConf, masked_policy, train_loop
+from rlsac.rl.env import EnvConf
+from rlsac.rl.policy import PolicyConf
+from rlsac.rl.sac import ReplayBuffer, SACAgent, SACConf, masked_policy, train_loop
 from rlsac.tasks.line import LineTask
 
 IN = 5  # line task: 2 data channels + 3 memory channels
@@ -370,7 +370,7 @@ def test_update_reports_every_loss_and_chart():
 
 @pytest.mark.parametrize("sampling, sample", [("prob", True), ("max", False)])
 def test_training_loop_samples_as_train_sampling_says(monkeypatch, sampling, sample):
-    from rlsac.env import SampleConsensusEnv
+    from rlsac.rl.env import SampleConsensusEnv
 
     seen = []
     real = SampleConsensusEnv.select

@@ -11,8 +11,8 @@ from click.testing import CliRunner
 
 from rlsac.cli import cli
 from rlsac.errors import RlsacError
+from rlsac.layout.scale_layout import arm_final_steps, protocol
 from rlsac.reports import scale as report
-from rlsac.scale_layout import arm_final_steps, protocol
 
 SCALE = {"fold": "castle", "regime": "hard", "pool": 1000, "arms": ["fixed", "redraw"], "seeds": [0, 1],
          "steps": [30, 10], "iterations": 100, "final_iterations": 1000, "settings_from": "uniform",
@@ -21,7 +21,7 @@ SCALE = {"fold": "castle", "regime": "hard", "pool": 1000, "arms": ["fixed", "re
 
 
 def test_protocol_checks_every_key():
-    from rlsac.scale_layout import ARMS
+    from rlsac.layout.scale_layout import ARMS
 
     assert set(report.ARM_LABEL) == set(ARMS) and set(report.BASE_ARM) < set(ARMS)  # the report names every arm
     s = protocol({"scale": SCALE})
@@ -119,8 +119,8 @@ def test_a_run_is_trained_in_legs_and_resumes_only_its_own_state(workdir, monkey
     whose legs are all there trains nothing; a state of another recipe (another seed) is never resumed."""
     import torch
 
-    import rlsac.scale as runner
-    import rlsac.train as train_mod
+    import rlsac.evaluation.train as train_mod
+    import rlsac.experiments.scale as runner
     from rlsac.config import build
 
     calls = []

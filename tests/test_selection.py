@@ -13,8 +13,8 @@ import pandas as pd
 import pytest
 import torch
 
-from rlsac import selection
 from rlsac.errors import RlsacError
+from rlsac.experiments import selection
 from rlsac.reports import selection as report
 
 
@@ -75,7 +75,7 @@ def test_the_report_refuses_a_record_that_is_not_one(tmp_path):
 
 
 def test_every_shipped_checkpoint_says_how_it_was_kept(tmp_path):
-    from rlsac import checkpoint
+    from rlsac.rl import checkpoint
 
     root = tmp_path / "checkpoints"
     checkpoint.write(root / "folds" / "a.pt", {"actor": {}, "selection": "inlier_ratio", "step": 200,

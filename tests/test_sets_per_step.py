@@ -9,13 +9,13 @@ import pytest
 import torch
 from test_speed_equivalence import line_batch, two_view_batch
 
-from rlsac import geometry
-from rlsac.env import EnvConf, SampleConsensusEnv
 from rlsac.errors import RlsacError
-from rlsac.lo import score_sets
-from rlsac.policy import Actor, PolicyConf
-from rlsac.rollout import in_channels, rlsac_estimate
-from rlsac.sampling import gather_points, set_keys, uniform_minimal_sets
+from rlsac.estimation.lo import score_sets
+from rlsac.estimation.sampling import gather_points, set_keys, uniform_minimal_sets
+from rlsac.maths import geometry
+from rlsac.rl.env import EnvConf, SampleConsensusEnv
+from rlsac.rl.policy import Actor, PolicyConf
+from rlsac.rl.rollout import in_channels, rlsac_estimate
 from rlsac.tasks.fundamental import FundamentalTask
 from rlsac.tasks.line import LineTask
 

@@ -18,12 +18,12 @@ import numpy as np
 import pytest
 import torch
 
-from rlsac.checkpoint import env_conf, load_actor
 from rlsac.data import lines
-from rlsac.env import EnvConf, SampleConsensusEnv
 from rlsac.errors import RlsacError
-from rlsac.policy import Actor, Critic, PolicyConf
-from rlsac.rollout import rlsac_estimate, select_lazily
+from rlsac.rl.checkpoint import env_conf, load_actor
+from rlsac.rl.env import EnvConf, SampleConsensusEnv
+from rlsac.rl.policy import Actor, Critic, PolicyConf
+from rlsac.rl.rollout import rlsac_estimate, select_lazily
 from rlsac.tasks.fundamental import FundamentalTask
 from rlsac.tasks.line import LineTask
 

@@ -1,5 +1,5 @@
-"""A stage that fails or is interrupted leaves its outputs as they were (rlsac.dvc_stage.set_aside / restore): DVC
-deletes a stage's outputs before its command, so a failed or cancelled stage of `rlsac pipeline` deleted committed
+"""A stage that fails or is interrupted leaves its outputs as they were (rlsac.runners.dvc_stage.set_aside / restore):
+DVC deletes a stage's outputs before its command, so a failed or cancelled stage of `rlsac pipeline` deleted committed
 files (seen: an interrupted `fold_data_points` stage took two tracked reports/folds/data JSON files with it)."""
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ from pathlib import Path
 import yaml
 from test_ray_pipeline import _env, make_repo  # tests/ is on sys.path (pytest prepend mode)
 
-from rlsac import dvc_stage
-from rlsac.pipeline import _restore_interrupted, load_plan
+from rlsac.runners import dvc_stage
+from rlsac.runners.pipeline import _restore_interrupted, load_plan
 
 
 def _repo(path: Path, cmd: str) -> Path:
@@ -132,7 +132,7 @@ def test_recover_puts_back_dead_drivers_outputs_only_and_ends_their_ray_processe
     from click.testing import CliRunner
 
     from rlsac.cli import cli
-    from rlsac.pipeline import DRIVERS
+    from rlsac.runners.pipeline import DRIVERS
 
     repo = _committed_repo(tmp_path / "repo")
     dead = _left_by_a_killed_driver(repo)

@@ -1,4 +1,4 @@
-"""The pipeline's plan from dvc.lock and the files' md5s (rlsac.stage_status, issue #63 items 2 and 3): the same
+"""The pipeline's plan from dvc.lock and the files' md5s (rlsac.runners.stage_status, issue #63 items 2 and 3): the same
 answer as DVC's own ``Stage.changed`` on every kind of change, files hashed once and kept by size and time, and a
 clean clone's dry run that runs only the stages whose git-ignored outputs are missing, also when a later stage
 reads a file inside a folder such a stage records (``fold_data``'s data/folds/<regime>/<fold>)."""
@@ -13,7 +13,7 @@ from click.testing import CliRunner
 from test_ray_pipeline import dvc, make_repo  # tests/ is on sys.path (pytest prepend mode)
 
 from rlsac.cli import cli
-from rlsac.stage_status import CACHE, Status
+from rlsac.runners.stage_status import CACHE, Status
 
 PY = "python -c"
 FOLDER = {  # `data` records the folder d (as fold_data does); `x` and `y` read files inside it
@@ -56,7 +56,7 @@ def _age(repo: Path, seconds: float = 60.0) -> None:
 
 def _compare(repo: Path) -> tuple[dict, Status]:
     """{stage: (DVC's Stage.changed, ours)} and the Status that answered."""
-    from rlsac.verify import open_repo
+    from rlsac.runners.verify import open_repo
 
     r = open_repo(repo)
     try:

@@ -10,11 +10,11 @@ from __future__ import annotations
 import pytest
 import torch
 
-from rlsac import checkpoint
-from rlsac.evaluate import EvalOptions
-from rlsac.methods import METHODS
-from rlsac.policy import Actor, PolicyConf
-from rlsac.rollout import in_channels
+from rlsac.evaluation.evaluate import EvalOptions
+from rlsac.evaluation.methods import METHODS
+from rlsac.rl import checkpoint
+from rlsac.rl.policy import Actor, PolicyConf
+from rlsac.rl.rollout import in_channels
 from rlsac.tasks.fundamental import FundamentalTask
 from tests.test_speed_equivalence import two_view_batch
 

@@ -7,7 +7,7 @@ from click.testing import CliRunner
 
 from rlsac.cli import cli
 from rlsac.data.lines import LineDataConf, generate, write
-from rlsac.train import train
+from rlsac.evaluation.train import train
 
 TINY = {"threads": 1, "val_instances": 8, "val_every": 10, "ckpt_every": 10,
         "sac": {"total_steps": 20, "num_envs": 4, "batch_size": 8, "learning_starts": 16}}

@@ -1,5 +1,5 @@
-"""Issue #26: settings chosen per fold on validation pairs only (rlsac.tune), the pixel thresholds and the SNN
-pre-filter that evaluate applies, and the guards that keep test pairs out of tuning."""
+"""Issue #26: settings chosen per fold on validation pairs only (rlsac.evaluation.tune), the pixel thresholds and the
+SNN pre-filter that evaluate applies, and the guards that keep test pairs out of tuning."""
 
 from __future__ import annotations
 
@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import torch
 
-from rlsac import tune
 from rlsac.errors import RlsacError
-from rlsac.evaluate import EvalOptions, check_options, run_name
+from rlsac.evaluation import tune
+from rlsac.evaluation.evaluate import EvalOptions, check_options, run_name
 from rlsac.tasks import get_task, opencv_threshold, prefiltered, task_for
 
 
@@ -136,7 +136,7 @@ def test_search_takes_a_second_round_when_the_prefilter_moves():
 
 
 def test_opencv_hypotheses_bound_follows_the_stopping_rule():
-    from rlsac.baselines import stop_bound
+    from rlsac.estimation.baselines import stop_bound
 
     # w = 0.5, m = 8, p = 0.999: log(0.001) / log(1 - 2^-8) = 1764.9 -> 1765
     assert stop_bound(75, 150, 8, 0.999, 5000) == 1765

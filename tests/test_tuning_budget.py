@@ -1,5 +1,6 @@
 """Issue #47 item 7: rows tuned at the test budget (``rlsac folds --tune-iterations``), the re-selection of settings on
-bootstrap resamples of the validation pairs (rlsac.retune) and the report reports/tuning_budget.md built from them."""
+bootstrap resamples of the validation pairs (rlsac.evaluation.retune) and the report reports/tuning_budget.md built from
+them."""
 
 from __future__ import annotations
 
@@ -11,9 +12,10 @@ import pytest
 import yaml
 from click.testing import CliRunner
 
-from rlsac import folds, retune, tune
 from rlsac.cli import cli
 from rlsac.errors import RlsacError
+from rlsac.evaluation import retune, tune
+from rlsac.experiments import folds
 
 PARAMS = {
     "folds": {"test": ["castle", "fountain"], "scenes": {"castle": "castle-P19", "fountain": "fountain-P11"},
@@ -47,7 +49,7 @@ def fold(tmp_path, monkeypatch):
         v = 1.0 - abs(o.threshold_px - best)
         return {"mAA": v, "mAA_R": v, "mAA_t": v}, {}
 
-    monkeypatch.setattr("rlsac.evaluate.score", score)
+    monkeypatch.setattr("rlsac.evaluation.evaluate.score", score)
     return calls
 
 
@@ -69,8 +71,8 @@ def test_tune_iterations_tunes_at_that_budget_beside_the_tables_record(fold, tmp
 def test_evaluate_at_the_tuned_budget_reads_its_record_and_tests_at_it_alone(fold, tmp_path, monkeypatch):
     _run(tune_iterations=1000)
     seen = []
-    monkeypatch.setattr("rlsac.evaluate.check_all", lambda opts, track: None)
-    monkeypatch.setattr("rlsac.evaluate.evaluate", lambda o, track: seen.append(o) or {
+    monkeypatch.setattr("rlsac.evaluation.evaluate.check_all", lambda opts, track: None)
+    monkeypatch.setattr("rlsac.evaluation.evaluate.evaluate", lambda o, track: seen.append(o) or {
         "mAA_R": 0.5, "mAA_t": 0.5, "seconds": 0.0})
     folds.folds({"stage": "evaluate", "regime": "hard", "fold": "castle", "only": "magsac", "device": "cpu",
                  "tune_iterations": 1000}, track=False)

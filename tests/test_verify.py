@@ -234,7 +234,7 @@ def test_tracking_logs_a_finished_run(repo, workdir):
 
 def test_stages_that_train_are_told_by_their_checkpoint_or_their_name():
     """fold_select* replays a training (minutes per stage, no checkpoint written): a training stage like fold_train."""
-    from rlsac.verify import is_training
+    from rlsac.runners.verify import is_training
 
     assert is_training("fold_select_seed@castle-rlsac-1", ["reports/selection/hard/castle/rlsac-s1.csv"])
     assert is_training("fold_train@castle-rlsac", ["checkpoints/folds/hard/castle/rlsac.pt"])

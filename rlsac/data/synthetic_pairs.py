@@ -24,7 +24,7 @@ from rlsac.errors import RlsacError
 SNN_MODES = ("separable", "uninformative", "fitted")
 # where each pair's inlier ratio and the outliers' image positions come from; "auto": from ``statistics`` exactly when
 # snn="fitted" (the generator as the scale study fitted it), else the fixed ``inlier_ratio`` and uniform positions.
-# The learner's ladder (rlsac.ladder) sets them apart, one change per rung.
+# The learner's ladder (rlsac.experiments.ladder) sets them apart, one change per rung.
 SOURCES = ("auto", "fixed", "fitted")
 POSITIONS = ("auto", "uniform", "fitted")
 

@@ -1,7 +1,7 @@
 """The learned samplers' trainers, peers over one training harness (rlsac.learners.harness): ``sac`` (the RLSAC
 agent: SAC-Discrete over the environment) and ``ngransac`` (NG-RANSAC's network). A new learner is one module here
 that decorates its ``train(conf, track, snapshots)`` with ``@register_learner`` (and is imported below); `rlsac train
---method` picks it from ``LEARNERS`` (rlsac.train). Neither learner imports the other.
+--method` picks it from ``LEARNERS`` (rlsac.evaluation.train). Neither learner imports the other.
 """
 
 from __future__ import annotations

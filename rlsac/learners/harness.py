@@ -6,7 +6,7 @@ checkpoint keeps; ``load_data`` the training and validation batches; ``validatio
 validation metrics and the one that keeps an actor; ``task_experiment`` / ``logged_conf`` the MLflow experiment and run
 parameters; ``register_learner`` / ``LEARNERS`` the registry `rlsac train --method` picks from.
 
-The checkpoint format is rlsac.checkpoint's (an actor payload; NG-RANSAC's with kind "ngransac").
+The checkpoint format is rlsac.rl.checkpoint's (an actor payload; NG-RANSAC's with kind "ngransac").
 """
 
 from __future__ import annotations
@@ -19,14 +19,14 @@ import torch
 
 from rlsac.config import build, to_dict
 from rlsac.data import n_unusable, slice_batch
-from rlsac.env import EnvConf
-from rlsac.episodes import EpisodeConf
 from rlsac.errors import RlsacError
 from rlsac.io import check_writable
-from rlsac.kernels import KERNELS, NEIGHBOUR_MAX, neighbour_max_for
-from rlsac.ngransac import NGRansacConf
-from rlsac.policy import PolicyConf
-from rlsac.sac import SACConf
+from rlsac.rl.env import EnvConf
+from rlsac.rl.episodes import EpisodeConf
+from rlsac.rl.kernels import KERNELS, NEIGHBOUR_MAX, neighbour_max_for
+from rlsac.rl.ngransac import NGRansacConf
+from rlsac.rl.policy import PolicyConf
+from rlsac.rl.sac import SACConf
 from rlsac.tasks import TASKS, Task, get_task, read_batch, task_class
 from rlsac.tracking import check_store
 
@@ -54,7 +54,7 @@ def register_learner(name: str, sections: tuple[str, ...]):
 @dataclass
 class TrainConf:
     task: str = "line"
-    # "rlsac": SAC-Discrete (env, policy, sac); "ngransac": NG-RANSAC's training (rlsac.ngransac: policy, ngransac)
+    # "rlsac": SAC-Discrete (env, policy, sac); "ngransac": NG-RANSAC's training (rlsac.rl.ngransac: policy, ngransac)
     method: str = "rlsac"
     data: str = ""  # training file (lines h5 or prepared two-view h5)
     val_data: str = ""  # validation file; empty = no validation
@@ -79,16 +79,16 @@ class TrainConf:
     sac: SACConf = field(default_factory=SACConf)
     ngransac: NGRansacConf = field(default_factory=NGRansacConf)  # method "ngransac" only
     # not in the paper (issue #46): episodes redrawn from a pool of each pair's matches, images swapped at random
-    # (rlsac.episodes); the default, no pool, is the record's recipe (the training file's points every episode)
+    # (rlsac.rl.episodes); the default, no pool, is the record's recipe (the training file's points every episode)
     episodes: EpisodeConf = field(default_factory=EpisodeConf)
     # also write the actor of these steps (a scale curve from one run: <out stem>.step<k>.pt beside ``out``)
     snapshot_steps: list[int] = field(default_factory=list)
-    # the SAC update's dense products (rlsac.kernels): "aten", the record's; "onednn", the same function about 1.5x
+    # the SAC update's dense products (rlsac.rl.kernels): "aten", the record's; "onednn", the same function about 1.5x
     # faster on CPU under the portable pins, other last bits (not in the paper: an implementation choice)
     kernels: str = "aten"
-    # the SAC update's EdgeConv neighbour max (rlsac.kernels): "eager", the record's; "compiled", torch.compile's fused
-    # kernels (a C++ compiler at run time), the same bytes, 1.37x faster per update (reports/speed_training.json); a
-    # speed setting, so a state trained with one resumes with the other
+    # the SAC update's EdgeConv neighbour max (rlsac.rl.kernels): "eager", the record's; "compiled", torch.compile's
+    # fused kernels (a C++ compiler at run time), the same bytes, 1.37x faster per update (reports/speed_training.json);
+    # a speed setting, so a state trained with one resumes with the other
     neighbour_max: str = "eager"
     # not in the paper (issue #46, the pretraining arm): a training state (<out>.state.pt of another run) whose networks
     # (actor, critics, targets, temperature) start this run; its optimisers, replay buffer and step are not carried

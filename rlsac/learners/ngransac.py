@@ -1,5 +1,5 @@
 """The NG-RANSAC learner (`rlsac train --method ngransac`): Adam on the expected task loss of NG-RANSAC's sampling
-network (rlsac.ngransac: the network, its loss and sampler), on the shared harness (rlsac.learners.harness:
+network (rlsac.rl.ngransac: the network, its loss and sampler), on the shared harness (rlsac.learners.harness:
 configuration, data, validation, selection, checkpoint format, MLflow), as RLSAC's learner is.
 """
 
@@ -11,7 +11,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from rlsac import checkpoint
 from rlsac.devices import resolve_device
 from rlsac.errors import RlsacError
 from rlsac.learners.harness import (
@@ -24,19 +23,22 @@ from rlsac.learners.harness import (
     task_experiment,
     validation_summary,
 )
-from rlsac.ngransac import KIND, estimate, loss, network, payload, set_losses
-from rlsac.sac import seed_everything
+from rlsac.rl import checkpoint
+from rlsac.rl.ngransac import KIND, estimate, loss, network, payload, set_losses
+from rlsac.rl.sac import seed_everything
 from rlsac.tracking import start_run
 
 
 @register_learner("ngransac", sections=("ngransac",))
 def train(conf: TrainConf, track: bool = True, snapshots: list | None = None) -> dict:
     """``rlsac train --method ngransac``: ``conf`` a checked TrainConf (rlsac.learners.harness.check; method
-    "ngransac") -> the summary of ``rlsac.train.train``. The kept network (``conf.out``) is the best validation under
+    "ngransac") -> the summary of ``rlsac.evaluation.train.train``. The kept network (``conf.out``) is the best
+    validation under
     ``conf.selection`` (RLSAC's rule and signals), else the last; no training state file (no --resume), no
     snapshots."""
     if snapshots is not None:
-        raise RlsacError("train: snapshots of every validated actor are RLSAC's training's (rlsac.selection)")
+        raise RlsacError("train: snapshots of every validated actor are RLSAC's training's "
+                         "(rlsac.experiments.selection)")
     if conf.resume:
         raise RlsacError("ngransac training has no --resume (it keeps no training state)")
     ng = conf.ngransac
@@ -46,7 +48,7 @@ def train(conf: TrainConf, track: bool = True, snapshots: list | None = None) ->
     task, data, val, unusable = load_data(conf, device)
     data["features_net"] = data.pop("features")
     if ng.signal == "pose":  # a file without the ground truth the signal reads fails here, not at the first update
-        from rlsac.sampling import uniform_minimal_sets
+        from rlsac.estimation.sampling import uniform_minimal_sets
 
         first = _rows(data, torch.tensor([0]))
         try:

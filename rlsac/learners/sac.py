@@ -20,9 +20,7 @@ from pathlib import Path
 
 import torch
 
-from rlsac import checkpoint
 from rlsac.devices import resolve_device
-from rlsac.episodes import RedrawnPairs, pool_tensors
 from rlsac.errors import Interrupted, RlsacError
 from rlsac.io import atomic_path, clean_stale_temps, load_torch
 from rlsac.learners.harness import (
@@ -37,8 +35,10 @@ from rlsac.learners.harness import (
     task_experiment,
     validation_summary,
 )
-from rlsac.rollout import in_channels, rlsac_estimate
-from rlsac.sac import ReplayBuffer, SACAgent, seed_everything, train_loop
+from rlsac.rl import checkpoint
+from rlsac.rl.episodes import RedrawnPairs, pool_tensors
+from rlsac.rl.rollout import in_channels, rlsac_estimate
+from rlsac.rl.sac import ReplayBuffer, SACAgent, seed_everything, train_loop
 from rlsac.signals import StopOnSignal as _StopOnSignal  # shared with every command (rlsac.signals)
 from rlsac.tasks import Task, read_batch
 from rlsac.tracking import start_run
@@ -48,8 +48,8 @@ from rlsac.tracking import start_run
 def train(conf: TrainConf, track: bool = True, snapshots: list | None = None) -> dict:
     """RLSAC's training: ``conf`` a checked TrainConf (rlsac.learners.harness.check; method "rlsac"); train, keep the
     selected actor in ``out``; -> a summary. ``snapshots``: a list that receives the checkpoint payload of every
-    validated actor, kept or not (rlsac.selection replays a fold model's training to measure the choice; nothing of
-    the run itself changes)."""
+    validated actor, kept or not (rlsac.experiments.selection replays a fold model's training to measure the choice;
+    nothing of the run itself changes)."""
     out, state_path = Path(conf.out), Path(conf.out).with_suffix(".state.pt")
     if conf.threads > 0:
         torch.set_num_threads(conf.threads)

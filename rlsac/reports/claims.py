@@ -6,7 +6,7 @@ The sentences are ours (``CLAIMS``); every number and verdict is computed here f
     <eval_root>/<folds|essential>/<regime>/<fold>/<row>/i<iterations>/errors.csv
     <eval_root>/lines/<row>/o<rate>/errors.csv                           (sub "lines": the regime is the rate)
 A model with rows of other training seeds (<model>-s<seed>, params.yaml folds.seeds / lines.seeds) is taken over all
-its seeds, on either side of a claim (a learned control too: "S vs S'" in the seeds column; rlsac.metrics.
+its seeds, on either side of a claim (a learned control too: "S vs S'" in the seeds column; rlsac.maths.metrics.
 seed_bootstrap_maa: seeds, then pairs within their test building, or the line instances); a model with one seed
 gets the same bootstrap over pairs only, and the table says so (its verdict cannot speak for training noise).
 
@@ -27,7 +27,7 @@ from typing import Any
 import pandas as pd
 
 from rlsac.io import atomic_path, write_text
-from rlsac.protocol import LINE_TIE_MARGIN
+from rlsac.layout.protocol import LINE_TIE_MARGIN
 from rlsac.reports.retuning import COMPUTE, Compute, Selection
 
 # a tie: the whole interval within ±0.03 mAA (18 of the 606 fold test pairs; the paper's Table 3 steps are 0.02-0.06)
@@ -150,7 +150,7 @@ def combine(verdicts: list[str]) -> str:
 def _row(claim: Claim, seeds: int | str, stats: dict[str, dict], pairs: int, how: str | None = None
          ) -> dict[str, Any]:
     """A row of claims.md from each metric's metrics.seed_bootstrap_maa result, with "sel_lo"/"sel_hi" (the interval
-    with the selection term, rlsac.metrics.contrast_bootstrap) where the fold claims carry it; ``how``: the rows'
+    with the selection term, rlsac.maths.metrics.contrast_bootstrap) where the fold claims carry it; ``how``: the rows'
     selection (paper_report's `selection` column), None for the lines."""
     row: dict[str, Any] = {"claim": claim.text, "where": claim.where, "kind": claim.kind, "seeds": seeds,
                            "rows": f"{claim.model} − {claim.control}", "pairs": pairs}
@@ -172,15 +172,16 @@ def _row(claim: Claim, seeds: int | str, stats: dict[str, dict], pairs: int, how
 
 def check(claim: Claim, res: dict[tuple[str, str, int], pd.DataFrame], selection: Selection | None = None
           ) -> dict[str, Any] | None:
-    """The claim against ``res`` (rlsac.results.collect of its benchmark) -> a row of claims.md, or None when
+    """The claim against ``res`` (rlsac.evaluation.results.collect of its benchmark) -> a row of claims.md, or None when
     its rows are missing; ``selection``: the re-tuning records whose re-chosen settings its intervals carry
-    (rlsac.reports.retuning.Selection; the nested bootstrap of rlsac.metrics.contrast_bootstrap), None for none."""
-    from rlsac.metrics import contrast_bootstrap
-    from rlsac.protocol import LIMIT, N_BOOT
+    (rlsac.reports.retuning.Selection; the nested bootstrap of rlsac.maths.metrics.contrast_bootstrap), None for
+    none."""
+    from rlsac.evaluation.results import seed_runs
+    from rlsac.layout.protocol import LIMIT, N_BOOT
+    from rlsac.maths.metrics import contrast_bootstrap
     from rlsac.reports.folds import seed_comparison
     from rlsac.reports.paper_report import _how
     from rlsac.reports.retuning import contrast
-    from rlsac.results import seed_runs
 
     seeds = seed_runs(res, claim.regime)
     runs, controls = seeds.get(claim.model, [claim.model]), seeds.get(claim.control, [claim.control])
@@ -200,9 +201,9 @@ def check(claim: Claim, res: dict[tuple[str, str, int], pd.DataFrame], selection
 def check_lines(claim: Claim, root: Path) -> dict[str, Any] | None:
     """A Table 1 claim against <eval_root>/lines: model and control over their training seeds (either may have
     several) at the claim's rate -> a row of claims.md, or None when a result is missing."""
-    from rlsac.metrics import seed_bootstrap_maa
-    from rlsac.protocol import LINE_LIMIT_DEG, PAIRED_BOOT
-    from rlsac.results import line_errors, line_runs_at, line_seed_runs, read_summary
+    from rlsac.evaluation.results import line_errors, line_runs_at, line_seed_runs, read_summary
+    from rlsac.layout.protocol import LINE_LIMIT_DEG, PAIRED_BOOT
+    from rlsac.maths.metrics import seed_bootstrap_maa
 
     runs, rate = line_seed_runs(root), float(claim.regime)
     model = line_runs_at(root, runs.get(claim.model, [claim.model]), rate)
@@ -224,9 +225,9 @@ def build(eval_root: str | Path = "reports/eval", out_dir: str | Path = "reports
     """Write <out_dir>/claims.{md,csv} from the fold and line results; -> {"files", "missing"} (claims whose rows
     are absent). ``retuning``: the fundamental task's re-tuning records (rlsac.reports.retuning.Selection of
     ``out_dir``, None for none), read here by default; Table E's rows (the essential task) read their own."""
-    from rlsac.protocol import N_BOOT, PAIRED_BOOT
+    from rlsac.evaluation.results import collect
+    from rlsac.layout.protocol import N_BOOT, PAIRED_BOOT
     from rlsac.reports.retuning import resolve
-    from rlsac.results import collect
 
     selection = {"folds": resolve(retuning, out_dir),
                  "essential": None if retuning is None else Selection(out_dir, "essential")}

@@ -148,8 +148,8 @@ def _save(fig, out_dir: Path, name: str) -> list[str]:
 def _load_policy(path: str | None, task_name: str, device: str):
     """-> (actor, task, env conf, note), or (None, default task, EnvConf(), why) when no checkpoint is asked for
     (empty option). A checkpoint path that does not exist is an error, never a silent fallback."""
-    from rlsac.checkpoint import check_reads, env_conf, load_actor, task_options
-    from rlsac.rollout import in_channels
+    from rlsac.rl.checkpoint import check_reads, env_conf, load_actor, task_options
+    from rlsac.rl.rollout import in_channels
     from rlsac.tasks import task_from
 
     if not path:
@@ -177,7 +177,7 @@ def _to_cpu(x):
 def _rlsac_rollout(task, batch, actor, env, seed: int, iterations: int) -> dict:
     """rlsac_estimate with record=True on the actor's device (option ``device``: the batch and a seeded generator
     go there), its output on the CPU, where the figure is drawn."""
-    from rlsac.rollout import rlsac_estimate
+    from rlsac.rl.rollout import rlsac_estimate
 
     dev = next(actor.parameters()).device
     on_dev = {k: v.to(dev) if torch.is_tensor(v) else v for k, v in batch.items()}
@@ -191,8 +191,8 @@ def _episode(task, batch, actor, env, seed: int) -> list[dict]:
     if actor is not None:
         return _rlsac_rollout(task, batch, actor, env, seed, steps)["steps"]
     gen = torch.Generator().manual_seed(seed)
-    from rlsac.lo import score_sets
-    from rlsac.sampling import gather_points, uniform_minimal_sets
+    from rlsac.estimation.lo import score_sets
+    from rlsac.estimation.sampling import gather_points, uniform_minimal_sets
 
     coords, mask = batch["coords"], batch["mask"]
     idx = uniform_minimal_sets(mask, task.sample_size, steps, gen)  # (B, steps, m)
@@ -289,8 +289,8 @@ def line_setup(o: dict[str, Any]) -> dict[str, Any]:
 
 
 def plot_line_steps(o: dict[str, Any], out_dir: Path, setup: dict[str, Any] | None = None) -> tuple[list[str], str]:
-    from rlsac import metrics
     from rlsac.data import lines
+    from rlsac.maths import metrics
 
     su = setup or line_setup(o)
     path, data, attrs, actor, task, psi = su["path"], su["data"], su["attrs"], su["actor"], su["task"], su["psi"]
@@ -508,9 +508,9 @@ def plot_fundamental_pair(o: dict[str, Any], out_dir: Path, setup: tuple | None 
         minimal = out["steps"][t]["minimal_set"][r].numpy()
         who = f"RLSAC ({Path(o['fundamental_checkpoint']).name}), {iters} iterations"
     else:
-        from rlsac.baselines import finalize
-        from rlsac.lo import score_sets
-        from rlsac.sampling import gather_points, uniform_minimal_sets
+        from rlsac.estimation.baselines import finalize
+        from rlsac.estimation.lo import score_sets
+        from rlsac.estimation.sampling import gather_points, uniform_minimal_sets
 
         # plain RANSAC written out, so that the minimal set shown is the one behind the estimate
         gen = torch.Generator().manual_seed(int(o["seed"]))
@@ -585,7 +585,7 @@ def read_inputs(o: dict[str, Any]) -> dict[str, Any]:
     which = set(o["which"])
     if "fundamental_iterations" in which:
         if o["iterations_csv"]:
-            from rlsac.results import read_table
+            from rlsac.evaluation.results import read_table
 
             out["fundamental_iterations"] = read_table(o["iterations_csv"], ("iterations", "mAA_R", "mAA_t"),
                                                        "iterations CSV")

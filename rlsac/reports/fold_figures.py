@@ -18,10 +18,10 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from rlsac import checkpoint  # noqa: E402
 from rlsac.errors import RlsacError  # noqa: E402
+from rlsac.evaluation.results import read_table  # noqa: E402
 from rlsac.reports import figfile  # noqa: E402
-from rlsac.results import read_table  # noqa: E402
+from rlsac.rl import checkpoint  # noqa: E402
 
 STYLE = {"uniform": ("tab:blue", "x"), "guided": ("tab:cyan", "<"), "prosac": ("olive", ">"),
          "ransac": ("tab:purple", "o"), "opencv_ransac": ("tab:gray", "s"),
@@ -180,7 +180,7 @@ def read_checkpoints(ckpt_root: str | Path) -> dict[Path, dict]:
 def seed_curves(read: dict[Path, dict], key: str) -> dict[tuple[str, str], pd.DataFrame]:
     """(model, regime/fold) -> steps x seeds table of ``key`` from the checkpoints' validation histories; the rows
     of a model's other training seeds (<model>-s<seed>) are columns of the model's table (issue #27)."""
-    from rlsac.protocol import split_seed
+    from rlsac.layout.protocol import split_seed
 
     out: dict[tuple[str, str], list[pd.Series]] = {}
     def order(p: Path) -> tuple[str, str, int]:  # the model itself (its recipe's seed) first, then by seed
@@ -204,7 +204,7 @@ def plot_learning_curves(ckpt_root: str | Path | dict, out_dir: Path) -> tuple[l
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
 
-    from rlsac.protocol import split_seed
+    from rlsac.layout.protocol import split_seed
 
     read = ckpt_root if isinstance(ckpt_root, dict) else read_checkpoints(ckpt_root)
     kept = {p.stem + "@" + f"{p.parent.parent.name}/{p.parent.name}": ck.get("step") for p, ck in read.items()}

@@ -21,14 +21,14 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from rlsac.evaluation.methods import METHODS
+from rlsac.evaluation.results import check_distinct, collect, load_records, pair_key, seed_errors, seed_runs  # noqa: F401
 from rlsac.io import atomic_path, write_text
-from rlsac.methods import METHODS
-from rlsac.metrics import mAA, paired_bootstrap_maa
-from rlsac.protocol import LIMIT, N_BOOT  # mAA@10 deg, the bootstrap's draws
-from rlsac.results import check_distinct, collect, load_records, pair_key, seed_errors, seed_runs  # noqa: F401
+from rlsac.layout.protocol import LIMIT, N_BOOT  # mAA@10 deg, the bootstrap's draws
+from rlsac.maths.metrics import mAA, paired_bootstrap_maa
 
-# row labels: each registered method's (rlsac.methods), the fold models' (RLSAC variants of folds.models) here;
-# rows follow ROW_ORDER, then any other method or model alphabetically
+# row labels: each registered method's (rlsac.evaluation.methods), the fold models' (RLSAC variants of folds.models)
+# here; rows follow ROW_ORDER, then any other method or model alphabetically
 MODEL_NAMES = {"rlsac": "RLSAC (paper recipe and algorithm)",
                "rlsac-nodesc": "RLSAC without descriptors (Table 3 a)",
                "rlsac-trainmax": "RLSAC, max sampling in training (Table 3 b)",
@@ -99,12 +99,12 @@ PROTOCOL = ("Every row's inlier threshold (px) and SNN pre-filter, and its own k
             "rows' σ, RLSAC-fast's k and confidence), were chosen on its fold's validation pairs only (pairs of the "
             "training buildings; `reports/tuning/`, the table at the end of each regime), by the CVPR 2020 tutorial's "
             "grids at the tuning budget of params.yaml `tuning`; the test pairs were evaluated once with them. RLSAC, "
-            "uniform and guided run the paper's algorithm (one minimal set per step, the whole budget). Arms: "
-            "*no LO* (the sampler, scoring and one refit on the inliers: our rows and OpenCV's without LO or "
-            "polisher), *same LO* (our samplers with the same local optimisation, rlsac.lo; not in the paper), "
-            "*OpenCV LO+polish* (OpenCV's presets as they ship). `hypotheses`: minimal sets scored per pair, mean "
-            "over pairs (the LO rows' non-minimal fits are counted apart, `lo_fits_per_instance` in each cell's "
-            "summary.json); † OpenCV does not report its count: the bound of its stopping rule (confidence 0.999) "
+            "uniform and guided run the paper's algorithm (one minimal set per step, the whole budget). Arms: *no LO* "
+            "(the sampler, scoring and one refit on the inliers: our rows and OpenCV's without LO or polisher), *same "
+            "LO* (our samplers with the same local optimisation, rlsac.estimation.lo; not in the paper), *OpenCV "
+            "LO+polish* (OpenCV's presets as they ship). `hypotheses`: minimal sets scored per pair, mean over pairs "
+            "(the LO rows' non-minimal fits are counted apart, `lo_fits_per_instance` in each cell's summary.json); † "
+            "OpenCV does not report its count: the bound of its stopping rule (confidence 0.999) "
             "at the returned inlier ratio. ")
 TABLE2_HEAD = ("# Table 2 (folds): fundamental matrix, leave-one-building-out over the six Strecha scenes\n\n"
                "mAA@10° of the rotation (R) and translation (t) errors, pooled over every test pair of all folds and "
@@ -131,7 +131,7 @@ def build(eval_root: str | Path = "reports/eval", out_dir: str | Path = "reports
     """Write <stem>.{md,csv} and <iterations_stem>.csv from <eval_root>/<sub>; -> {"files", "missing"}. ``expected``
     (default: ``EXPECTED`` for Table 2, none for another ``sub``): rows shown in every regime with the reference
     model, "–" where their results are absent (the .md only: the CSVs hold results)."""
-    from rlsac.protocol import split_points, split_seed
+    from rlsac.layout.protocol import split_points, split_seed
 
     everything = collect(eval_root, sub)
     check_distinct(everything, sub)
@@ -284,7 +284,7 @@ def seed_comparison(res, seeded: dict[str, list[str]], regime: str, model: str, 
     ``seed_runs``; a row without other seeds is one run), on the pairs every run has (``building``: only that test
     building's) -> (metrics.seed_bootstrap_maa's result, the number of pairs), or None when a run or common pairs
     are missing."""
-    from rlsac.metrics import seed_bootstrap_maa
+    from rlsac.maths.metrics import seed_bootstrap_maa
 
     got = seed_errors(res, seeded, regime, model, control, it, col, building)
     if got is None:
@@ -383,9 +383,9 @@ SHORT = {"guide_temperature": "T", "lo_sigma_scale": "σ", "sets_per_step": "k",
 
 
 def _tuning_section(root: Path, regime: str, methods: list[str], folds: list[str]) -> str:
-    """Per row and fold: the settings chosen on that fold's validation pairs (rlsac.tune records under
+    """Per row and fold: the settings chosen on that fold's validation pairs (rlsac.evaluation.tune records under
     ``root``/<regime>/<fold>/<row>.json) and their validation mAA."""
-    from rlsac.results import read_record
+    from rlsac.evaluation.results import read_record
 
     rows = []
     for m in methods:
@@ -405,8 +405,8 @@ def _tuning_section(root: Path, regime: str, methods: list[str], folds: list[str
         rows.append(row)
     if not rows:
         return ""
-    return ("### Settings chosen on each fold's validation pairs (rlsac.tune; validation mAA@10° of max(R, t) at the "
-            "tuning budget)\n\n" + pd.DataFrame(rows).to_markdown(index=False, disable_numparse=True) + "\n")
+    return ("### Settings chosen on each fold's validation pairs (rlsac.evaluation.tune; validation mAA@10° of max(R, "
+            "t) at the tuning budget)\n\n" + pd.DataFrame(rows).to_markdown(index=False, disable_numparse=True) + "\n")
 
 
 # Table 3 on the folds (issue #26): the paper's ablations as fold rows, each tuned per fold like every row. Paper
@@ -429,7 +429,7 @@ def _n_study(res: dict[tuple[str, str, int], pd.DataFrame], it: int, recs: dict[
     """Table 3 (c) against the uniform control on the same data: for every N, RLSAC trained and tested with N points
     per pair, uniform minimal sets on those points, and their paired difference (the policy's share; the data change
     with N for both)."""
-    from rlsac.protocol import points_name, split_points
+    from rlsac.layout.protocol import points_name, split_points
 
     control = CONTROLS[0]
     ns = {n for r, m, i in res if r == TABLE3_REGIME and i == it

@@ -27,7 +27,7 @@ VERDICTS = ("reproduced", "equivalent within ±m", "same direction, smaller", "n
             "not a tie", "not testable here")
 # m, the margin inside which a difference is no difference in practice, once per metric (issue #62): 0.02 mAA@10° is
 # 12 of the 606 fold test pairs; 0.1° of a median error is a tenth of the paper's USAC-to-MAGSAC++ step in ε_R; on
-# lines 0.01 mAA@0.5° is 10 of the 1000 test instances (rlsac.protocol.LINE_TIE_MARGIN, one home)
+# lines 0.01 mAA@0.5° is 10 of the 1000 test instances (rlsac.layout.protocol.LINE_TIE_MARGIN, one home)
 MARGINS = {"mAA": 0.02, "median": 0.1}
 # mAA@10° / median columns of Table 2 and 3 (paper.TABLE2's tuple order) -> (our errors.csv column, kind)
 F_METRICS = {"mAA R": ("err_R", "maa", 0), "mAA t": ("err_t", "maa", 1), "median ε_R": ("err_R", "median", 2),
@@ -60,7 +60,7 @@ class PaperClaim:
 
 def margin(metric: str) -> float:
     """The claim's m: MARGINS by the metric's kind; a line claim's is claims.md's line tie margin."""
-    from rlsac.protocol import LINE_TIE_MARGIN
+    from rlsac.layout.protocol import LINE_TIE_MARGIN
 
     if metric == LINE_METRIC:
         return LINE_TIE_MARGIN

@@ -4,9 +4,9 @@ the paper's.
 
 Reads what the tables read: <eval_root>/lines/<row>/o<rate>/errors.csv and <eval_root>/folds/<regime>/<fold>/<row>/
 i<iterations>/errors.csv, a model taken over all its training seeds (<row>-s<seed>) as in claims.md, with the same
-bootstrap (rlsac.metrics.seed_bootstrap_maa: seeds, then pairs within their test building, 2000 draws, seed 0), so
+bootstrap (rlsac.maths.metrics.seed_bootstrap_maa: seeds, then pairs within their test building, 2000 draws, seed 0), so
 an mAA difference here is the one claims.md and table2_folds.md print for the same rows; medians use
-rlsac.metrics.seed_bootstrap_median, the same draws on each seed's median error.
+rlsac.maths.metrics.seed_bootstrap_median, the same draws on each seed's median error.
 """
 
 from __future__ import annotations
@@ -64,7 +64,7 @@ def old_verdict(paper: float | None, lo: float, hi: float, sign: int = 1) -> str
 
 
 def _line_errors(root: Path, claim: PaperClaim, rate: float):
-    from rlsac.results import line_errors, line_seed_runs, read_summary
+    from rlsac.evaluation.results import line_errors, line_seed_runs, read_summary
 
     runs = line_seed_runs(root)
     got = []
@@ -113,10 +113,10 @@ def check(claim: PaperClaim, regime: str, eval_root: Path, res: dict, selection:
     ``selection``: the re-tuning records (rlsac.reports.retuning.Selection) whose re-chosen settings a fold claim's
     interval carries (the nested bootstrap), None for none; ``term``: the global re-tuning half-width paper.md used
     before issue #62, only for the `before` verdict that shows what moved."""
-    from rlsac.metrics import contrast_bootstrap
-    from rlsac.protocol import LIMIT, LINE_LIMIT_DEG, N_BOOT
+    from rlsac.evaluation.results import seed_runs
+    from rlsac.layout.protocol import LIMIT, LINE_LIMIT_DEG, N_BOOT
+    from rlsac.maths.metrics import contrast_bootstrap
     from rlsac.reports.retuning import contrast, widen
-    from rlsac.results import seed_runs
 
     row = {"key": claim.key, "table": claim.table, "claim": claim.text, "metric": claim.metric, "regime": regime,
            "section": claim.section,
@@ -277,8 +277,8 @@ def build(eval_root: str | Path = "reports/eval", out_dir: str | Path = "reports
     """Write <out_dir>/paper.{md,csv}; -> {"files", "missing"} (claim / regime pairs whose rows are absent).
     ``retuning``: the re-tuning records (rlsac.reports.retuning.Selection of ``out_dir``, None for none), read here
     by default."""
+    from rlsac.evaluation.results import collect
     from rlsac.reports.retuning import halfwidth, resolve
-    from rlsac.results import collect
 
     eval_root = Path(eval_root)
     selection = resolve(retuning, out_dir)

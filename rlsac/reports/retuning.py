@@ -5,7 +5,7 @@ pairs, and every chosen setting was tested).
 
 The claims (rlsac.reports.claims, rlsac.reports.paper_report) carry it per comparison (issue #62): ``Selection``
 reads every record once and gives, for a claim's rows (``contrast``), each re-tuned row's test errors under every
-draw's re-chosen setting; rlsac.metrics.contrast_bootstrap draws the nested, paired bootstrap from them. ``rlsac
+draw's re-chosen setting; rlsac.maths.metrics.contrast_bootstrap draws the nested, paired bootstrap from them. ``rlsac
 table`` reads the records once per build and hands them to each builder (their ``retuning`` argument); a builder
 called on its own (default ``COMPUTE``) reads them itself (``resolve``). ``halfwidth`` / ``widen`` are the one global
 term the claims used before (Z95·√2·the largest sd, added in quadrature): reports/tuning_budget.md reports it, and
@@ -40,7 +40,7 @@ COMPUTE = Compute.COMPUTE
 def load_retune(out_dir: Path, regime: str, row: str, task: str = "fundamental") -> list[dict[str, Any]]:
     """The re-tuning records of ``row`` in ``regime``, one per fold (fold order), each checked for the fields the
     report reads: one choice per draw, test errors for every chosen setting at every budget."""
-    from rlsac.results import read_retune_record
+    from rlsac.evaluation.results import read_retune_record
 
     recs = []
     for path in sorted((out_dir / "retune" / task / regime).glob(f"*/{row}.json")):
@@ -67,8 +67,8 @@ def spread(recs: list[dict[str, Any]], it: int, col: str, limit: float, *, boots
     choice on all validation pairs (the tables' setting) and ``half`` the half-width of its own 95% bootstrap interval
     over the test pairs, resampled within each test building as the tables do; ``bootstrap=False`` leaves ``half``
     out (and its bootstrap undrawn: the other fields do not depend on it)."""
-    from rlsac.metrics import accuracy_per_instance, stratified_draws
-    from rlsac.protocol import N_BOOT
+    from rlsac.layout.protocol import N_BOOT
+    from rlsac.maths.metrics import accuracy_per_instance, stratified_draws
 
     draws = {len(r["choices"]) for r in recs}
     if len(draws) != 1:
@@ -95,7 +95,7 @@ def halfwidth(out_dir: str | Path) -> dict[str, Any] | None:
     {s, sd, row, regime, iterations, metric} with s = Z95·√2·sd and sd the largest re-tuned sd
     (rows x budgets x metrics, the folds pooled); None when there is no record (the term is then left out, and the
     reports say so)."""
-    from rlsac.protocol import LIMIT
+    from rlsac.layout.protocol import LIMIT
 
     root = Path(out_dir) / "retune" / "fundamental"
     best = None
@@ -131,7 +131,7 @@ class Selection:
     """The selection term of a comparison (issue #62): every re-tuning record of ``task`` under <out_dir>/retune,
     by (regime, row), and the tuning records (<out_dir>/tuning/<task>) that say how a row without one got its
     settings. ``contrast`` gives a claim's rows, each with its errors per validation draw where it has a record;
-    rlsac.metrics.contrast_bootstrap draws the nested bootstrap from them."""
+    rlsac.maths.metrics.contrast_bootstrap draws the nested bootstrap from them."""
 
     def __init__(self, out_dir: str | Path, task: str = "fundamental"):
         self.out_dir, self.task = Path(out_dir), task
@@ -160,7 +160,7 @@ class Selection:
         recs = self.records.get((regime, row))
         if recs and all(str(it) in r["test"] for r in recs):
             return "re-selected"
-        from rlsac.protocol import split_seed
+        from rlsac.layout.protocol import split_seed
 
         tuned = sorted((self.out_dir / "tuning" / self.task / regime).glob(f"*/{split_seed(row)[0]}.json"))
         if not tuned:
@@ -173,7 +173,8 @@ class Selection:
         return "not measured" if len(rec.get("grid") or ()) > 1 else "fixed"
 
     def draws(self, regime: str, row: str, it: int, frame, col: str) -> np.ndarray | None:
-        """(V, len(frame)) test errors in column ``col`` of ``row``'s evaluated pairs (``frame``, rlsac.results.
+        """(V, len(frame)) test errors in column ``col`` of ``row``'s evaluated pairs (``frame``,
+        rlsac.evaluation.results.
         collect's, in its order), draw v's setting on each fold; None without a record at ``it``. The record's own
         choice on all validation pairs must reproduce ``frame`` (the tables' cell), else the record is stale."""
         if self.how(regime, row, it) != "re-selected":
@@ -202,11 +203,12 @@ class Selection:
 
 def contrast(res, seeded: dict[str, list[str]], regime: str, terms: list[tuple[float, str]], it: int, col: str,
              sel: Selection | None) -> dict[str, Any] | None:
-    """The rows of a contrast Σ w·row (``terms``), each over its training seeds (``seeded``: rlsac.results.seed_runs),
+    """The rows of a contrast Σ w·row (``terms``), each over its training seeds (``seeded``:
+    rlsac.evaluation.results.seed_runs),
     on the pairs every run has -> {"rows": [(w, full (S, M), draws (V, S, M) or None)], "strata" (each pair's test
     building), "how": {row: Selection.how}}, or None when a run or common pairs are missing. ``sel`` None: no
     row re-selected."""
-    from rlsac.results import pair_key
+    from rlsac.evaluation.results import pair_key
 
     runs = {row: seeded.get(row, [row]) for _, row in terms}
     frames = {m: res.get((regime, m, it)) for rs in runs.values() for m in rs}

@@ -4,7 +4,7 @@ Reads the study's evaluations (reports/eval/scale/<fold>/<arm>-s<seed>/step<k>/i
 the same test pairs (reports/eval/folds/<regime>/<fold>/<control>/i<it>/), each run's validation curve (the history in
 its kept checkpoint) and the learner's positive control (reports/positive_control.json); nothing is run here.
 Comparisons are paired on the test pairs and resample training seeds as well as pairs
-(rlsac.metrics.seed_bootstrap_maa).
+(rlsac.maths.metrics.seed_bootstrap_maa).
 """
 
 from __future__ import annotations
@@ -16,11 +16,11 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from rlsac import scale_layout as lay
 from rlsac.errors import RlsacError
+from rlsac.evaluation.results import read_errors
 from rlsac.io import atomic_path
-from rlsac.metrics import mAA, seed_bootstrap_maa
-from rlsac.results import read_errors
+from rlsac.layout import scale_layout as lay
+from rlsac.maths.metrics import mAA, seed_bootstrap_maa
 
 CONTROLS = ("uniform", "guided")  # the sampler-free control and the hand-made SNN sampler (the tables' rows)
 ARM_LABEL = {"fixed": "today's pairs (the record's episodes)", "redraw": "+ redraw from the pool and swap",
@@ -32,8 +32,8 @@ LIMIT = 10.0  # mAA@10 deg, Table 2's
 
 
 def _errors(path: Path, keys: pd.Index | None) -> tuple[np.ndarray, np.ndarray, pd.Index]:
-    """An evaluation folder's errors (rlsac.results' refusing reader: finite, one row per counted pair) -> err_R,
-    err_t and the pairs' keys, which must be ``keys`` where given (the same test pairs in the same order)."""
+    """An evaluation folder's errors (rlsac.evaluation.results' refusing reader: finite, one row per counted pair) ->
+    err_R, err_t and the pairs' keys, which must be ``keys`` where given (the same test pairs in the same order)."""
     df = read_errors(path / "errors.csv", ("err_R", "err_t"))
     if df is None or not {"scene", "pair"} <= set(df.columns):
         raise RlsacError(f"{path}: no errors.csv with the pairs' scene and pair columns")
@@ -147,7 +147,8 @@ def comparisons(s: dict[str, Any], got: dict[str, Any]) -> pd.DataFrame:
     for (arm, k, it), (r, t) in sorted(got["runs"].items()):
         row = {"arm": arm, "step": k, "iterations": it, "seeds": r.shape[0],
                "mAA_R": float(np.mean([mAA(x, LIMIT) for x in r])), "mAA_t": float(np.mean([mAA(x, LIMIT) for x in t])),
-               # the seed sd with ddof=1, as every other report's (rlsac.metrics.seed_bootstrap_maa); 0 for one seed
+               # the seed sd with ddof=1, as every other report's (rlsac.maths.metrics.seed_bootstrap_maa); 0 for one
+               # seed
                "sd_R": seed_sd([mAA(x, LIMIT) for x in r]), "sd_t": seed_sd([mAA(x, LIMIT) for x in t])}
         for c in CONTROLS:
             if (c, it) not in got["controls"]:
@@ -203,7 +204,7 @@ def choose(s: dict[str, Any], curves: pd.DataFrame, deployed: pd.DataFrame | Non
 def _section(path: Path, what: str, render) -> list[str]:
     """``render`` (the JSON mapping in ``path``) -> lines; [] when the file is absent. A corrupt file is one error
     naming it (issue #49: a JSONDecodeError or KeyError traceback)."""
-    from rlsac.results import read_mapping
+    from rlsac.evaluation.results import read_mapping
 
     d = read_mapping(path, what)
     if d is None:
@@ -287,7 +288,7 @@ def markdown(s: dict, comp: pd.DataFrame, curves: pd.DataFrame, chosen: dict | N
         "carry the residual scale the policy was trained with (`state_scales`), so the evaluation threshold no longer "
         "changes what the policy sees, and one tuned setting scores sampler and control alike (RLSAC − uniform is the "
         "sampler alone). Intervals: 95%, resampling training seeds, then the test pairs within each scene "
-        "(`rlsac.metrics.seed_bootstrap_maa`).", "",
+        "(`rlsac.maths.metrics.seed_bootstrap_maa`).", "",
         "**Scale against the paper's.** The paper trains 100 epochs on 12 scenes of about 100k pairs each (about 10^8 "
         "pair-episodes). The record's fold recipe is 300 steps x 16 episodes (4,800 episodes, about 280 updates) on "
         "the fold's training pairs; this study goes to " + f"{max(s['steps']) // min(s['steps'])}x the steps and, "

@@ -22,11 +22,7 @@ import numpy as np
 import pandas as pd
 
 from rlsac.errors import RlsacError
-from rlsac.io import all_or_nothing, atomic_path, staged, write_json, write_text
-from rlsac.metrics import paired_bootstrap_maa
-from rlsac.protocol import LINE_LIMIT_DEG, PAIRED_BOOT
-from rlsac.reports import paper
-from rlsac.results import (  # noqa: F401  (LINE_SEED_MODELS, line_runs_at: re-exported, as before issue #48)
+from rlsac.evaluation.results import (  # noqa: F401  (LINE_SEED_MODELS, line_runs_at: re-exported, as before issue #48)
     LINE_SEED_MODELS,
     line_errors,
     line_runs_at,
@@ -35,12 +31,16 @@ from rlsac.results import (  # noqa: F401  (LINE_SEED_MODELS, line_runs_at: re-e
     read_record,
     read_summary,
 )
+from rlsac.io import all_or_nothing, atomic_path, staged, write_json, write_text
+from rlsac.layout.protocol import LINE_LIMIT_DEG, PAIRED_BOOT
+from rlsac.maths.metrics import paired_bootstrap_maa
+from rlsac.reports import paper
 
 DASH = "–"
 # directory -> Table 1 row; "oracle" (TLS on the true inliers) is ours only: the reference a sampler aims at
 # ngransac: NG-RANSAC's sampling network (issue #29, not in the paper), the one-shot learned sampler beside RLSAC
 LINE_METHODS = {"ransac": "RANSAC", "ours": "Ours", "ours-0.5": "Ours-0.5", "ngransac": "NG-RANSAC", "oracle": "Oracle"}
-# the comparisons made over Table 1's learned rows that have training seeds (rlsac.results.LINE_SEED_MODELS)
+# the comparisons made over Table 1's learned rows that have training seeds (rlsac.evaluation.results.LINE_SEED_MODELS)
 LINE_SEED_PAIRS = (("ours", "ransac"), ("ours-0.5", "ransac"), ("ours-0.5", "ours"), ("ngransac", "ransac"),
                    ("ours", "ngransac"))
 # the single-seed (shipped model) comparisons of Table 1's paired section: the seed pairs but Ours-0.5 vs Ours, which
@@ -67,13 +67,14 @@ F_HEADERS = {"mAA_R": "mAA@10° R", "mAA_t": "mAA@10° t", "median_R": "median �
 
 
 def read_errors(path: Path, column: str = "err_deg"):
-    """Column ``column`` of an evaluation's errors.csv (rlsac.results: a corrupt file is an error naming it), None
-    when the file is absent."""
+    """Column ``column`` of an evaluation's errors.csv (rlsac.evaluation.results: a corrupt file is an error naming it),
+    None when the file is absent."""
     return read_errors_column(path, column)
 
 
 def _get(summary: dict | None, key: str) -> float:
-    """A summary's metric (rlsac.results.read_summary checked it is a finite number), NaN when absent ("–")."""
+    """A summary's metric (rlsac.evaluation.results.read_summary checked it is a finite number), NaN when absent
+    ("–")."""
     if summary is None or summary.get(key) is None:
         return math.nan
     return float(summary[key])
@@ -210,7 +211,7 @@ def table1(eval_root: str | Path = "reports/eval", out_dir: str | Path = "report
                + "Columns: mAA@0.5° and median angular error (°) per outlier rate o. "
                + "Ours = a model trained at each rate; Ours-0.5 = the model trained at 0.5, tested at every rate; "
                + "NG-RANSAC = our RANSAC with every minimal set drawn from a per-point network trained at each rate "
-               + "(issue #29, not in the paper; `rlsac.ngransac`, params.yaml `lines.ngransac`); "
+               + "(issue #29, not in the paper; `rlsac.rl.ngransac`, params.yaml `lines.ngransac`); "
                + "Oracle = total least squares on the true inliers (not in the paper: the estimate a sampler aims at)"
                + (f" (checkpoints: {', '.join(ckpts)})." if ckpts else ".")
                + " Ours and Ours-0.5 run the paper's algorithm (one minimal set per episode step, the whole budget; "
@@ -229,8 +230,8 @@ def table1(eval_root: str | Path = "reports/eval", out_dir: str | Path = "report
     gap = _gap_closed(df, rates) if lo_rows else None
     if gap is not None:
         notes += ("\nNot in the paper (issue #14): share of the RANSAC → Oracle mAA gap that each method closes, "
-                  "(mAA − mAA_RANSAC) / (mAA_Oracle − mAA_RANSAC); above 100% = better than TLS on the true "
-                  "inliers; – where the gap is under 0.005. *-LO = the sampler with local optimisation (`rlsac.lo`, "
+                  "(mAA − mAA_RANSAC) / (mAA_Oracle − mAA_RANSAC); above 100% = better than TLS on the true inliers; "
+                  "– where the gap is under 0.005. *-LO = the sampler with local optimisation (`rlsac.estimation.lo`, "
                   "params.yaml evaluate.line.lo).\n\n"
                   + gap.to_markdown(index=False, disable_numparse=True) + "\n")
     df.attrs.update(caption=caption, missing=missing, paired=paired, gap=gap)
@@ -244,7 +245,7 @@ def _line_seed_section(root: Path, rates) -> str:
     """Issue #27: Ours and Ours-0.5 over their training seeds at every rate where each seed has results: the seed
     mean ± SD of mAA@0.5°, and the difference of seed means to RANSAC (and Ours-0.5 to Ours) with a 95% interval
     that resamples seeds, then instances (metrics.seed_bootstrap_maa), with the probability of improvement."""
-    from rlsac.metrics import seed_bootstrap_maa
+    from rlsac.maths.metrics import seed_bootstrap_maa
 
     runs = line_seed_runs(root)
     rows, sizes = [], set()
@@ -494,7 +495,7 @@ def build(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
     # inside its run, which ended FAILED)
     subs = {"folds": ("folds",), "essential": ("essential",), "all": ("folds", "essential"),
             "claims": ("folds", "essential"), "paper": ("folds",)}.get(which, ())
-    from rlsac.results import check_distinct, collect, load_records
+    from rlsac.evaluation.results import check_distinct, collect, load_records
 
     for sub in subs:
         cells = collect(eval_root, sub)
@@ -511,8 +512,8 @@ def build(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
         scale.check_inputs(read_params(options.get("params") or "params.yaml"), out_dir, eval_root)
     if which == "learner":  # issue #61: the ladder's records, read and checked before the run
         from rlsac.config import read_params
-        from rlsac.ladder_layout import conf as ladder_conf
-        from rlsac.ladder_layout import rungs
+        from rlsac.layout.ladder_layout import conf as ladder_conf
+        from rlsac.layout.ladder_layout import rungs
         from rlsac.reports import ladder
 
         lc = ladder_conf(read_params(options.get("params") or "params.yaml"))
@@ -531,8 +532,8 @@ def build(options: dict[str, Any], track: bool = True) -> dict[str, Any]:
     from rlsac.reports import retuning
 
     # the selection term's records (issue #62), every re-tuning record read and checked
-    # (rlsac.results.read_retune_record) before the run, for the builders that use it (issue #64: a corrupt record
-    # failed inside the run)
+    # (rlsac.evaluation.results.read_retune_record) before the run, for the builders that use it (issue #64: a corrupt
+    # record failed inside the run)
     term: retuning.Selection | None | retuning.Compute = retuning.COMPUTE
     if which in ("claims", "paper", "tuning-budget", "all"):
         term = retuning.Selection(out_dir)

@@ -4,13 +4,13 @@
     (records reports/tuning_at<N>/fundamental/, results reports/eval/folds_at<N>/) against the tables' cells at that
     budget (tuned at ``tuning.iterations``): per row and regime, pooled over the folds, the paired difference in
     mAA_R / mAA_t with a 95% bootstrap interval over the test pairs resampled within each test building (the tables'
-    bootstrap, rlsac.metrics.seed_bootstrap_maa with one run a side), and how many folds chose other settings.
+    bootstrap, rlsac.maths.metrics.seed_bootstrap_maa with one run a side), and how many folds chose other settings.
 (b) Re-tuning variance. The records of ``rlsac folds --stage retune`` (reports/retune/fundamental/<regime>/<fold>/):
     each draw re-chose a row's settings on a resample of its fold's validation pairs; a draw's test mAA pools the four
     folds' test pairs, each fold with that draw's choice. Its sd and 95% range, beside the half-width of the tables'
     95% interval of the row's mAA and the claims' tie margin (rlsac.reports.claims.TIE_MARGIN).
 
-Reads result files only (rlsac.results), never a runner.
+Reads result files only (rlsac.evaluation.results), never a runner.
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ from rlsac.reports.retuning import COMPUTE, Z95, Compute, Selection, halfwidth, 
 def _cells(root: Path, regime: str, row: str, it: int) -> pd.DataFrame | None:
     """A row's per-pair errors at ``it`` pooled over the folds under ``root`` (<eval_root>/<sub>), with ``fold``;
     None when no fold has the cell."""
-    from rlsac.results import read_errors
+    from rlsac.evaluation.results import read_errors
 
     frames = []
     for fold_dir in sorted(p for p in (root / regime).glob("*") if p.is_dir()):
@@ -46,11 +46,11 @@ def _ci(d: dict[str, float]) -> str:
 def _budget_row(c: dict[str, Any], eval_root: Path, out_dir: Path, regime: str, label: str, names: list[str]
                 ) -> dict[str, Any] | str:
     """Part (a) for one row over its training seeds ``names`` (a library row: one name): tuned@N against the tables'
-    cell, paired on the same test pairs, the seeds resampled too (rlsac.metrics.seed_bootstrap_maa) -> the report's
-    row, or the reason it is missing."""
-    from rlsac.metrics import seed_bootstrap_maa
-    from rlsac.protocol import LIMIT, N_BOOT, at_suffix
-    from rlsac.results import pair_key, read_record
+    cell, paired on the same test pairs, the seeds resampled too (rlsac.maths.metrics.seed_bootstrap_maa) -> the
+    report's row, or the reason it is missing."""
+    from rlsac.evaluation.results import pair_key, read_record
+    from rlsac.layout.protocol import LIMIT, N_BOOT, at_suffix
+    from rlsac.maths.metrics import seed_bootstrap_maa
 
     it, at_runs, base_runs = c["iterations"], [], []
     changed = total = 0
@@ -98,12 +98,12 @@ def _groups(c: dict[str, Any]) -> list[tuple[str, str, list[str]]]:
 
 def check_inputs(params: dict[str, Any], eval_root: str | Path = "reports/eval", out_dir: str | Path = "reports"
                  ) -> None:
-    """Every file the report reads, read once through rlsac.results' refusing readers: ``rlsac table --which
+    """Every file the report reads, read once through rlsac.evaluation.results' refusing readers: ``rlsac table --which
     tuning-budget`` calls it before its run (issue #64: a NaN or truncated input failed inside the run, FAILED):
     each row's cells both ways, their folds' tuning records, the re-tuning records."""
-    from rlsac import retune, tune
-    from rlsac.protocol import at_suffix
-    from rlsac.results import read_record
+    from rlsac.evaluation import retune, tune
+    from rlsac.evaluation.results import read_record
+    from rlsac.layout.protocol import at_suffix
 
     c = {**retune.conf(params), "tuned_at_tables": tune.conf(params)["iterations"]}
     eval_root, out_dir, it = Path(eval_root), Path(out_dir), c["iterations"]
@@ -122,7 +122,7 @@ def check_inputs(params: dict[str, Any], eval_root: str | Path = "reports/eval",
 
 def budget_rows(c: dict[str, Any], eval_root: Path, out_dir: Path) -> tuple[list[dict[str, Any]], list[str]]:
     """Part (a): one row per (regime, method) with results both ways, then each learned model of
-    ``tuning_budget.learned`` over its training seeds (threshold alone, rlsac.folds.threshold_only);
+    ``tuning_budget.learned`` over its training seeds (threshold alone, rlsac.experiments.folds.threshold_only);
     -> (rows, missing cells)."""
     rows, missing = [], []
     for regime, label, names in _groups(c):
@@ -133,7 +133,7 @@ def budget_rows(c: dict[str, Any], eval_root: Path, out_dir: Path) -> tuple[list
 
 def retune_rows(c: dict[str, Any], out_dir: Path) -> tuple[list[dict[str, Any]], list[str]]:
     """Part (b): one row per (row, budget) with re-tuning records for every fold; -> (rows, missing rows)."""
-    from rlsac.protocol import LIMIT
+    from rlsac.layout.protocol import LIMIT
 
     rows, missing = [], []
     also = c.get("retune_also") or {}  # the second regime's rows (issue #62), after the main regime's
@@ -178,17 +178,17 @@ def decision(rows: list[dict[str, Any]], margin: float, term: dict[str, Any] | N
         f"margin ±{margin}) would be too wide for some comparisons and absent from none. Since issue #62 the claims "
         "carry the selection term per comparison instead: claims.md and paper.md draw a nested, paired bootstrap in "
         "which every draw takes one of these records' validation resamples, re-chooses each re-tuned row's setting "
-        "on it, then resamples seeds and test pairs (rlsac.metrics.contrast_bootstrap); a row with fixed settings "
-        "gets no term, a learned row's per-seed tuning is counted once (in its seed spread), and a tuned row without "
-        "a record is marked *not measured* there. paper.md lists the verdicts that moved.\n")
+        "on it, then resamples seeds and test pairs (rlsac.maths.metrics.contrast_bootstrap); a row with fixed "
+        "settings gets no term, a learned row's per-seed tuning is counted once (in its seed spread), and a tuned row "
+        "without a record is marked *not measured* there. paper.md lists the verdicts that moved.\n")
 
 
 def build(params: dict[str, Any], eval_root: str | Path = "reports/eval", out_dir: str | Path = "reports",
           retuning: Selection | None | Compute = COMPUTE) -> dict[str, Any]:
     """Write <out_dir>/tuning_budget.{md,csv}; -> {"files", "missing"}. ``retuning``: the re-tuning records
     (rlsac.reports.retuning.Selection of ``out_dir``, None for none), read here by default."""
-    from rlsac import retune, tune
-    from rlsac.protocol import N_BOOT
+    from rlsac.evaluation import retune, tune
+    from rlsac.layout.protocol import N_BOOT
     from rlsac.reports.claims import TIE_MARGIN
 
     c = {**retune.conf(params), "tuned_at_tables": tune.conf(params)["iterations"]}
@@ -219,16 +219,16 @@ def build(params: dict[str, Any], eval_root: str | Path = "reports/eval", out_di
             + f"; the largest move: {big['regime']}/{big['row']}, R {big['_R']['diff']:+.3f}, "
               f"t {big['_t']['diff']:+.3f}.\n")
     sec_b = (
-        f"\n## (b) Re-tuning variance\n\nThe intervals resample test pairs with each row's settings fixed, but the "
-        f"settings were chosen on a few dozen validation pairs per fold. Each row's choice was replayed with the "
-        f"tuning's rule (rlsac.tune.search, at {t0} iterations) on {c['retune_draws']} bootstrap resamples of its "
-        f"fold's validation pairs (stratified by scene), and every chosen setting tested. `re-tuned sd [95% range]`: "
-        f"the test mAA the draws' choices give (the folds pooled, each with its draw's choice); `tables`: the choice "
-        f"on all validation pairs (the tables' cell); `tables' ±`: the half-width of that cell's own 95% interval "
-        f"over test pairs; `all pairs = tables' record`: folds where the rule on all validation pairs gives the "
-        f"tables' record (it must); `settings chosen`: distinct choices per fold; `draws ≠ tables' choice`: the "
-        f"share of "
-        f"draws (mean over folds) that chose another setting. The claims' tie margin is ±{TIE_MARGIN}.\n\n")
+        "\n## (b) Re-tuning variance\n\nThe intervals resample test pairs with each row's settings fixed, but the "
+        "settings were chosen on a few dozen validation pairs per fold. Each row's choice was replayed with the "
+        f"tuning's rule (rlsac.evaluation.tune.search, at {t0} iterations) on {c['retune_draws']} bootstrap resamples "
+        "of its fold's validation pairs (stratified by scene), and every chosen setting tested. `re-tuned sd [95% "
+        "range]`: the test mAA the draws' choices give (the folds pooled, each with its draw's choice); `tables`: "
+        "the choice on all validation pairs (the tables' cell); `tables' ±`: the half-width of that cell's own 95% "
+        "interval over test pairs; `all pairs = tables' record`: folds where the rule on all validation pairs gives "
+        "the tables' record (it must); `settings chosen`: distinct choices per fold; `draws ≠ tables' choice`: the "
+        "share of draws (mean over folds) that chose another setting. The claims' tie margin is "
+        f"±{TIE_MARGIN}.\n\n")
     df_b = pd.DataFrame([{k: v for k, v in r.items() if not k.startswith("_")} for r in b_rows])
     if b_rows:
         sec_b += df_b.to_markdown(index=False, disable_numparse=True) + "\n\n"

@@ -1,6 +1,6 @@
 """Essential-matrix estimation (not in the paper): calibrated correspondences, as in the CVPR 2020
 RANSAC tutorial's essential-matrix track. m = 5, Nister's five-point solver (kornia's batched one, up
-to 10 solutions per minimal set, the best-scoring one kept by ``rlsac.lo.score_sets``), Sampson
+to 10 solutions per minimal set, the best-scoring one kept by ``rlsac.estimation.lo.score_sets``), Sampson
 residuals in normalised image coordinates, least-squares refit projected onto the essential manifold.
 
 The data are the prepared two-view files of the fundamental task (rlsac.data.fundamental); this task's
@@ -17,9 +17,9 @@ import cv2
 import numpy as np
 import torch
 
-from rlsac import geometry
 from rlsac.data import fundamental as fundamental_data
 from rlsac.errors import RlsacError
+from rlsac.maths import geometry
 from rlsac.tasks.fundamental import FundamentalTask, opencv_model, poselib_ransac, recover_pose
 from rlsac.tasks.registry import register_task
 
@@ -43,7 +43,8 @@ class EssentialTask(FundamentalTask):
     sampler_knobs: ClassVar[tuple[str, ...]] = ("refit_output",)  # the refit of the output (tuning.refit_output)
 
     # Sampson distance in normalised image coordinates: 0.75 px at f = 920 px, the OpenCV rows' untuned default (the
-    # tutorial's starter value); the fold benchmark tunes it per fold and row on validation pairs (rlsac.tune)
+    # tutorial's starter value); the fold benchmark tunes it per fold and row on validation pairs
+    # (rlsac.evaluation.tune)
     threshold: float = 0.75 / STRECHA_FOCAL
     residual: str = "sampson"
     # The default output is the best minimal model (as OpenCV's RANSAC): the 8-point least-squares refit projected

@@ -16,9 +16,9 @@ import cv2
 import numpy as np
 import torch
 
-from rlsac import geometry, metrics
 from rlsac.data import fundamental as fundamental_data
 from rlsac.errors import RlsacError
+from rlsac.maths import geometry, metrics
 from rlsac.tasks.registry import register_task
 
 RESIDUALS = ("sampson", "sampson_sq", "symmetric")
@@ -34,9 +34,9 @@ class FundamentalTask:
     default_iterations: ClassVar[int] = 1000  # Table 2's budget
     residual_dof: ClassVar[int] = 4  # as OpenCV's MAGSAC++ for F
     true_inlier_data: ClassVar[bool] = False
-    # its part in the fold benchmark (rlsac.folds puts these into the protocol it runs, so that no module branches
-    # on a task's name): the params section naming its rows, the `folds` stages it has, where a fold's models live
-    # ({model} the row's model, {seed} "-s<seed>" or ""), and what its rows of our samplers tune after threshold x
+    # its part in the fold benchmark (rlsac.experiments.folds puts these into the protocol it runs, so that no module
+    # branches on a task's name): the params section naming its rows, the `folds` stages it has, where a fold's models
+    # live ({model} the row's model, {seed} "-s<seed>" or ""), and what its rows of our samplers tune after threshold x
     # pre-filter
     fold_rows: ClassVar[str] = "folds"
     fold_stages: ClassVar[tuple[str, ...]] = ("data", "pool", "train", "tune", "evaluate", "select", "retune")
@@ -46,7 +46,8 @@ class FundamentalTask:
     to_batch = staticmethod(fundamental_data.to_batch)
 
     # eps = 4 (paper) read as the squared Sampson error (px^2, i.e. 2 px; residual="sampson" reads it as 4 px): the
-    # training reward's threshold. Evaluation thresholds are tuned per fold and method on validation (rlsac.tune);
+    # training reward's threshold. Evaluation thresholds are tuned per fold and method on validation
+    # (rlsac.evaluation.tune);
     # how this reading was picked, and what it saw: reports/folds.md ("Protocol")
     threshold: float = 4.0
     # "sampson_sq" (px^2), "sampson" (px) or "symmetric" (RMS of the two point-to-epipolar-line distances, px)
@@ -136,7 +137,7 @@ class FundamentalTask:
     # ----------------------------------------------------------------------------- OpenCV baselines
     # The CVPR 2020 tutorial's starter-pack threshold for ~1000 px images (create_F_submission.py), used when no
     # tuned value is given; the tutorial tunes the threshold and an SNN pre-filter per method on validation
-    # (rlsac.tune, params.yaml tuning), as the fold benchmark does.
+    # (rlsac.evaluation.tune, params.yaml tuning), as the fold benchmark does.
     opencv_threshold: ClassVar[float] = 0.75
     hypothesis_shape: ClassVar[tuple[int, ...]] = (3, 3)
 

@@ -12,8 +12,8 @@ from typing import ClassVar
 import numpy as np
 import torch
 
-from rlsac import metrics
 from rlsac.data import lines
+from rlsac.maths import metrics
 from rlsac.tasks.registry import register_task
 
 EPS = 1e-9
@@ -27,7 +27,8 @@ class LineTask:
     residual_dof: ClassVar[int] = 2
     true_inlier_data: ClassVar[bool] = True  # the generator stores the inlier mask (method oracle)
     hypothesis_shape: ClassVar[tuple[int, ...]] = (3,)
-    fold_rows: ClassVar[str] = ""  # no fold benchmark: Table 1 is synthetic (rlsac.ablate, rlsac synth-lines)
+    # no fold benchmark: Table 1 is synthetic (rlsac.experiments.ablate, rlsac synth-lines)
+    fold_rows: ClassVar[str] = ""
     read = staticmethod(lines.read)
     to_batch = staticmethod(lines.to_batch)
 
@@ -60,7 +61,7 @@ class LineTask:
         """(Weighted) total least squares: the normal is the smallest principal direction of the
         weighted scatter about the weighted mean, i.e. argmin sum_i w_i dist_i^2.
 
-        coords (B, N, 2), inliers (B, N) bool, or float weights >= 0 (LO's IRLS, ``rlsac.lo``) ->
+        coords (B, N, 2), inliers (B, N) bool, or float weights >= 0 (LO's IRLS, ``rlsac.estimation.lo``) ->
         lines (B, 3), valid (B,) (False with < 2 points of positive weight).
         """
         if inliers.shape != coords.shape[:2]:

@@ -21,7 +21,7 @@ class Task(Protocol):
     name: ClassVar[str]
     experiment: ClassVar[str]  # MLflow experiment of its runs
     default_iterations: ClassVar[int]  # hypotheses per instance when --iterations is not given
-    residual_dof: ClassVar[int]  # degrees of freedom of a residual (MAGSAC++'s marginalisation, rlsac.lo)
+    residual_dof: ClassVar[int]  # degrees of freedom of a residual (MAGSAC++'s marginalisation, rlsac.estimation.lo)
     true_inlier_data: ClassVar[bool]  # its data files carry the true inlier mask (method oracle)
 
     sample_size: int  # m, points in a minimal set
@@ -29,8 +29,8 @@ class Task(Protocol):
     threshold: float  # inlier threshold on ``residuals``
     feature_dim: int  # c, channels of ``features(batch)``, the network's data features
     solutions: int  # S, hypotheses per minimal set (``solve`` returns (B, S, *H) when S > 1)
-    # (optional, default True) the output is refined on its inliers (rlsac.baselines.finalize); LO's refits
-    # (rlsac.lo) are kept only when they score better, whatever this says
+    # (optional, default True) the output is refined on its inliers (rlsac.estimation.baselines.finalize); LO's refits
+    # (rlsac.estimation.lo) are kept only when they score better, whatever this says
     refit_output: bool
 
     @staticmethod
@@ -46,11 +46,11 @@ class Task(Protocol):
 
     def solve(self, pts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Minimal solver. pts (B, m, d) -> hypotheses (B, *H), valid (B,) bool (False = degenerate);
-        with S > 1 solutions: (B, S, *H), (B, S). Scored by ``rlsac.lo.score_sets`` only."""
+        with S > 1 solutions: (B, S, *H), (B, S). Scored by ``rlsac.estimation.lo.score_sets`` only."""
 
     def residuals(self, hyps: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
         """hyps (B, *H), coords (B, N, d) -> residuals (B, N), compared against ``threshold``; also
-        hyps (B, S, *H), S hypotheses per instance -> (B, S, N) (``rlsac.lo.score_sets`` scores so)."""
+        hyps (B, S, *H), S hypotheses per instance -> (B, S, N) (``rlsac.estimation.lo.score_sets`` scores so)."""
 
     def true_inliers(self, batch: dict) -> torch.Tensor:
         """Ground-truth inlier labels (B, N) bool, for the supervised warm start (not in the paper)."""
@@ -64,7 +64,7 @@ class Task(Protocol):
     def summarize(self, errors: dict[str, np.ndarray]) -> dict[str, float]:
         """Dataset-level metrics (mAA, medians) from the concatenated per-row errors."""
 
-    # Optional capabilities, looked up by the methods that need them (rlsac.methods):
+    # Optional capabilities, looked up by the methods that need them (rlsac.evaluation.methods):
     #   match_quality(batch) -> (B, N), lower = better match: methods guided and prosac
     #   opencv_fit(pts (n, d) float64 numpy, flag, threshold, confidence, iterations) -> (hyp, inliers (n,)) or
     #       None, with opencv_threshold and hypothesis_shape (H): OpenCV's robust estimator of the task
@@ -113,7 +113,7 @@ def task_from(name: str, options: dict[str, Any] | None = None) -> Task:
 
 
 def task_for(o: Any, options: dict[str, Any] | None = None) -> Task:
-    """The task of the checked evaluate options ``o`` (rlsac.evaluate.EvalOptions: its task, threshold_px and
+    """The task of the checked evaluate options ``o`` (rlsac.evaluation.evaluate.EvalOptions: its task, threshold_px and
     refit_output are read; with ``options``, e.g. a checkpoint's), its inlier
     threshold set from ``o.threshold_px`` and its final refit from ``o.refit_output`` when given."""
     import dataclasses
@@ -136,7 +136,7 @@ def opencv_threshold(o: Any, task: Task) -> float:
 def prefiltered(task: Task, batch: dict, prefilter: float | torch.Tensor | None, keep_short: bool = False) -> dict:
     """``batch`` with mask (B, N) cleared where the match quality (the SNN ratio) is above ``prefilter``: the
     tutorial's pre-filter, applied before any method sees the pair (None: the batch unchanged). ``prefilter``: one
-    ratio, or a (B,) tensor of one per instance (training draws one per episode, rlsac.episodes). ``keep_short``: an
+    ratio, or a (B,) tensor of one per instance (training draws one per episode, rlsac.rl.episodes). ``keep_short``: an
     instance the filter would leave with fewer points than a minimal sample keeps its mask (training's episodes
     need a sample; the evaluation scores such a pair as it comes)."""
     if prefilter is None:
