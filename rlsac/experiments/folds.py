@@ -37,6 +37,7 @@ from rlsac.io import check_writable, write_json
 # re-exported for the callers of rlsac.experiments.folds (rlsac.experiments.scale, the tests)
 from rlsac.layout.protocol import (  # noqa: F401
     DEFAULTS,
+    FOLD_STAGES,
     OUR_SAMPLERS,
     SUB,
     at_suffix,
@@ -66,7 +67,7 @@ from rlsac.layout.protocol import (  # noqa: F401
     variants,
 )
 
-STAGES = ("data", "pool", "train", "tune", "evaluate", "select", "retune")
+STAGES = FOLD_STAGES
 OPTIONS: dict[str, Any] = {"stage": None, "regime": None, "fold": None, "model": None, "only": None, "points": None,
                            "task": "fundamental", "tune_iterations": None,
                            "params": "params.yaml",

@@ -461,6 +461,7 @@ def data_dir(regime: str, fold: str, points: int | None = None) -> Path:
 
 
 FOLD_CHECKPOINT = "checkpoints/folds/{regime}/{fold}/{model}.pt"  # the fundamental task's (its fold_checkpoint)
+FOLD_STAGES = ("data", "pool", "train", "tune", "evaluate", "select", "retune")  # `rlsac folds --stage`: all of them
 
 
 def checkpoint(regime: str, fold: str, model: str, layout: str = FOLD_CHECKPOINT) -> Path:

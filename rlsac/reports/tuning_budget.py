@@ -114,10 +114,8 @@ def check_inputs(params: dict[str, Any], eval_root: str | Path = "reports/eval",
                 for f in sorted(set(cells["fold"])) if cells is not None else ():
                     for s in ("", at_suffix(it)):
                         read_record(out_dir / f"tuning{s}" / "fundamental" / regime / f / f"{name}.json")
-    for m in c["retune_methods"]:
-        load_retune(out_dir, c["retune_regime"], m)
-    for m in (c.get("retune_also") or {}).get("methods", []):
-        load_retune(out_dir, c["retune_also"]["regime"], m)
+    for regime, m in retuned(c):
+        load_retune(out_dir, regime, m)
 
 
 def budget_rows(c: dict[str, Any], eval_root: Path, out_dir: Path) -> tuple[list[dict[str, Any]], list[str]]:
@@ -131,14 +129,20 @@ def budget_rows(c: dict[str, Any], eval_root: Path, out_dir: Path) -> tuple[list
     return rows, missing
 
 
+def retuned(c: dict[str, Any]) -> list[tuple[str, str]]:
+    """(regime, row) of every re-tuning record the report reads: the main regime's rows, then the second regime's
+    (``retune_also``, issue #62)."""
+    also = c.get("retune_also") or {}
+    return [(c["retune_regime"], m) for m in c["retune_methods"]] + [(also["regime"], m)
+                                                                       for m in also.get("methods", [])]
+
+
 def retune_rows(c: dict[str, Any], out_dir: Path) -> tuple[list[dict[str, Any]], list[str]]:
     """Part (b): one row per (row, budget) with re-tuning records for every fold; -> (rows, missing rows)."""
     from rlsac.layout.protocol import LIMIT
 
     rows, missing = [], []
-    also = c.get("retune_also") or {}  # the second regime's rows (issue #62), after the main regime's
-    for regime, m in [(c["retune_regime"], m) for m in c["retune_methods"]] + \
-            [(also["regime"], m) for m in also.get("methods", [])]:
+    for regime, m in retuned(c):
         recs = load_retune(out_dir, regime, m)
         if not recs:
             missing.append(f"{regime}/{m} (re-tuning)")

@@ -18,6 +18,7 @@ import torch
 
 from rlsac.data import fundamental as fundamental_data
 from rlsac.errors import RlsacError
+from rlsac.layout.protocol import FOLD_CHECKPOINT, FOLD_STAGES
 from rlsac.maths import geometry, metrics
 from rlsac.tasks.registry import register_task
 
@@ -39,8 +40,8 @@ class FundamentalTask:
     # live ({model} the row's model, {seed} "-s<seed>" or ""), and what its rows of our samplers tune after threshold x
     # pre-filter
     fold_rows: ClassVar[str] = "folds"
-    fold_stages: ClassVar[tuple[str, ...]] = ("data", "pool", "train", "tune", "evaluate", "select", "retune")
-    fold_checkpoint: ClassVar[str] = "checkpoints/folds/{regime}/{fold}/{model}.pt"
+    fold_stages: ClassVar[tuple[str, ...]] = FOLD_STAGES
+    fold_checkpoint: ClassVar[str] = FOLD_CHECKPOINT
     sampler_knobs: ClassVar[tuple[str, ...]] = ()
     read = staticmethod(fundamental_data.read)
     to_batch = staticmethod(fundamental_data.to_batch)
