@@ -93,9 +93,14 @@ def apply_pins() -> None:
     """In the portable mode, set every pin the user has not set (``import rlsac`` calls this first thing). An
     unknown mode sets nothing; ``check_mode`` reports it, and a library loaded before this call."""
     _APPLIED.update(mode=mode(), preloaded=[lib for lib in _LIBS if lib in sys.modules])
-    if mode() == "portable":
+    set_pins(os.environ)
+
+
+def set_pins(environ) -> None:
+    """Set in ``environ`` (os.environ or a copy) every pin of its mode the user has not set."""
+    if (environ.get(ENV, "").strip() or DEFAULT_MODE) == "portable":
         for k, v in pins().items():
-            os.environ.setdefault(k, v)
+            environ.setdefault(k, v)
 
 
 def check_mode() -> str:

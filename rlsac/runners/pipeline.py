@@ -363,13 +363,27 @@ def start_guarded(argv: list[str], **kwargs) -> subprocess.Popen:
     try:
         proc = subprocess.Popen(["/bin/sh", "-c", 'read _ || exit 111; exec "$@" </dev/null', "sh", *argv],
                                 stdin=ready, start_new_session=True, **kwargs)
-        subprocess.run([sys.executable, "-c", _GUARD, str(proc.pid), str(os.getpid()), str(KILL_GRACE_S)],
-                       stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        guard(proc.pid)
         os.write(go, b"\n")
     finally:
         os.close(ready)
         os.close(go)
     return proc
+
+
+def guard(pgid: int) -> None:
+    """Start the guard of process group ``pgid`` (a stage command's session): it ends the group if this worker
+    dies, and itself once the group is gone; it watches when this returns."""
+    subprocess.run([sys.executable, "-c", _GUARD, str(pgid), str(os.getpid()), str(KILL_GRACE_S)],
+                   stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
+def start_stage_command(argv: list[str], **kwargs):
+    """How the direct runner starts a stage's command line: warm where it is a plain ``rlsac ...`` call
+    (rlsac.runners.warm: the imports done once per worker), else start_guarded; guarded either way."""
+    from rlsac.runners import warm
+
+    return warm.start(argv, guard, start_guarded, **kwargs)
 
 
 def _error(rc: int | None, log: str) -> str:
@@ -402,7 +416,7 @@ def run_direct(root: str, address: str, spec: dict, env: dict[str, str], log: st
     from rlsac.runners.dvc_stage import python_bin_env
     from rlsac.runners.dvc_stage import run as run_direct_stage
 
-    r = run_direct_stage(root, spec, python_bin_env(env), log, start=start_guarded)
+    r = run_direct_stage(root, spec, python_bin_env(env), log, start=start_stage_command)
     r["stage"] = address
     if r["status"] == "failed":
         r["error"] = _error(r["rc"], log)
@@ -421,7 +435,7 @@ def run_remote(conf: dict, tree: str, address: str, spec: dict, deps: list[dict]
     from rlsac.runners.transfer import run_on_node
 
     def run(root: str, spec: dict, env: dict[str, str], log: str) -> dict:
-        return run_direct_stage(root, spec, python_bin_env(env), log, start=start_guarded)
+        return run_direct_stage(root, spec, python_bin_env(env), log, start=start_stage_command)
 
     r = run_on_node(conf, tree, spec, deps, env, log, run, sub)
     r["stage"] = address
