@@ -556,6 +556,8 @@ def calibrate_lines(tracking: bool, params_path: str, **options) -> None:
 @click.option("--tolerance", type=float,
               help="Also accept outputs that agree by value: JSON numbers within this much, CSV numbers not "
                    "compared (another numeric platform; such a stage is 'close').")
+@click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True,
+              help="Stages re-run at once (two that read or write one another's outputs never do).")
 @click.option("--platform", "platform_only", is_flag=True,
               help="Only compare this machine's numeric platform with the record's (reports/platform.json); "
                    "exit 1 when they differ.")
@@ -568,7 +570,8 @@ def verify(tracking: bool, platform_only: bool, **options) -> None:
 
     if platform_only:
         given = [k for k in ("stages", "sample", "tolerance", "scratch") if options.get(k) is not None] + [
-            k for k in ("include_train", "keep") if options.get(k)] + (["seed"] if options.get("seed") else [])
+            k for k in ("include_train", "keep") if options.get(k)] + (["seed"] if options.get("seed") else []) + (
+            ["workers"] if options.get("workers", 1) != 1 else [])
         if given:
             raise RlsacError(f"--platform only compares platforms; it takes no --{given[0].replace('_', '-')}")
         platform = numerics.compare(options["repo"], required=True)

@@ -341,3 +341,26 @@ def test_this_machines_platform_is_described():
     assert d["aten_capability"] == torch.backends.cpu.get_cpu_capability()
     # torch's CPU wheels are built with MKL: its verbose line must be found (else every platform compares alike)
     assert d["mkl_branch"] in ("AVX-512", "AVX2", "AVX", "SSE4.2", "generic") and d["mkl_branch_text"]
+
+
+def test_workers_two_gives_the_serial_verdicts(repo):
+    serial, parallel = verify(repo, "--no-tracking"), verify(repo, "--no-tracking", "--workers", 2)
+    assert serial.exit_code == parallel.exit_code == 0, parallel.output
+    # stages report as they finish: the same lines, the summary last
+    assert sorted(lines(parallel)[:-1]) == sorted(lines(serial)[:-1]) and lines(parallel)[-1] == lines(serial)[-1]
+    (repo / "out" / "a.json").write_text("{}")  # a tampered output is found with two workers too
+    r = verify(repo, "--no-tracking", "--workers", 2)
+    assert r.exit_code == 1 and any(ln.split()[:2] == ["differs", "make:"] for ln in lines(r)), r.output
+    assert_user_error(verify(repo, "--no-tracking", "--workers", 0), "--workers")
+
+
+def test_stages_that_read_or_write_one_anothers_outputs_never_run_at_once():
+    from rlsac.runners.verify import _overlap
+
+    make = {"deps": ["data/raw.txt", "make.py"], "outs": ["out"]}
+    table = {"deps": ["out/a.json"], "outs": ["reports/t.md"]}
+    stamp = {"deps": ["stamp.py"], "outs": ["stamp.txt"]}
+    assert _overlap(make, table) and _overlap(table, make)  # an output folder and a file in it, either way round
+    assert not _overlap(make, stamp) and not _overlap(stamp, table)
+    assert not _overlap({"deps": [], "outs": ["out2"]}, {"deps": ["out/a.json"], "outs": []})  # a prefix, no folder
+    assert _overlap({"deps": [], "outs": ["x.csv"]}, {"deps": [], "outs": ["x.csv"]})

@@ -46,9 +46,9 @@ def test_warm_stage_writes_the_cold_bytes_and_log(tmp_path):
     norm = lambda p: p.read_text().replace("warm.h5", "X").replace("cold.h5", "X")  # noqa: E731
     assert norm(tmp_path / "warm.log") == norm(tmp_path / "cold.log") != ""
     # the same warm process serves the next stage: a second fork, same bytes
-    server = warm._server
+    server = warm._get()
     again, rc = run(synth(tmp_path / "again.h5"), tmp_path / "again.log", warm_start)
-    assert rc == 0 and warm._server is server
+    assert rc == 0 and warm._get() is server
     assert (tmp_path / "again.h5").read_bytes() == (tmp_path / "cold.h5").read_bytes()
 
 
@@ -81,7 +81,7 @@ def test_shell_syntax_other_programs_and_opt_out_start_cold(tmp_path):
                stderr=subprocess.STDOUT)
     warm.start(["/bin/sh", "-c", "rlsac table"], lambda p: None, cold, env={**env, warm.ENV: "0"},
                stdout=sys.stdout, stderr=subprocess.STDOUT)
-    assert len(calls) == 2 and warm._server is None
+    assert len(calls) == 2 and warm._get() is None
 
 
 def test_a_caller_gone_before_go_leaves_a_child_that_never_ran(tmp_path):
@@ -92,7 +92,7 @@ def test_a_caller_gone_before_go_leaves_a_child_that_never_ran(tmp_path):
     with open(tmp_path / "log", "wb") as f, pytest.raises(RuntimeError):
         warm.start(synth(out), failing_guard, start_guarded, cwd=str(ROOT), env=python_bin_env({}), stdout=f,
                    stderr=subprocess.STDOUT)
-    assert warm._server is None and not out.exists()
+    assert warm._get() is None and not out.exists()
     # the next stage gets a new warm process
     hot, rc = run(synth(tmp_path / "next.h5"), tmp_path / "next.log", warm_start)
     assert isinstance(hot, warm.WarmProcess) and rc == 0 and (tmp_path / "next.h5").exists()

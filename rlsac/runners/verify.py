@@ -13,6 +13,7 @@ committed outputs of its upstream stages: the outputs of a stage that differs or
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import fnmatch
 import json
@@ -32,7 +33,7 @@ IGNORED_NAMES = {"timing.json"}  # untracked per-run sidecars (rlsac.evaluation.
 # stages that train (minutes each): by name, besides any stage writing a checkpoint; fold_select* replays a training
 TRAINING_WORDS = ("train", "select")
 DEFAULTS = {"stages": None, "sample": None, "seed": 0, "include_train": False, "scratch": None, "keep": False,
-            "repo": ".", "tolerance": None}
+            "repo": ".", "tolerance": None, "workers": 1}
 
 
 def verify(options: dict[str, Any], track: bool = True, report: Callable[[str], None] | None = None,
@@ -48,6 +49,8 @@ def verify(options: dict[str, Any], track: bool = True, report: Callable[[str], 
     o = {**DEFAULTS, **{k: v for k, v in options.items() if v is not None}}
     if o["tolerance"] is not None and not 0 <= o["tolerance"] < float("inf"):
         raise RlsacError(f"--tolerance must be a finite number >= 0, got {o['tolerance']}")
+    if not isinstance(o["workers"], int) or o["workers"] < 1:
+        raise RlsacError(f"--workers must be at least 1, got {o['workers']}")
     if o["sample"] is not None and o["sample"] < 1:  # before reading the pipeline (minutes on a large one)
         raise RlsacError(f"--sample {o['sample']}: must be at least 1")
     root, stages = load_stages(o["repo"])
@@ -72,7 +75,8 @@ def verify(options: dict[str, Any], track: bool = True, report: Callable[[str], 
                   "include_train": o["include_train"], "repo": str(root), "tolerance": o["tolerance"],
                   "selected": ",".join(s["address"] for s in selected)}
         with start_run("verify", f"verify {len(selected)} stages", params=params, enabled=track) as run:
-            results = _run_all(root, work, scratch, selected, report or (lambda line: None), o["tolerance"])
+            results = _run_all(root, work, scratch, selected, report or (lambda line: None), o["tolerance"],
+                               o["workers"])
             counts = {f"n_{k}": sum(r["status"] == k for r in results)
                       for k in ("identical", "close", "differs", "failed")}
             run.metrics(counts)
@@ -266,8 +270,13 @@ def copy_workspace(root: Path, tracked: list[str], work: Path, deps: list[str]) 
 
 
 def _run_all(root: Path, work: Path, scratch: Path, selected: list[dict], report: Callable[[str], None],
-             tolerance: float | None = None) -> list[dict]:
+             tolerance: float | None = None, workers: int = 1) -> list[dict]:
+    """Run and compare each selected stage, ``workers`` at a time; two stages where one reads or writes what the
+    other writes never run at once (a re-run deletes its outputs first). -> the results in ``selected``'s order."""
+    from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
+
     from rlsac.progress import tqdm
+    from rlsac.runners import warm
 
     env = {**os.environ, "MLFLOW_TRACKING_URI": f"sqlite:///{scratch / 'mlflow.db'}", "CI": "true"}
     env.setdefault("OMP_NUM_THREADS", "1")
@@ -277,16 +286,38 @@ def _run_all(root: Path, work: Path, scratch: Path, selected: list[dict], report
         env["PATH"] = bindir + os.pathsep + env.get("PATH", "")
     (scratch / "logs").mkdir(exist_ok=True)
     ignore = _ignore_spec(root)
-    results = []
-    with tqdm(total=len(selected), desc="verify", unit="stage", disable=None, leave=False) as bar:
-        for s in selected:
-            bar.set_postfix_str(s["address"])
-            r = run_stage(s, root, work, scratch, env, ignore, tolerance)
-            results.append(r)
-            with bar.external_write_mode():
-                report(format_result(r))
-            bar.update(1)
-    return results
+    results: dict[str, dict] = {}
+    pending, running = list(selected), {}
+
+    def one(s: dict) -> dict:
+        return run_stage(s, root, work, scratch, env, ignore, tolerance)
+
+    with tqdm(total=len(selected), desc="verify", unit="stage", disable=None, leave=False) as bar, \
+            ThreadPoolExecutor(max_workers=workers) as pool, contextlib.ExitStack() as stack:
+        stack.callback(warm.stop_all)  # the threads' warm processes, once every stage has ended
+        while pending or running:
+            for s in [s for s in pending if not any(_overlap(s, r) for r in running.values())][:workers - len(running)]:
+                pending.remove(s)
+                running[pool.submit(one, s)] = s
+            bar.set_postfix_str(",".join(s["address"] for s in running.values()))
+            done, _ = wait(running, return_when=FIRST_COMPLETED)
+            for f in done:
+                r = f.result()
+                results[running.pop(f)["address"]] = r
+                with bar.external_write_mode():
+                    report(format_result(r))
+                bar.update(1)
+    return [results[s["address"]] for s in selected]
+
+
+def _overlap(a: dict, b: dict) -> bool:
+    """Whether stages ``a`` and ``b`` may not run at once: an output of one is, holds or lies in a path the other
+    reads or writes."""
+    def meets(p: str, q: str) -> bool:
+        return p == q or p.startswith(q.rstrip("/") + "/") or q.startswith(p.rstrip("/") + "/")
+
+    return any(meets(o, p) for o in a["outs"] for p in b["deps"] + b["outs"]) or \
+        any(meets(o, p) for o in b["outs"] for p in a["deps"])
 
 
 def run_stage(s: dict, root: Path, work: Path, scratch: Path, env: dict, ignore,
@@ -303,8 +334,8 @@ def run_stage(s: dict, root: Path, work: Path, scratch: Path, env: dict, ignore,
     t0 = time.perf_counter()
     with open(log, "wb") as f:
         for cmd in s["cmds"]:  # a list of commands runs in order, stopping at the first failure, as in DVC
-            rc = subprocess.run(["bash", "-c", cmd], cwd=work / s["wdir"], env=env, stdout=f,
-                                stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL).returncode
+            rc = _start(["bash", "-c", cmd], cwd=work / s["wdir"], env=env, stdout=f, stderr=subprocess.STDOUT,
+                        stdin=subprocess.DEVNULL).wait()
             if rc:
                 break
     r["seconds"] = time.perf_counter() - t0
@@ -331,6 +362,14 @@ def run_stage(s: dict, root: Path, work: Path, scratch: Path, env: dict, ignore,
                 os.replace(work / out, aside / out)
             (shutil.copytree if (root / out).is_dir() else shutil.copy)(root / out, work / out)
     return r
+
+
+def _start(argv: list[str], **kwargs):
+    """A stage's command line, started warm where it is a plain ``rlsac ...`` call (rlsac.runners.warm: the imports
+    done once per thread), else as a child of this process."""
+    from rlsac.runners import warm
+
+    return warm.start(argv, lambda pgid: None, subprocess.Popen, **kwargs)
 
 
 def _remove(p: Path) -> None:

@@ -21,6 +21,7 @@ process then answers {"rc"} when the child has ended.
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import json
 import os
@@ -28,6 +29,7 @@ import shlex
 import signal
 import subprocess
 import sys
+import threading
 from pathlib import Path
 from typing import Any, Callable
 
@@ -81,7 +83,13 @@ class WarmProcess:
 
     def wait(self) -> int:
         if self.returncode is None:
-            reply = self.server.read()
+            try:
+                reply = self.server.read()
+            except BaseException:  # interrupted (Ctrl-C, a cancelled task): the child goes too, as subprocess.run's
+                with contextlib.suppress(ProcessLookupError, PermissionError):
+                    os.killpg(self.pid, signal.SIGKILL)
+                self.server.close()
+                raise
             # the warm process died while the child ran: its status is lost, the stage counts as killed
             self.returncode = int(reply["rc"]) if reply is not None else -signal.SIGKILL
             if reply is None:
@@ -120,6 +128,7 @@ class Server:
         return json.loads(line) if line else None
 
     def close(self) -> None:
+        _every.discard(self)
         for f in (self.proc.stdin, self.proc.stdout):
             try:
                 f.close()
@@ -132,48 +141,66 @@ class Server:
             self.proc.wait()
 
 
-_server: Server | None = None
+_local = threading.local()  # one warm process per thread: `rlsac verify --workers 2` runs two stages from two
+_every: set[Server] = set()  # every thread's (stop_all)
+
+
+def _get() -> Server | None:
+    return getattr(_local, "server", None)
+
+
+def _set(server: Server | None) -> None:
+    _local.server = server
+    if server is not None:
+        _every.add(server)
 
 
 def start(argv: list[str], guard: Callable[[int], None], cold: Callable[..., Any], **kwargs) -> Any:
     """Start one stage command line as ``cold(argv, **kwargs)`` would (Popen's keywords: cwd, env, stdout=<a file
     of a path>, ...), warm where it can (rlsac_args): ``guard(pgid)`` is called once the child has its session and
     before it runs. -> an object with ``pid`` and ``wait()``."""
-    global _server
     env = kwargs.get("env") or dict(os.environ)
     out = kwargs.get("stdout")
     args = None if env.get(ENV, "1") == "0" else rlsac_args(argv, env)
-    if args is None or kwargs.get("stderr") != subprocess.STDOUT or not hasattr(out, "name"):
+    if (args is None or kwargs.get("stderr") != subprocess.STDOUT or not hasattr(out, "name")
+            or getattr(_local, "failed", False)):
         return cold(argv, **kwargs)
-    if _server is not None and (not _server.alive() or _server.env != _base(env)):
-        _server.close()
-        _server = None
-    if _server is None:
-        _server = Server(env)
+    server = _get()
+    if server is not None and (not server.alive() or server.env != _base(env)):
+        stop()
+        server = None
+    if server is None:
+        server = Server(env)
+        _set(server)
     out.flush()
     request = {"args": args, "cwd": str(kwargs.get("cwd") or os.getcwd()), "env": env, "log": str(out.name)}
-    reply = _server.read() if _server.send(request) else None
+    reply = server.read() if server.send(request) else None
     if reply is None:  # the warm process could not start (an import failed): this stage, and the next, start cold
-        _server.close()
-        _server = None
+        stop()
+        _local.failed = True
         return cold(argv, **kwargs)
     pid = int(reply["pid"])
     try:
         guard(pid)
     except BaseException:
-        _server.close()  # the child reads EOF instead of "go" and exits NOT_STARTED
-        _server = None
+        stop()  # the child reads EOF instead of "go" and exits NOT_STARTED
         raise
-    _server.send("go")
-    return WarmProcess(_server, pid)
+    server.send("go")
+    return WarmProcess(server, pid)
 
 
 def stop() -> None:
-    """End this worker's warm process, if any (it also ends by itself when its worker goes: its stdin closes)."""
-    global _server
-    if _server is not None:
-        _server.close()
-        _server = None
+    """End this thread's warm process, if any (it also ends by itself when its worker goes: its stdin closes)."""
+    server = _get()
+    if server is not None:
+        _set(None)
+        server.close()
+
+
+def stop_all() -> None:
+    """End every thread's warm process (a thread pool's, when its stages have ended)."""
+    for server in list(_every):
+        server.close()
 
 
 # ------------------------------------------------------------------------------------------- the warm process
