@@ -271,7 +271,9 @@ def _child(request: dict, ready_w: int, go_r: int) -> None:
     # so what is ignored there is ignored here, and the interpreter's own SIGINT handler is in place
     rlsac = str(Path(sys.executable).parent / "rlsac")
     sys.argv = [rlsac, *request["args"]]
-    from rlsac.cli import main
+    # what the `rlsac` script calls: its console-script entry point (the warm process launches it, as the script
+    # does; it imports nothing of the command line itself)
+    from importlib.metadata import entry_points
 
-    main(request["args"])  # click's standalone mode ends with sys.exit: the interpreter's own exit follows
-    sys.exit(0)
+    (main,) = entry_points(group="console_scripts", name="rlsac")
+    sys.exit(main.load()(request["args"]))  # click's standalone mode exits itself; the interpreter's exit follows
