@@ -71,7 +71,7 @@ def load_dag(repo: str | os.PathLike) -> dict[str, list[str]]:
     """{stage address: the addresses it depends on} of every stage with a command (DVC's graph; nothing hashed)."""
     from dvc.repo import Repo
 
-    from rlsac.runners.pipeline import _address
+    from rlsac.runners.plan import _address
 
     r = Repo(str(repo))
     try:
@@ -109,8 +109,8 @@ def stage_times(deps: dict[str, list[str]], table: dict[str, float]) -> dict[str
 
 def tails(deps: dict[str, list[str]], times: dict[str, float]) -> dict[str, float]:
     """Each stage's longest path to the end of the pipeline, itself included (what ``rlsac pipeline`` starts first:
-    rlsac.runners.pipeline.bottom_levels)."""
-    from rlsac.runners.pipeline import bottom_levels
+    rlsac.runners.priority.bottom_levels)."""
+    from rlsac.runners.priority import bottom_levels
 
     return bottom_levels(deps, times)
 
@@ -170,10 +170,10 @@ def group_of(address: str) -> str:
 def mlflow_times(uri: str, deps: dict[str, list[str]], repo: str | os.PathLike | None = None) -> dict[str, float]:
     """{address: seconds} of the stages of ``deps`` that a pipeline run of the MLflow store ``uri`` timed (its metric
     ``stage_s/<address>``, logged as the stage ended); of several runs, the latest's. ``repo``: only the runs of that
-    DVC repository (rlsac.runners.pipeline.logged_stage_times, which ``rlsac pipeline`` orders its stages by)."""
+    DVC repository (rlsac.runners.priority.logged_stage_times, which ``rlsac pipeline`` orders its stages by)."""
     from mlflow.tracking import MlflowClient
 
-    from rlsac.runners.pipeline import logged_stage_times
+    from rlsac.runners.priority import logged_stage_times
 
     if MlflowClient(uri).get_experiment_by_name("pipeline") is None:
         raise SystemExit(f"error: {uri}: no pipeline runs (experiment 'pipeline')")

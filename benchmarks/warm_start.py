@@ -32,7 +32,7 @@ def main() -> None:
     a = ap.parse_args()
     from rlsac.runners import warm
     from rlsac.runners.dvc_stage import python_bin_env
-    from rlsac.runners.pipeline import guard, start_guarded
+    from rlsac.runners.stage_task import guard, start_guarded
 
     env = python_bin_env({"OMP_NUM_THREADS": "1"})
     times: dict[str, list[float]] = {"cold": [], "warm": []}

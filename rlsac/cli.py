@@ -620,13 +620,14 @@ def verify(tracking: bool, platform_only: bool, **options) -> None:
 def pipeline(tracking: bool, stages: tuple[str, ...], recover: bool, **options) -> None:
     """Run the DVC pipeline's out-of-date stages (or STAGES: names, foreach groups or patterns, with what they
     need) as Ray tasks in dependency order, each its own command, recorded in dvc.lock as `dvc repro` records it
-    (rlsac.runners.pipeline, rlsac.runners.dvc_stage); exit 1 when one fails."""
+    (rlsac.runners.pipeline and its parts, rlsac.runners.dvc_stage); exit 1 when one fails."""
     from rlsac.errors import Interrupted
-    from rlsac.runners.pipeline import format_recovery, format_summary
     from rlsac.runners.pipeline import pipeline as run
+    from rlsac.runners.recovery import format_recovery
+    from rlsac.runners.summary import format_summary
 
     if recover:
-        from rlsac.runners.pipeline import recover as repair
+        from rlsac.runners.recovery import recover as repair
 
         if stages or options["dry_run"]:
             raise RlsacError(f"--recover only repairs a killed run; it takes no {'STAGES' if stages else '--dry-run'}")

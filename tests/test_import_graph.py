@@ -30,6 +30,9 @@ RUNNERS = (
     "rlsac.experiments.scale",
     "rlsac.experiments.ladder",
     "rlsac.runners.pipeline",
+    "rlsac.runners.schedule",
+    "rlsac.runners.stage_task",
+    "rlsac.runners.warm",
     "rlsac.experiments.quick",
 )
 

@@ -275,7 +275,7 @@ class FakeRay:
 
 
 def _fake_plan(tmp_path, deps: dict[str, list[str]], seconds: dict[str, float] | None = None) -> dict:
-    from rlsac.runners.pipeline import bottom_levels
+    from rlsac.runners.priority import bottom_levels
 
     return {"root": tmp_path, "todo": sorted(deps), "deps": deps, "priority": bottom_levels(deps, seconds or {})}
 
@@ -284,7 +284,8 @@ OPTIONS = {"gpus_per_train": 0.0, "gpu_stages": "*train*", "retries": 2}
 
 
 def test_the_ready_stage_with_the_longest_path_ahead_starts_first(tmp_path):
-    from rlsac.runners.pipeline import bottom_levels, schedule
+    from rlsac.runners.priority import bottom_levels
+    from rlsac.runners.schedule import schedule
 
     # a chain z1 -> z2 -> z3 and five short stages on their own: their names come first, their paths are shorter
     deps = {"z1": [], "z2": ["z1"], "z3": ["z2"], **{f"a{i}": [] for i in range(5)}}
@@ -302,7 +303,7 @@ def test_the_ready_stage_with_the_longest_path_ahead_starts_first(tmp_path):
 
 
 def test_expected_seconds_are_measured_else_the_groups_mean_else_one():
-    from rlsac.runners.pipeline import expected_seconds
+    from rlsac.runners.priority import expected_seconds
 
     measured = {"train@1": 100.0, "train@2": 300.0, "plot": 5.0}
     assert expected_seconds(["train@1", "train@3", "plot", "tables"], measured) == {
@@ -314,7 +315,7 @@ def test_the_order_takes_the_stage_times_earlier_runs_of_the_repository_logged(t
     (another repository's runs are left out); with tracking off every stage counts 1."""
     import mlflow
 
-    from rlsac.runners.pipeline import _priorities, stage_metric
+    from rlsac.runners.priority import _priorities, stage_metric
 
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
@@ -333,7 +334,7 @@ def test_the_order_takes_the_stage_times_earlier_runs_of_the_repository_logged(t
 
 
 def test_a_stage_prefers_the_node_of_its_parent_with_the_most_output_bytes():
-    from rlsac.runners.pipeline import _main_parent
+    from rlsac.runners.schedule import _main_parent
 
     plan = {"deps": {"c": ["a", "b", "x"], "d": ["x"]}}
     placed = {"a": ("node-1", 10), "b": ("node-2", 500)}  # x ran in an earlier run (or not on a node): no preference
@@ -345,7 +346,7 @@ class WorkerCrashedError(Exception):  # as Ray names a dead worker's error
 
 
 def test_only_a_lost_worker_is_retried_not_a_failed_task(tmp_path):
-    from rlsac.runners.pipeline import schedule
+    from rlsac.runners.schedule import schedule
 
     deps = {"k": [], "f": [], "after_k": ["k"]}
     fake = FakeRay(cpus=1, fail={"k": [WorkerCrashedError("died"), WorkerCrashedError("died")],

@@ -1794,7 +1794,7 @@ def _check_recovered(repo: Path) -> None:
     import psutil
 
     from rlsac.runners.dvc_stage import ASIDE
-    from rlsac.runners.pipeline import DRIVERS
+    from rlsac.runners.recovery import DRIVERS
 
     (note,) = (repo / DRIVERS).glob("*.json")
     session = json.loads(note.read_text())["session"]

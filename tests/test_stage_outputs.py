@@ -13,7 +13,8 @@ import yaml
 from test_ray_pipeline import _env, make_repo  # tests/ is on sys.path (pytest prepend mode)
 
 from rlsac.runners import dvc_stage
-from rlsac.runners.pipeline import _restore_interrupted, load_plan
+from rlsac.runners.plan import load_plan
+from rlsac.runners.recovery import _restore_interrupted
 
 
 def _repo(path: Path, cmd: str) -> Path:
@@ -132,7 +133,7 @@ def test_recover_puts_back_dead_drivers_outputs_only_and_ends_their_ray_processe
     from click.testing import CliRunner
 
     from rlsac.cli import cli
-    from rlsac.runners.pipeline import DRIVERS
+    from rlsac.runners.recovery import DRIVERS
 
     repo = _committed_repo(tmp_path / "repo")
     dead = _left_by_a_killed_driver(repo)

@@ -10,7 +10,7 @@ import pytest
 
 from rlsac.runners import warm
 from rlsac.runners.dvc_stage import python_bin_env
-from rlsac.runners.pipeline import start_guarded
+from rlsac.runners.stage_task import start_guarded
 
 ROOT = Path(__file__).resolve().parents[1]
 
