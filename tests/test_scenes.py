@@ -261,3 +261,42 @@ def test_shipped_matches_not_hdf5_and_write_with_shipped(tmp_path):
         import_scenes(ImportConf(src=str(src), out=str(out), min_matches=0, matches=str(shipped)), track=False,
                       write_matches=str(tmp_path / "again.h5"))
     assert not out.exists() and not (tmp_path / "again.h5").exists()
+
+
+def test_the_descriptor_table_holds_siftss_bins_at_every_kept_keypoint(fountain):
+    """The import describes each image once (rlsac.data.descriptor_table): a lookup gives the bins OpenCV's SIFT
+    computes at those keypoints whatever else shares the call; a keypoint it lacks, or another size, gives None."""
+    import cv2
+
+    from rlsac.data import descriptor_table
+
+    out, _ = fountain
+    d = out / "all" / "fountain-P11"
+    with h5py.File(d / "matches.h5") as fm:
+        m = fm["0001-0005"][()]
+    table = descriptor_table.Table.open(d, 12.0)
+    assert table is not None and descriptor_table.Table.open(d, 8.0) is None
+    try:
+        xy = np.concatenate([m[::-3, 2:4], m[:5, 2:4]])  # image 0005's side, reversed, a few twice
+        bins, size = table.lookup("0005", xy)
+        img = cv2.imread(str(d / "images" / "0005.jpg"), cv2.IMREAD_GRAYSCALE)
+        assert size == (img.shape[1], img.shape[0]) == (1024, 683)
+        np.testing.assert_array_equal(bins, descriptor_table.sift_bins(cv2.SIFT_create(), img, xy, 12.0))
+        assert bins.shape == (len(xy), 128) and bins.max() > 100
+        assert table.lookup("0005", np.array([[0.25, 0.5]])) is None and table.lookup("9999", xy) is None
+    finally:
+        table.close()
+
+
+def test_prepare_writes_the_same_bytes_with_and_without_the_table(fountain, tmp_path):
+    out, _ = fountain
+    conf = dict(root=str(out), split="all", scenes="fountain-P11", n_points=100, pool=400)
+    prepare(PrepareConf(**conf, out=str(tmp_path / "with.h5")), track=False, progress=False)
+    shutil.copytree(out, tmp_path / "bare")
+    (tmp_path / "bare" / "all" / "fountain-P11" / "descriptors.h5").unlink()
+    prepare(PrepareConf(**{**conf, "root": str(tmp_path / "bare")}, out=str(tmp_path / "without.h5")), track=False,
+            progress=False)
+    a, _ = fundamental.read(tmp_path / "with.h5")
+    b, _ = fundamental.read(tmp_path / "without.h5")
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)

@@ -29,7 +29,7 @@ import h5py
 import numpy as np
 import torch
 
-from rlsac.data import validity
+from rlsac.data import descriptor_table, validity
 from rlsac.data.fundamental import gt_fundamental, sampson
 from rlsac.errors import RlsacError
 from rlsac.io import atomic_path, check_writable, write_json
@@ -55,10 +55,13 @@ class ImportConf:
     # "" runs SIFT and matching here; a file (written by --write-matches) gives each pair's matches instead, as the
     # CVPR 2020 tutorial ships its matches: SIFT's low bits depend on the CPU's vendor (reports/platform.md)
     matches: str = ""
+    # the keypoint diameter of the scene's descriptor table (rlsac.data.descriptor_table): prepare's default
+    # (PrepareConf.kp_size), so that every file prepared from the import looks its descriptors up; 0 writes no table
+    descriptor_size: float = 12.0
 
     # OpenCV reads max_features=0 as "unlimited": a cap must be given
     ranges = {"max_features": "[1, inf)", "store_max_snn": "(0, inf)", "keep_snn": "(0, inf)",
-              "min_matches": "[0, inf)"}
+              "min_matches": "[0, inf)", "descriptor_size": "[0, inf)"}
 
     def scene_list(self) -> list[str]:
         if isinstance(self.scenes, (list, tuple)):
@@ -293,6 +296,8 @@ def _import_scene(src: Path, dst_parent: Path, conf: ImportConf, progress: bool,
         _write_h5(stage / "K1_K2.h5", kk)
         _write_h5(stage / "R.h5", {i: cams[i]["R"].T for i in ids})
         _write_h5(stage / "T.h5", {i: (-cams[i]["R"].T @ cams[i]["C"]).reshape(3, 1) for i in ids})
+        if conf.descriptor_size > 0:  # described once here, not again by each file prepared from the scene
+            descriptor_table.write(stage / descriptor_table.FILE, stage / "images", matches, conf.descriptor_size)
         final = dst_parent / src.name
         if final.exists():
             old = Path(tempfile.mkdtemp(prefix=f".{src.name}.", suffix=".old", dir=dst_parent))

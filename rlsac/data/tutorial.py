@@ -33,7 +33,7 @@ import cv2
 import h5py
 import numpy as np
 
-from rlsac.data import sift_record
+from rlsac.data import descriptor_table, sift_record
 from rlsac.data.fundamental import KIND, N_FEATURES, gt_inliers
 from rlsac.errors import RlsacError
 from rlsac.io import atomic_path, open_h5, read_array, write_json
@@ -206,13 +206,15 @@ def describe(sift, img: np.ndarray, xy: np.ndarray, size: float, rootsift: bool,
              recorded: dict | None = None) -> np.ndarray:
     """SIFT descriptors (M,128) float32 at the given pixel locations, upright, fixed size. ``recorded``: the
     record's raw descriptors of this image (rlsac.data.sift_record), put back before the normalisation."""
+    return finish(descriptor_table.sift_bins(sift, img, xy, size), xy, rootsift, recorded)
+
+
+def finish(bins: np.ndarray, xy: np.ndarray, rootsift: bool, recorded: dict | None = None) -> np.ndarray:
+    """Raw SIFT bins (M,128) at ``xy`` -> the descriptors: the record's bins put back (rlsac.data.sift_record), then
+    RootSIFT or L2 normalisation."""
     if len(xy) == 0:
         return np.zeros((0, 128), np.float32)
-    kps = [cv2.KeyPoint(float(x), float(y), size, 0.0, 0.0, 0) for x, y in xy]
-    out, desc = sift.compute(img, kps)
-    if desc is None or len(out) != len(kps):
-        raise RuntimeError(f"OpenCV SIFT compute returned {0 if desc is None else len(out)} of {len(kps)} descriptors")
-    desc = sift_record.apply(desc.astype(np.float32), xy, recorded or {})
+    desc = sift_record.apply(bins.astype(np.float32), xy, recorded or {})
     if rootsift:
         desc = np.sqrt(desc / np.maximum(desc.sum(1, keepdims=True), 1e-12))
     else:
@@ -253,21 +255,37 @@ def _prepare_scene(scene: Scene, conf: PrepareConf, skipped: dict, progress: boo
         uses[p["id2"]].append((i, 1))
     for p in pairs:
         p["desc"] = [None, None]
-    for image in tqdm(sorted(uses), desc=f"{scene.name}: descriptors", unit="img", disable=not progress, leave=False):
-        img = load_gray(scene.dir / "images" / f"{image}.jpg")
-        h, w = img.shape[:2]
-        xy = np.concatenate([pairs[i]["matches"][:, 2 * s : 2 * s + 2] for i, s in uses[image]])
-        desc = describe(sift, img, xy, float(conf.kp_size), bool(conf.rootsift),
-                        sift_record.recorded(scene.name, image, conf.kp_size))
-        start = 0
-        for i, s in uses[image]:
-            n = pairs[i]["n"]
-            pairs[i]["desc"][s] = desc[start : start + n]
-            pairs[i][f"size{s + 1}"] = (w, h)
-            start += n
+    table = descriptor_table.Table.open(scene.dir, float(conf.kp_size))  # the import's, where it has one
+    try:
+        for image in tqdm(sorted(uses), desc=f"{scene.name}: descriptors", unit="img", disable=not progress,
+                          leave=False):
+            xy = np.concatenate([pairs[i]["matches"][:, 2 * s : 2 * s + 2] for i, s in uses[image]])
+            found = table.lookup(image, xy) if table is not None else None
+            if found is not None:
+                bins, (w, h) = found
+            else:
+                img = load_gray(scene.dir / "images" / f"{image}.jpg")
+                h, w = img.shape[:2]
+                bins = descriptor_table.sift_bins(sift, img, xy, float(conf.kp_size))
+            _place(pairs, uses[image], finish(bins, xy, bool(conf.rootsift),
+                                              sift_record.recorded(scene.name, image, conf.kp_size)), (w, h))
+    finally:
+        if table is not None:
+            table.close()
     for p in pairs:
         p["scene"] = scene.name
     return pairs
+
+
+def _place(pairs: list[dict], uses: list[tuple[int, int]], desc: np.ndarray, size: tuple[int, int]) -> None:
+    """One image's descriptors, in the order of its ``uses`` (pair index, side), into those pairs."""
+    w, h = size
+    start = 0
+    for i, s in uses:
+        n = pairs[i]["n"]
+        pairs[i]["desc"][s] = desc[start : start + n]
+        pairs[i][f"size{s + 1}"] = (w, h)
+        start += n
 
 
 def _assemble(pairs: list[dict], N: int) -> dict[str, np.ndarray]:
