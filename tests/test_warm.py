@@ -22,9 +22,13 @@ def synth(out: Path, extra: str = "") -> list[str]:
 
 def run(argv, log: Path, start, **kw):
     with open(log, "wb") as f:
+        f.write(b"> the runner's line before the command\n")
+        f.flush()
         proc = start(argv, cwd=str(ROOT), env=python_bin_env({}), stdout=f, stderr=subprocess.STDOUT,
                      stdin=subprocess.DEVNULL, close_fds=True, **kw)
-        return proc, proc.wait()
+        rc = proc.wait()
+        f.write(b"the runner's line after it\n")  # after the command's output, as DVC's error line is
+        return proc, rc
 
 
 def warm_start(argv, **kw):
@@ -59,7 +63,8 @@ def test_exit_status_and_error_as_cold(tmp_path):
     assert isinstance(hot, warm.WarmProcess)
     assert rc_hot == rc_cold == 2
     assert (tmp_path / "warm.log").read_text() == (tmp_path / "cold.log").read_text()
-    assert (tmp_path / "warm.log").read_text().startswith("error: ")
+    assert (tmp_path / "warm.log").read_text().splitlines()[1:] == [
+        "error: outlier rate must be in [0, 1), got 2.0", "the runner's line after it"]
 
 
 def test_shell_syntax_other_programs_and_opt_out_start_cold(tmp_path):

@@ -78,8 +78,8 @@ def _base(env: dict[str, str]) -> dict[str, str]:
 class WarmProcess:
     """What ``start`` returns for a warm stage: the child's ``pid`` and ``wait()`` -> its exit status (Popen's)."""
 
-    def __init__(self, server: Server, pid: int):
-        self.server, self.pid, self.returncode = server, pid, None
+    def __init__(self, server: Server, pid: int, out):
+        self.server, self.pid, self.returncode, self.out = server, pid, None, out
 
     def wait(self) -> int:
         if self.returncode is None:
@@ -94,6 +94,10 @@ class WarmProcess:
             self.returncode = int(reply["rc"]) if reply is not None else -signal.SIGKILL
             if reply is None:
                 self.server.close()
+            # the child appended to the log through a descriptor of its own: the caller's next line goes after it
+            # (a cold child shares the caller's file offset)
+            with contextlib.suppress(OSError, ValueError):
+                self.out.seek(0, os.SEEK_END)
         return self.returncode
 
     def poll(self) -> int | None:
@@ -186,7 +190,7 @@ def start(argv: list[str], guard: Callable[[int], None], cold: Callable[..., Any
         stop()  # the child reads EOF instead of "go" and exits NOT_STARTED
         raise
     server.send("go")
-    return WarmProcess(server, pid)
+    return WarmProcess(server, pid, out)
 
 
 def stop() -> None:
