@@ -2,6 +2,7 @@
 the bytes, the log and the exit status a cold one does; anything a shell would expand starts cold; a caller that
 goes away before "go" leaves a child that never ran."""
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -101,3 +102,25 @@ def test_a_caller_gone_before_go_leaves_a_child_that_never_ran(tmp_path):
     # the next stage gets a new warm process
     hot, rc = run(synth(tmp_path / "next.h5"), tmp_path / "next.log", warm_start)
     assert isinstance(hot, warm.WarmProcess) and rc == 0 and (tmp_path / "next.h5").exists()
+
+
+def test_stop_all_ends_a_stage_command_still_running(tmp_path):
+    """An interrupted caller (rlsac verify's Ctrl-C) ends its warm processes' running commands, as a cold child would
+    have ended on the terminal's signal: the threads waiting on them return."""
+    import threading
+    import time
+
+    argv = synth(tmp_path / "long.h5").copy()
+    argv[-1] = argv[-1].replace("--n-instances 12", "--n-instances 5000000")
+    with open(tmp_path / "log", "wb") as f:
+        proc = warm_start(argv, cwd=str(ROOT), env=python_bin_env({}), stdout=f, stderr=subprocess.STDOUT)
+        got = []
+        waiter = threading.Thread(target=lambda: got.append(proc.wait()))
+        waiter.start()
+        time.sleep(2.0)
+        assert not got  # still running
+        warm.stop_all()
+        waiter.join(timeout=20)
+    assert got and got[0] != 0 and not (tmp_path / "long.h5").exists()
+    with pytest.raises(ProcessLookupError):
+        os.killpg(proc.pid, 0)

@@ -94,6 +94,7 @@ class WarmProcess:
             self.returncode = int(reply["rc"]) if reply is not None else -signal.SIGKILL
             if reply is None:
                 self.server.close()
+            self.server.child = None
             # the child appended to the log through a descriptor of its own: the caller's next line goes after it
             # (a cold child shares the caller's file offset)
             with contextlib.suppress(OSError, ValueError):
@@ -110,6 +111,7 @@ class Server:
 
     def __init__(self, env: dict[str, str]):
         self.env = _base(env)
+        self.child: int | None = None  # the stage command running now (its pid and process group)
         # in the interpreter's bin folder, as the `rlsac` script's sys.path[0] is: the driver's working directory
         # (a checkout with rlsac/ in it) is not on the warm process's path
         self.proc = subprocess.Popen([sys.executable, "-c", "from rlsac.runners.warm import serve; serve()"],
@@ -190,6 +192,7 @@ def start(argv: list[str], guard: Callable[[int], None], cold: Callable[..., Any
         stop()  # the child reads EOF instead of "go" and exits NOT_STARTED
         raise
     server.send("go")
+    server.child = pid
     return WarmProcess(server, pid, out)
 
 
@@ -202,8 +205,12 @@ def stop() -> None:
 
 
 def stop_all() -> None:
-    """End every thread's warm process (a thread pool's, when its stages have ended)."""
+    """End every thread's warm process (a thread pool's, when its stages have ended) and a stage command still
+    running in one (SIGTERM: the caller was interrupted; a cold child would have had the terminal's signal)."""
     for server in list(_every):
+        if server.child is not None:
+            with contextlib.suppress(ProcessLookupError, PermissionError):
+                os.killpg(server.child, signal.SIGTERM)
         server.close()
 
 
