@@ -11,7 +11,8 @@ writes a cold one's bytes (tests/test_warm.py compares them).
 
 A command line with anything a shell would expand (``$``, globs, pipes, redirections), a program other than this
 interpreter's ``rlsac``, or an environment other than the warm process's (apart from DVC_ROOT and DVC_STAGE, which
-no module reads at import) starts cold, through the caller's ``start``. ``RLSAC_WARM=0`` starts every stage cold.
+no module reads at import) starts cold, through the caller's ``start``, as does every stage off Linux.
+``RLSAC_WARM=0`` starts every stage cold.
 
 Protocol (JSON lines on the warm process's stdin and stdout): a request {args, cwd, env, log} is answered
 {"pid"} once the child has its own session; the caller starts its guard on that process group and answers "go"
@@ -167,7 +168,9 @@ def start(argv: list[str], guard: Callable[[int], None], cold: Callable[..., Any
     before it runs. -> an object with ``pid`` and ``wait()``."""
     env = kwargs.get("env") or dict(os.environ)
     out = kwargs.get("stdout")
-    args = None if env.get(ENV, "1") == "0" else rlsac_args(argv, env)
+    # fork without exec is what Linux runs every day; elsewhere (macOS's system libraries) a stage starts cold
+    warm_here = env.get(ENV, "1") != "0" and sys.platform.startswith("linux")
+    args = rlsac_args(argv, env) if warm_here else None
     if (args is None or kwargs.get("stderr") != subprocess.STDOUT or not hasattr(out, "name")
             or getattr(_local, "failed", False)):
         return cold(argv, **kwargs)
