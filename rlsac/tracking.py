@@ -264,7 +264,10 @@ def start_run(experiment: str, run_name: str, params: dict[str, Any] | None = No
         if old is not None:
             active = mlflow.start_run(run_id=run_id)
         else:
-            active = mlflow.start_run(run_name=run_name)
+            # in the experiment set_experiment returned: where two processes create it at once, MLflow's
+            # set_experiment returns it without making it active, and start_run then took MLFLOW_EXPERIMENT_ID from
+            # the environment (a pipeline stage's run landed in the driver's "pipeline" experiment)
+            active = mlflow.start_run(run_name=run_name, experiment_id=exp.experiment_id)
     except RlsacError:
         raise
     except Exception as e:  # an unusable store: one line, not MLflow's traceback

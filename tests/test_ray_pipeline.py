@@ -426,7 +426,10 @@ def test_stages_log_to_one_mlflow_server(tmp_path, monkeypatch):
                               if p["key"] == "seed")
         assert seeds_logged == list(seeds)
         pipe = [r for r in runs if r["info"]["experiment_id"] == exps["pipeline"]]
+        where = {r["info"]["run_name"]: [k for k, v in exps.items() if v == r["info"]["experiment_id"]] for r in runs}
+        assert len(pipe) == 1, where
         metrics = {m["key"]: m["value"] for m in pipe[0]["data"]["metrics"]}
+        assert "n_done" in metrics, (where, sorted(metrics))
         assert metrics["n_done"] == len(seeds) and metrics["n_failed"] == 0
         assert {f"stage_s/s{i}" for i in seeds} <= set(metrics)
     shutil.rmtree(tmp_path / "mlflow-artifacts", ignore_errors=True)

@@ -114,3 +114,22 @@ def test_run_names_carry_the_data_folders_and_rlsac_ui_links_each_runs_table(wor
     (workdir / "mlflow.db").unlink()
     gone = run(cli, ["ui", "--links-only"])
     assert gone.exit_code == 2 and gone.output.startswith("error: ") and "no tracking store here" in gone.output
+
+
+def test_a_run_lands_in_its_experiment_when_another_process_created_it_at_once(tmp_path, monkeypatch):
+    """Two stages creating one experiment at once: MLflow's set_experiment then returns it without making it active
+    (its RESOURCE_ALREADY_EXISTS branch), and the run went to MLFLOW_EXPERIMENT_ID of the environment (the pipeline
+    driver's experiment, inherited by its stages)."""
+    import mlflow
+
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
+    client = mlflow.MlflowClient(uri)
+    driver = client.create_experiment("pipeline")
+    client.create_experiment("lines")  # made by the other stage a moment before
+    monkeypatch.setenv("MLFLOW_EXPERIMENT_ID", driver)
+    monkeypatch.setattr(mlflow.tracking.fluent, "_active_experiment_id", None)
+    monkeypatch.setattr(mlflow, "set_experiment", lambda name: client.get_experiment_by_name(name))  # the race's
+    with start_run("lines", "stage") as run:
+        pass
+    assert client.get_run(run.run_id).info.experiment_id == client.get_experiment_by_name("lines").experiment_id
