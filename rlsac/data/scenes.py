@@ -31,6 +31,7 @@ import torch
 
 from rlsac.data import descriptor_table, validity
 from rlsac.data.fundamental import gt_fundamental, sampson
+from rlsac.data.tutorial import PrepareConf
 from rlsac.errors import RlsacError
 from rlsac.io import atomic_path, check_writable, write_json
 from rlsac.progress import tqdm  # no bars unless a person watches (not under CI, not redirected)
@@ -55,9 +56,9 @@ class ImportConf:
     # "" runs SIFT and matching here; a file (written by --write-matches) gives each pair's matches instead, as the
     # CVPR 2020 tutorial ships its matches: SIFT's low bits depend on the CPU's vendor (reports/platform.md)
     matches: str = ""
-    # the keypoint diameter of the scene's descriptor table (rlsac.data.descriptor_table): prepare's default
-    # (PrepareConf.kp_size), so that every file prepared from the import looks its descriptors up; 0 writes no table
-    descriptor_size: float = 12.0
+    # the keypoint diameter of the scene's descriptor table (rlsac.data.descriptor_table): prepare's default, so
+    # that every file prepared from the import looks its descriptors up; 0 writes no table
+    descriptor_size: float = PrepareConf.kp_size
 
     # OpenCV reads max_features=0 as "unlimited": a cap must be given
     ranges = {"max_features": "[1, inf)", "store_max_snn": "(0, inf)", "keep_snn": "(0, inf)",

@@ -216,9 +216,13 @@ def check_inputs(root: Path, selected: list[dict], stages: list[dict]) -> None:
 
 def producer(path: str, stages: list[dict]) -> str | None:
     """The one stage whose output is ``path``, holds it, or lies inside it (None if none or several)."""
-    found = {s["address"] for s in stages for o in s["outs"]
-             if o == path or path.startswith(o + "/") or o.startswith(path + "/")}
+    found = {s["address"] for s in stages for o in s["outs"] if _meets(o, path)}
     return found.pop() if len(found) == 1 else None
+
+
+def _meets(p: str, q: str) -> bool:
+    """Whether two repository paths are one, or one lies inside the other (a folder output and a file in it)."""
+    return p == q or p.startswith(q.rstrip("/") + "/") or q.startswith(p.rstrip("/") + "/")
 
 
 # ------------------------------------------------------------------ scratch copy
@@ -289,16 +293,13 @@ def _run_all(root: Path, work: Path, scratch: Path, selected: list[dict], report
     results: dict[str, dict] = {}
     pending, running = list(selected), {}
 
-    def one(s: dict) -> dict:
-        return run_stage(s, root, work, scratch, env, ignore, tolerance)
-
     with tqdm(total=len(selected), desc="verify", unit="stage", disable=None, leave=False) as bar, \
             ThreadPoolExecutor(max_workers=workers) as pool, contextlib.ExitStack() as stack:
         stack.callback(warm.stop_all)  # the threads' warm processes, once every stage has ended
         while pending or running:
             for s in [s for s in pending if not any(_overlap(s, r) for r in running.values())][:workers - len(running)]:
                 pending.remove(s)
-                running[pool.submit(one, s)] = s
+                running[pool.submit(run_stage, s, root, work, scratch, env, ignore, tolerance)] = s
             bar.set_postfix_str(",".join(s["address"] for s in running.values()))
             done, _ = wait(running, return_when=FIRST_COMPLETED)
             for f in done:
@@ -313,11 +314,8 @@ def _run_all(root: Path, work: Path, scratch: Path, selected: list[dict], report
 def _overlap(a: dict, b: dict) -> bool:
     """Whether stages ``a`` and ``b`` may not run at once: an output of one is, holds or lies in a path the other
     reads or writes."""
-    def meets(p: str, q: str) -> bool:
-        return p == q or p.startswith(q.rstrip("/") + "/") or q.startswith(p.rstrip("/") + "/")
-
-    return any(meets(o, p) for o in a["outs"] for p in b["deps"] + b["outs"]) or \
-        any(meets(o, p) for o in b["outs"] for p in a["deps"])
+    return any(_meets(o, p) for o in a["outs"] for p in b["deps"] + b["outs"]) or \
+        any(_meets(o, p) for o in b["outs"] for p in a["deps"])
 
 
 def run_stage(s: dict, root: Path, work: Path, scratch: Path, env: dict, ignore,
