@@ -74,6 +74,20 @@ def _store_lock(uri: str):
     return FileLock(uri[len(prefix):] + ".lock", timeout=600)
 
 
+def client(uri: str | None = None):
+    """An MLflow client of the store at ``uri`` (MLFLOW_TRACKING_URI, else DEFAULT_URI), made under the store lock:
+    making one opens the store, which runs MLflow's schema migrations on a new file. Unlocked, a command that only
+    reads the store (check_store's look-up of an experiment) raced another's migrations on a fresh ``mlflow.db``
+    and left it unusable ("table _alembic_tmp_experiments already exists": every stage of a --workers 2 verify
+    failed)."""
+    _quiet()
+    import mlflow
+
+    uri = uri or os.environ.get("MLFLOW_TRACKING_URI", DEFAULT_URI)
+    with _store_lock(uri):
+        return mlflow.MlflowClient(uri)
+
+
 def store_path(uri: str | None = None) -> Path | None:
     """The database file of a ``sqlite:///`` tracking URI (None for other stores)."""
     uri = uri or os.environ.get("MLFLOW_TRACKING_URI", DEFAULT_URI)
@@ -114,12 +128,8 @@ def artifact_path(experiment: str) -> Path | None:
         return None
     location = None
     if db.is_file():
-        _quiet()
-        import mlflow
-
         try:
-            exp = mlflow.MlflowClient(os.environ.get("MLFLOW_TRACKING_URI", DEFAULT_URI)).get_experiment_by_name(
-                experiment)
+            exp = client().get_experiment_by_name(experiment)
         except Exception:  # an unreadable store fails later with its own one-line error (start_run)
             exp = None
         location = exp.artifact_location if exp is not None else None
@@ -146,12 +156,8 @@ def command_name() -> str | None:
 
 def run_status(run_id: str) -> str | None:
     """Status of run ``run_id`` in the current store (RUNNING, FINISHED, FAILED, KILLED), None if absent."""
-    _quiet()
-    import mlflow
-
-    mlflow.set_tracking_uri(os.environ.get("MLFLOW_TRACKING_URI", DEFAULT_URI))
     try:
-        return mlflow.MlflowClient().get_run(run_id).info.status
+        return client().get_run(run_id).info.status
     except Exception:  # deleted, or from another store
         return None
 
@@ -353,13 +359,10 @@ RUNS_PAGE = "/#/experiments/{id}/runs?workflowType=machine_learning&viewStateSha
 def runs_links(uri: str, base: str) -> list[dict[str, Any]]:
     """[{"name", "id", "runs", "url"}] of every experiment of the store at ``uri`` that holds runs, ``url`` its runs
     table on the UI served at ``base`` (``http://host:port``)."""
-    _quiet()
-    import mlflow
-
-    client = mlflow.MlflowClient(uri)
+    store = client(uri)
     out = []
-    for e in client.search_experiments():
-        n = len(client.search_runs([e.experiment_id], max_results=1000))
+    for e in store.search_experiments():
+        n = len(store.search_runs([e.experiment_id], max_results=1000))
         if n:
             out.append({"name": e.name, "id": e.experiment_id, "runs": n,
                         "url": base + RUNS_PAGE.format(id=e.experiment_id)})

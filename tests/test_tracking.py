@@ -133,3 +133,30 @@ def test_a_run_lands_in_its_experiment_when_another_process_created_it_at_once(t
     with start_run("lines", "stage") as run:
         pass
     assert client.get_run(run.run_id).info.experiment_id == client.get_experiment_by_name("lines").experiment_id
+
+
+def test_reading_a_store_waits_for_the_lock_another_process_migrates_under(tmp_path, monkeypatch):
+    """A fresh mlflow.db exists from the moment a first process starts MLflow's migrations (under the store lock);
+    a second command's check_store read it at once, unlocked, and ran the migrations alongside: the store was
+    left with "_alembic_tmp_experiments already exists" (every stage of a two-worker verify failed)."""
+    import threading
+
+    from filelock import FileLock
+
+    from rlsac.tracking import check_store
+
+    db = tmp_path / "fresh.db"
+    db.touch()  # what the first process's migrations have made so far
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{db}")
+    monkeypatch.chdir(tmp_path)
+    holder = FileLock(str(db) + ".lock")
+    holder.acquire()
+    reader = threading.Thread(target=check_store, args=(True, "lines"), daemon=True)
+    reader.start()
+    reader.join(timeout=3)
+    waited = reader.is_alive()
+    read_meanwhile = db.stat().st_size
+    holder.release()
+    reader.join(timeout=120)
+    assert waited and read_meanwhile == 0, "check_store opened the store while another process held its lock"
+    assert not reader.is_alive()

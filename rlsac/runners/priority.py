@@ -63,9 +63,9 @@ def logged_stage_times(uri: str, addresses: list[str], repo: str | os.PathLike |
     (its metric ``stage_s/<address>``, logged as the stage ended); of several runs, the latest's; {} when the store
     has no pipeline run. ``repo``: only the runs of that DVC repository (their param ``repo``; the quick profile's
     stages have the same names)."""
-    from mlflow.tracking import MlflowClient
+    from rlsac.tracking import client as open_client
 
-    client = MlflowClient(uri)
+    client = open_client(uri)
     exp = client.get_experiment_by_name("pipeline")
     if exp is None:
         return {}
