@@ -66,12 +66,12 @@ def _store_lock(uri: str):
     MLflow's schema migrations and one fails with "table ... already exists"; creating the same
     experiment twice races the same way. A lock file next to the database orders them.
     """
-    prefix = "sqlite:///"
-    if not uri.startswith(prefix):
+    db = store_path(uri)
+    if db is None:
         return contextlib.nullcontext()
     from filelock import FileLock
 
-    return FileLock(uri[len(prefix):] + ".lock", timeout=600)
+    return FileLock(str(db) + ".lock", timeout=600)
 
 
 def client(uri: str | None = None):
