@@ -1778,7 +1778,8 @@ def _check_killed_pipeline(driver, started: Path, repo: Path) -> None:
     while run_of("stage").info.status == "RUNNING" and time.monotonic() < deadline:
         time.sleep(0.5)
     stage = run_of("stage")
-    assert stage.info.status == "KILLED" and stage.data.tags["error"] == "interrupted by SIGTERM", stage.data.tags
+    assert stage.info.status == "KILLED" and stage.data.tags["error"] == "interrupted by SIGTERM", (
+        stage.info.status, stage.data.tags, _processes())
     assert run_of("pipeline").info.status == "RUNNING"  # its process is gone: the next command closes it
     with start_run("lines", "next"):
         pass
@@ -1786,6 +1787,20 @@ def _check_killed_pipeline(driver, started: Path, repo: Path) -> None:
     assert pipeline.info.status == "KILLED" and "ended while the run was RUNNING" in pipeline.data.tags["error"]
     assert not (repo / "out").exists()
     _check_recovered(repo)
+
+
+def _processes() -> str:
+    """This host's processes (pid, parent, group, state, command line), for a failure's message."""
+    import contextlib
+
+    import psutil
+
+    rows = []
+    for p in psutil.process_iter(["pid", "ppid", "status", "cmdline"]):
+        with contextlib.suppress(psutil.Error, OSError):
+            rows.append(f"{p.info['pid']} {p.info['ppid']} {os.getpgid(p.pid)} {p.info['status']} "
+                        f"{' '.join(p.info['cmdline'] or [])[:120]}")
+    return "\n".join(rows)
 
 
 def _check_recovered(repo: Path) -> None:
@@ -1799,8 +1814,10 @@ def _check_recovered(repo: Path) -> None:
     (note,) = (repo / DRIVERS).glob("*.json")
     session = json.loads(note.read_text())["session"]
     assert list((repo / ASIDE).iterdir())  # what the next command repairs
+    before = _processes()  # what the failure message shows (CI once found "nothing to recover" here)
     r = CliRunner().invoke(cli, ["pipeline", "--recover", "--repo", str(repo)])
-    assert r.exit_code == 0 and "leftovers repaired: 1 set-aside outputs restored (out)" in r.output, r.output
+    assert r.exit_code == 0 and "leftovers repaired: 1 set-aside outputs restored (out)" in r.output, (
+        r.output, [(p.name, sorted(q.name for q in p.iterdir())) for p in (repo / ASIDE).iterdir()], before)
     assert not list((repo / ASIDE).iterdir()) and not note.exists()
     left = []
     for proc in psutil.process_iter(["cmdline"]):

@@ -5,6 +5,7 @@ files (seen: an interrupted `fold_data_points` stage took two tracked reports/fo
 from __future__ import annotations
 
 import contextlib
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -160,3 +161,74 @@ def test_recover_puts_back_dead_drivers_outputs_only_and_ends_their_ray_processe
     assert r.exit_code == 0 and "nothing to recover" in r.output, r.output
     r = CliRunner().invoke(cli, ["pipeline", "--recover", "--repo", str(tmp_path / "no-repo")])
     assert r.exit_code == 2 and "not in a DVC repository" in r.stderr, r.output
+
+
+def _zombie_group_leader() -> subprocess.Popen:
+    """A process group whose only member has exited but was never reaped (a zombie): what an orphaned stage shell
+    leaves where PID 1 reaps nothing (docker without --init, the official CI's sandbox). ``wait()`` it afterwards."""
+    import signal
+    import time
+
+    import psutil
+
+    proc = subprocess.Popen(["sleep", "60"], start_new_session=True)
+    os.kill(proc.pid, signal.SIGKILL)
+    deadline = time.monotonic() + 10
+    while psutil.Process(proc.pid).status() != psutil.STATUS_ZOMBIE and time.monotonic() < deadline:
+        time.sleep(0.05)
+    os.killpg(proc.pid, 0)  # for killpg the group is still there
+    return proc
+
+
+def test_a_group_left_with_only_a_zombie_has_ended():
+    from rlsac.runners.process_group import group_alive
+
+    proc = subprocess.Popen(["sleep", "60"], start_new_session=True)
+    try:
+        assert group_alive(proc.pid)
+    finally:
+        proc.kill()
+        proc.wait()
+    assert not group_alive(proc.pid)
+    zombie = _zombie_group_leader()
+    try:
+        assert not group_alive(zombie.pid)
+    finally:
+        zombie.wait()
+
+
+def test_recover_does_not_wait_on_a_command_that_left_only_a_zombie(tmp_path):
+    """The official CI's failure (a SIGKILLed pipeline, then `--recover`: "nothing to recover"): the stage's shell,
+    orphaned by its dead worker, exited unreaped; killpg still found its group, so the outputs stayed set aside."""
+    from rlsac.runners.recovery import recover
+
+    repo = _committed_repo(tmp_path / "repo")
+    aside = _left_by_a_killed_driver(repo)
+    zombie = _zombie_group_leader()
+    try:
+        dvc_stage._note_pid(aside, zombie.pid)
+        r = recover(repo)
+    finally:
+        zombie.wait()
+    assert sorted(r["outputs"]) == ["a.txt", "out"], r  # before: 15 s waited on the zombie, then left set aside
+    assert (repo / "a.txt").read_text() == "good" and not aside.exists()
+
+
+def test_recover_ends_a_dead_workers_command_its_guard_did_not(tmp_path):
+    """A dead worker's command still running after the wait (its guard gone too): nothing would record what it
+    writes, so recover ends it and puts the outputs back (before: left set aside, "nothing to recover")."""
+    from rlsac.runners.recovery import recover
+
+    repo = _committed_repo(tmp_path / "repo")
+    aside = _left_by_a_killed_driver(repo)
+    proc = subprocess.Popen(["sleep", "120"], start_new_session=True)
+    try:
+        dvc_stage._note_pid(aside, proc.pid)
+        r = dvc_stage.recover(repo, wait_s=0.5)
+        assert proc.wait(timeout=10) == -15  # SIGTERM: it could end its run as an interrupted rlsac command does
+    finally:
+        proc.kill()
+        proc.wait()
+    assert sorted(r) == [str(repo / "a.txt"), str(repo / "out")], r
+    assert (repo / "a.txt").read_text() == "good" and not aside.exists()
+    assert recover(repo) == {"processes": 0, "outputs": []}

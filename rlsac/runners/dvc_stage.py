@@ -34,6 +34,7 @@ import json
 import os
 import re
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -370,15 +371,14 @@ def _note_pid(d: Path, pid: int | None) -> None:
 
 
 def _group_alive(d: Path) -> bool:
-    """Whether the command ``_note_pid`` noted in ``d`` still runs (another user's group of that id is not it)."""
+    """Whether the command ``_note_pid`` noted in ``d`` still runs (another user's group of that id is not it; an
+    unreaped zombie member does not count: rlsac.runners.process_group)."""
     pid = (d / "pid").read_text().strip() if (d / "pid").is_file() else ""
     if not pid:
         return False
-    try:
-        os.killpg(int(pid), 0)
-    except (ProcessLookupError, PermissionError):
-        return False
-    return True
+    from rlsac.runners.process_group import group_alive
+
+    return group_alive(int(pid))
 
 
 def restore(root: str | os.PathLike, spec: dict, wait_s: float = 0.0) -> bool:
@@ -412,7 +412,8 @@ def recover(root: str | os.PathLike, wait_s: float = 0.0) -> list[str]:
     """Put back the outputs that runs of dead processes set aside (a SIGKILLed ``rlsac pipeline``: its workers died
     with it, before any ``restore``; the outputs were missing from the tree until the stage ran again): the folders
     of ``ASIDE`` whose owner (the worker that moved them, on this host) is gone, once their command has ended too
-    (its guard ends it: ``wait_s``, else it is left for a later call). A folder of a live worker, or of another
+    (its guard ends it: ``wait_s``; one still running then, its guard gone, is ended here: nothing would record what
+    it writes). A folder of a live worker, or of another
     host's (a cluster sharing this folder), stays. -> the outputs of the stages restored (their paths: each as it
     was before the stage's command, there or absent)."""
     top = Path(root) / ASIDE
@@ -424,15 +425,29 @@ def recover(root: str | os.PathLike, wait_s: float = 0.0) -> list[str]:
             continue  # an older run's (no owner): the stage's next run restores it (``set_aside``)
         if not isinstance(owner, dict) or _alive(owner):
             continue
-        end = time.monotonic() + wait_s
-        while _group_alive(d) and time.monotonic() < end:
-            time.sleep(0.2)
-        if _group_alive(d):
+        if not _ended(d, wait_s):
             continue
         manifest = json.loads((d / "manifest.json").read_text()) if (d / "manifest.json").is_file() else []
         if _restore_dir(d):
             back += [p for p, _ in manifest]
     return back
+
+
+def _ended(d: Path, wait_s: float) -> bool:
+    """Wait up to ``wait_s`` for the command noted in ``d`` (of a dead worker) to end, as its guard ends it; then end
+    it here (SIGTERM, 5 s, SIGKILL). -> whether it has ended."""
+    end = time.monotonic() + wait_s
+    while _group_alive(d) and time.monotonic() < end:
+        time.sleep(0.2)
+    for sig, grace in ((signal.SIGTERM, 5.0), (signal.SIGKILL, 2.0)):
+        if not _group_alive(d):
+            return True
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.killpg(int((d / "pid").read_text()), sig)
+        end = time.monotonic() + grace
+        while _group_alive(d) and time.monotonic() < end:
+            time.sleep(0.2)
+    return not _group_alive(d)
 
 
 def record(stage) -> dict[str, Any]:
@@ -504,8 +519,6 @@ class _Failed(Exception):
     """A command line of the stage exited non-zero (DVC's StageCmdFailedError, worded as DVC words it)."""
 
     def __init__(self, line: str, rc: int):
-        import signal
-
         how = f"exited with {rc}" if rc > 0 else f"killed by {signal.Signals(-rc).name}"
         self.message = f"ERROR: failed to reproduce: failed to run: {line}, {how}"
         super().__init__(self.message)

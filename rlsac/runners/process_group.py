@@ -1,0 +1,30 @@
+"""Whether a stage command's process group still runs: a member that has exited but was never reaped (a zombie)
+does not count.
+
+``os.killpg(pgid, 0)`` succeeds while any member exists, zombies included. A stage's shell outlives its Ray worker
+as an orphan, and an orphan's exit is reaped by PID 1 or the nearest subreaper: in a container whose PID 1 reaps
+nothing (``docker run`` without ``--init``, some CI sandboxes) the group never ended for ``killpg``, and a killed
+pipeline's set-aside outputs were never put back (`rlsac pipeline --recover`: "nothing to recover").
+"""
+
+from __future__ import annotations
+
+import os
+
+import psutil
+
+
+def group_alive(pgid: int) -> bool:
+    """Whether process group ``pgid`` has a member that runs (any state but zombie or dead). A group of another
+    user's is treated as ended: its id is not ours."""
+    try:
+        os.killpg(pgid, 0)
+    except (ProcessLookupError, PermissionError):
+        return False
+    for p in psutil.process_iter():
+        try:
+            if os.getpgid(p.pid) == pgid and p.status() not in (psutil.STATUS_ZOMBIE, psutil.STATUS_DEAD):
+                return True
+        except (ProcessLookupError, psutil.Error):
+            continue  # it ended while we looked
+    return False
