@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,7 +13,7 @@ import torch
 
 from rlsac.errors import RlsacError
 from rlsac.evaluation import tune
-from rlsac.evaluation.evaluate import EvalOptions, check_options, run_name
+from rlsac.evaluation.evaluate import EvalOptions, check_options, mlflow_name, run_name
 from rlsac.tasks import get_task, opencv_threshold, prefiltered, task_for
 
 
@@ -41,10 +42,17 @@ def test_prefilter_clears_the_mask_above_the_ratio():
     assert prefiltered(task, batch, None) is batch
 
 
+CHECKPOINT = str(Path(__file__).resolve().parents[1] / "checkpoints/folds/hard/fountain/rlsac.pt")
+
+
 def test_evaluate_options_check_the_new_settings():
     base = {"task": "fundamental", "method": "ransac", "data": __file__}
     o = check_options({**base, "threshold_px": "0.5", "prefilter": 0.8})
     assert (o.threshold_px, o.prefilter, o.iterations, o.out_dir) == (0.5, 0.8, 1000, f"reports/eval/{run_name(o)}")
+    # the MLflow run's name tells the sampling ablation's rows apart (issue #63 item 5: a list that reads unopened)
+    names = {mlflow_name(check_options({**base, "method": "rlsac", "checkpoint": CHECKPOINT, "sampling": s}))
+             for s in ("max", "prob")}
+    assert len(names) == 2 and any(" rlsac prob " in n for n in names), names
     with pytest.raises(dataclasses.FrozenInstanceError):  # one object, checked once: nobody changes it after
         o.threshold_px = 1e300
     for bad in ({"threshold_px": 0}, {"prefilter": 1.5}, {"prefilter": 0}):

@@ -243,12 +243,14 @@ def run_name(o: EvalOptions) -> str:
 
 
 def mlflow_name(o: EvalOptions) -> str:
-    """The MLflow run's name: method, model, the data file with its folders (fold and regime), budget and seed
-    (``evaluate rlsac rlsac folds/hard/entry/test i1000 s0``); ``run_name`` names the default output folder."""
+    """The MLflow run's name: method, model, test-time sampling where not the paper's, the data file with its folders
+    (fold and regime), budget and seed (``evaluate rlsac rlsac folds/hard/entry/test i1000 s0``; the sampling
+    ablation's rows: ``evaluate rlsac rlsac prob ...``); ``run_name`` names the default output folder."""
     from rlsac.tracking import data_label
 
     model = f" {Path(o.checkpoint).stem}" if o.checkpoint else ""
-    return f"evaluate {o.method}{model} {data_label(o.data)} i{o.iterations} s{o.seed}"
+    sampling = f" {o.sampling}" if o.method == "rlsac" and o.sampling != "max" else ""
+    return f"evaluate {o.method}{model}{sampling} {data_label(o.data)} i{o.iterations} s{o.seed}"
 
 
 def make_estimator(o: EvalOptions, device: str) -> tuple[Task, Callable[[dict, torch.Generator], dict], dict]:
