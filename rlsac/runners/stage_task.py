@@ -27,6 +27,7 @@ KILL_GRACE_S = 10.0
 _GUARD = """
 import os, signal, sys, time
 import psutil
+sys.path.append(sys.argv[4])  # last, for a worker that found rlsac where a new interpreter would not
 from rlsac.runners.process_group import group_alive
 pgid, worker, grace = int(sys.argv[1]), int(sys.argv[2]), float(sys.argv[3])
 if os.fork():  # detach: Ray kills a dead worker's direct children, which would take this guard with them
@@ -88,11 +89,9 @@ def start_guarded(argv: list[str], **kwargs) -> subprocess.Popen:
 def guard(pgid: int) -> None:
     """Start the guard of process group ``pgid`` (a stage command's session): it ends the group if this worker
     dies, and itself once the group is gone; it watches when this returns."""
-    here = str(Path(__file__).resolve().parents[2])  # the guard imports rlsac.runners.process_group from this tree
-    path = os.pathsep.join(p for p in (here, os.environ.get("PYTHONPATH")) if p)
-    subprocess.run([sys.executable, "-c", _GUARD, str(pgid), str(os.getpid()), str(KILL_GRACE_S)],
-                   stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                   env={**os.environ, "PYTHONPATH": path})
+    here = str(Path(__file__).resolve().parents[2])  # the tree this rlsac is in: the guard imports from it
+    subprocess.run([sys.executable, "-c", _GUARD, str(pgid), str(os.getpid()), str(KILL_GRACE_S), here],
+                   stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
 
 def start_stage_command(argv: list[str], **kwargs):
