@@ -232,3 +232,38 @@ def test_recover_ends_a_dead_workers_command_its_guard_did_not(tmp_path):
     assert sorted(r) == [str(repo / "a.txt"), str(repo / "out")], r
     assert (repo / "a.txt").read_text() == "good" and not aside.exists()
     assert recover(repo) == {"processes": 0, "outputs": []}
+
+
+LATE = """import subprocess, sys
+subprocess.Popen([sys.executable, "-c", "import time; time.sleep(1.5); open('a.txt', 'w').write('late')"])
+sys.exit(1)
+"""
+
+
+def test_a_failed_stage_ends_what_its_command_left_running_before_restoring(tmp_path):
+    """A failed command whose child lives on (a Ray worker ending gracefully kills the stage's shell, not the shell's
+    child): the child wrote after the restore, so the failed stage changed a committed file. Its process group is
+    ended first now (rlsac.runners.process_group.end_group)."""
+    import time
+
+    from rlsac.runners.stage_task import start_guarded
+
+    repo = _repo(tmp_path / "repo", WRITE.format("good"))
+    assert _run(repo)["status"] == "done"
+    (repo / "late.py").write_text(LATE)
+    _repo(repo, "python late.py")
+    plan = load_plan(repo, runner="direct")
+    r = dvc_stage.run(str(plan["root"]), plan["specs"]["a"], _env(), str(repo / "a.log"), start=start_guarded)
+    assert r["status"] == "failed", r
+    time.sleep(2.5)  # past the child's write, had it lived
+    assert (repo / "a.txt").read_text() == "good" and (repo / "out" / "x").read_text() == "good"
+    assert not list((repo / dvc_stage.ASIDE).iterdir())
+
+
+def test_recover_removes_what_a_cut_short_removal_left(tmp_path):
+    """A worker killed while it removed its aside folder (after putting the outputs back) left part of it: renamed
+    first (``*.gone``), it holds nothing anyone needs, and recover removes it."""
+    top = tmp_path / dvc_stage.ASIDE
+    (top / f"0123456789abcdef.4242{dvc_stage.GONE}").mkdir(parents=True)
+    (top / f"0123456789abcdef.4242{dvc_stage.GONE}" / "pid").write_text("")
+    assert dvc_stage.recover(tmp_path) == [] and not list(top.iterdir())

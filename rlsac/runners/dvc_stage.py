@@ -43,6 +43,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from rlsac.errors import RlsacError
+from rlsac.runners.process_group import end_group, group_alive
 
 SCHEMA_HEAD = "schema: '2.0'\n"  # what DVC writes first in a new lock file (Lockfile.dump_stages)
 
@@ -306,6 +307,7 @@ def prepare(stage, root: str | os.PathLike, spec: dict) -> Path:
 
 
 ASIDE = Path(".dvc") / "tmp" / "rlsac-aside"  # under the repository's root; DVC's own .gitignore ignores .dvc/tmp
+GONE = ".gone"  # the suffix of an aside folder being removed (``_discard``)
 
 
 def aside_dir(root: str | os.PathLike, spec: dict) -> Path:
@@ -376,8 +378,6 @@ def _group_alive(d: Path) -> bool:
     pid = (d / "pid").read_text().strip() if (d / "pid").is_file() else ""
     if not pid:
         return False
-    from rlsac.runners.process_group import group_alive
-
     return group_alive(int(pid))
 
 
@@ -392,7 +392,7 @@ def restore(root: str | os.PathLike, spec: dict, wait_s: float = 0.0) -> bool:
 def _restore_dir(d: Path, wait_s: float = 0.0) -> bool:
     if not (d / "manifest.json").is_file():
         if d.exists():
-            shutil.rmtree(d)
+            _discard(d)
         return False
     end = time.monotonic() + wait_s
     while _group_alive(d) and time.monotonic() < end:
@@ -404,7 +404,7 @@ def _restore_dir(d: Path, wait_s: float = 0.0) -> bool:
         if key is not None:
             Path(path).parent.mkdir(parents=True, exist_ok=True)
             shutil.move(d / key, path)
-    shutil.rmtree(d)
+    _discard(d)
     return True
 
 
@@ -419,6 +419,9 @@ def recover(root: str | os.PathLike, wait_s: float = 0.0) -> list[str]:
     top = Path(root) / ASIDE
     back = []
     for d in sorted(top.iterdir()) if top.is_dir() else []:
+        if d.name.endswith(GONE):  # what a process killed while removing a folder left: nothing of it is needed
+            shutil.rmtree(d, ignore_errors=True)
+            continue
         try:
             owner = json.loads((d / "owner.json").read_text())
         except (OSError, ValueError):
@@ -435,19 +438,18 @@ def recover(root: str | os.PathLike, wait_s: float = 0.0) -> list[str]:
 
 def _ended(d: Path, wait_s: float) -> bool:
     """Wait up to ``wait_s`` for the command noted in ``d`` (of a dead worker) to end, as its guard ends it; then end
-    it here (SIGTERM, 5 s, SIGKILL). -> whether it has ended."""
-    end = time.monotonic() + wait_s
-    while _group_alive(d) and time.monotonic() < end:
-        time.sleep(0.2)
-    for sig, grace in ((signal.SIGTERM, 5.0), (signal.SIGKILL, 2.0)):
-        if not _group_alive(d):
-            return True
-        with contextlib.suppress(ProcessLookupError, PermissionError):
-            os.killpg(int((d / "pid").read_text()), sig)
-        end = time.monotonic() + grace
-        while _group_alive(d) and time.monotonic() < end:
-            time.sleep(0.2)
-    return not _group_alive(d)
+    it here (SIGTERM, 5 s, SIGKILL): nothing would record what it writes. -> whether it has ended."""
+    pid = (d / "pid").read_text().strip() if (d / "pid").is_file() else ""
+    return not pid or end_group(int(pid), wait_s)
+
+
+def _discard(d: Path) -> None:
+    """Remove the aside folder ``d``, renamed first (one atomic step): a process killed while removing it (a Ray
+    worker ended as it restored) leaves no part of it under its name, only a ``*.gone`` folder that ``recover``
+    removes."""
+    trash = d.with_name(f"{d.name}.{os.getpid()}{GONE}")
+    d.rename(trash)
+    shutil.rmtree(trash, ignore_errors=True)
 
 
 def record(stage) -> dict[str, Any]:
@@ -478,7 +480,7 @@ def run(root: str, spec: dict, env: dict[str, str], log: str,
     # DVC's paths are relative to the working directory (DVC_STAGE, .gitignore entries, hashing): `dvc repro` runs in
     # the repository's root, so the task does too, and gives the worker its directory back
     with open(log, "wb") as f, contextlib.chdir(root):
-        repo, aside = None, None
+        repo, aside, proc = None, None, None
         try:
             repo, stage = open_stage(root, spec)
             if not changed(stage):
@@ -498,11 +500,13 @@ def run(root: str, spec: dict, env: dict[str, str], log: str,
                     if out["rc"]:
                         raise _Failed(line, out["rc"])
                 out.update(record(stage), status="done")
-                shutil.rmtree(aside)
+                _discard(aside)
         except Exception as e:  # DVC's errors (a missing dependency or output) and a failed command: one line
             out["error"] = e.message if isinstance(e, _Failed) else f"ERROR: {' '.join(str(e).split())[:500]}"
             f.write(f"\n{out['error']}\n".encode())
             if aside is not None:  # the outputs as they were: a failed stage changes no file
+                if proc is not None:  # once what its command left running has ended (its shell killed, not its child)
+                    end_group(proc.pid)
                 restore(root, spec)
         finally:
             if repo is not None:

@@ -28,3 +28,25 @@ def group_alive(pgid: int) -> bool:
         except (ProcessLookupError, psutil.Error):
             continue  # it ended while we looked
     return False
+
+
+def end_group(pgid: int, wait_s: float = 0.0, grace_s: float = 5.0) -> bool:
+    """Wait up to ``wait_s`` for process group ``pgid`` to end by itself (a guard is ending it), then end it: SIGTERM,
+    ``grace_s`` to exit (an rlsac command ends its run KILLED), SIGKILL. -> whether it has ended."""
+    import signal
+    import time
+
+    end = time.monotonic() + wait_s
+    while group_alive(pgid) and time.monotonic() < end:
+        time.sleep(0.2)
+    for sig, grace in ((signal.SIGTERM, grace_s), (signal.SIGKILL, 2.0)):
+        if not group_alive(pgid):
+            return True
+        try:
+            os.killpg(pgid, sig)
+        except (ProcessLookupError, PermissionError):
+            return True
+        end = time.monotonic() + grace
+        while group_alive(pgid) and time.monotonic() < end:
+            time.sleep(0.2)
+    return not group_alive(pgid)
