@@ -372,13 +372,17 @@ def _note_pid(d: Path, pid: int | None) -> None:
     (d / "pid").write_text("" if pid is None else str(pid))
 
 
-def _group_alive(d: Path) -> bool:
-    """Whether the command ``_note_pid`` noted in ``d`` still runs (another user's group of that id is not it; an
-    unreaped zombie member does not count: rlsac.runners.process_group)."""
+def _noted_group(d: Path) -> int | None:
+    """The process group of the command ``_note_pid`` noted in ``d``; None while none runs."""
     pid = (d / "pid").read_text().strip() if (d / "pid").is_file() else ""
-    if not pid:
-        return False
-    return group_alive(int(pid))
+    return int(pid) if pid else None
+
+
+def _group_alive(d: Path) -> bool:
+    """Whether the command noted in ``d`` still runs (an unreaped zombie member does not count, nor another user's
+    group of that id: rlsac.runners.process_group)."""
+    group = _noted_group(d)
+    return group is not None and group_alive(group)
 
 
 def restore(root: str | os.PathLike, spec: dict, wait_s: float = 0.0) -> bool:
@@ -395,7 +399,7 @@ def _restore_dir(d: Path, wait_s: float = 0.0) -> bool:
             _discard(d)
         return False
     end = time.monotonic() + wait_s
-    while _group_alive(d) and time.monotonic() < end:
+    while _group_alive(d) and time.monotonic() < end:  # read each time: a worker notes each command line's group
         time.sleep(0.2)
     for path, key in json.loads((d / "manifest.json").read_text()):
         if key is not None and not (d / key).exists() and not (d / key).is_symlink():
@@ -439,8 +443,8 @@ def recover(root: str | os.PathLike, wait_s: float = 0.0) -> list[str]:
 def _ended(d: Path, wait_s: float) -> bool:
     """Wait up to ``wait_s`` for the command noted in ``d`` (of a dead worker) to end, as its guard ends it; then end
     it here (SIGTERM, 5 s, SIGKILL): nothing would record what it writes. -> whether it has ended."""
-    pid = (d / "pid").read_text().strip() if (d / "pid").is_file() else ""
-    return not pid or end_group(int(pid), wait_s)
+    group = _noted_group(d)
+    return group is None or end_group(group, wait_s)
 
 
 def _discard(d: Path) -> None:

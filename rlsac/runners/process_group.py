@@ -10,6 +10,8 @@ pipeline's set-aside outputs were never put back (`rlsac pipeline --recover`: "n
 from __future__ import annotations
 
 import os
+import signal
+import time
 
 import psutil
 
@@ -30,23 +32,26 @@ def group_alive(pgid: int) -> bool:
     return False
 
 
+def wait_group(pgid: int, wait_s: float) -> bool:
+    """Wait up to ``wait_s`` for process group ``pgid`` to end. -> whether it has ended."""
+    end = time.monotonic() + wait_s
+    while group_alive(pgid):
+        if time.monotonic() >= end:
+            return False
+        time.sleep(0.2)
+    return True
+
+
 def end_group(pgid: int, wait_s: float = 0.0, grace_s: float = 5.0) -> bool:
     """Wait up to ``wait_s`` for process group ``pgid`` to end by itself (a guard is ending it), then end it: SIGTERM,
     ``grace_s`` to exit (an rlsac command ends its run KILLED), SIGKILL. -> whether it has ended."""
-    import signal
-    import time
-
-    end = time.monotonic() + wait_s
-    while group_alive(pgid) and time.monotonic() < end:
-        time.sleep(0.2)
+    if wait_group(pgid, wait_s):
+        return True
     for sig, grace in ((signal.SIGTERM, grace_s), (signal.SIGKILL, 2.0)):
-        if not group_alive(pgid):
-            return True
         try:
             os.killpg(pgid, sig)
         except (ProcessLookupError, PermissionError):
             return True
-        end = time.monotonic() + grace
-        while group_alive(pgid) and time.monotonic() < end:
-            time.sleep(0.2)
-    return not group_alive(pgid)
+        if wait_group(pgid, grace):
+            return True
+    return False

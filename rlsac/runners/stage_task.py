@@ -25,10 +25,10 @@ KILL_GRACE_S = 10.0
 
 
 _GUARD = """
-import os, signal, sys, time
+import os, sys, time
 import psutil
 sys.path.append(sys.argv[4])  # last, for a worker that found rlsac where a new interpreter would not
-from rlsac.runners.process_group import group_alive
+from rlsac.runners.process_group import end_group, group_alive
 pgid, worker, grace = int(sys.argv[1]), int(sys.argv[2]), float(sys.argv[3])
 if os.fork():  # detach: Ray kills a dead worker's direct children, which would take this guard with them
     os._exit(0)
@@ -40,21 +40,11 @@ def alive(pid):
     except psutil.NoSuchProcess:
         return False
 
-def group():  # a member left a zombie (an orphan's exit, unreaped by PID 1) does not count
-    return group_alive(pgid)
-
 while alive(worker):
-    if not group():  # the stage ended: nothing to guard
+    if not group_alive(pgid):  # the stage ended: nothing to guard (a zombie member left does not count)
         sys.exit(0)
     time.sleep(0.5)
-for sig in (signal.SIGTERM, signal.SIGKILL):
-    try:
-        os.killpg(pgid, sig)
-    except ProcessLookupError:
-        sys.exit(0)
-    end = time.monotonic() + (grace if sig == signal.SIGTERM else 0)
-    while group() and time.monotonic() < end:
-        time.sleep(0.2)
+end_group(pgid, grace_s=grace)  # SIGTERM, the grace, SIGKILL
 """
 
 
